@@ -1,0 +1,300 @@
+"""Epipolar geometry on the sphere: F estimation, robust fitting, epipoles and relative pose.
+
+The report's constraint is ``b_iᵀ F b_j = 0`` with ``F = [T]× R⁻¹`` where ``R = R_j_from_i`` and ``T`` is camera j's
+centre in camera i's frame; in COLMAP terms ``F = E_j_from_iᵀ``. For calibrated spherical cameras F is an essential
+matrix, so every estimate is projected onto the essential manifold (singular values 1, 1, 0).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from fullview.sfm.camera import normalize, skew
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------------- linear estimation
+def _design_matrix(b_i: np.ndarray, b_j: np.ndarray) -> np.ndarray:
+    """Rows of the linear system b_iᵀ F b_j = 0 in the unknown vec(F) (row-major)."""
+    return (b_i[..., :, None] * b_j[..., None, :]).reshape(b_i.shape[:-1] + (9,))
+
+
+def project_to_essential(F: np.ndarray) -> np.ndarray:
+    """Nearest essential matrix (singular values 1, 1, 0), batched over leading axes."""
+    U, _, Vt = np.linalg.svd(F)
+    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+
+
+def estimate_f_linear(b_i: np.ndarray, b_j: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Normalised 8-point algorithm on bearings (unit vectors need no further scaling).
+
+    Works for (N, 3) inputs or batched (B, N, 3) inputs; returns (3, 3) or (B, 3, 3) essential matrices.
+    """
+    A = _design_matrix(normalize(b_i), normalize(b_j))
+    if weights is not None:
+        A = A * weights[..., :, None]
+    _, _, Vt = np.linalg.svd(A, full_matrices=True)
+    F = Vt[..., -1, :].reshape(A.shape[:-2] + (3, 3))
+    return project_to_essential(F)
+
+
+# --------------------------------------------------------------------------------------------- errors
+def epipolar_angular_errors(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray) -> np.ndarray:
+    """Symmetric angular distance (radians) of each bearing to the other's epipolar great circle.
+
+    The epipolar plane of b_j in camera i has normal F b_j; b_i's angle to that plane is asin(|b_i·n|/|n|).
+    Returns the larger of the two angles. Batched: F (B,3,3) with bearings (N,3) gives (B, N).
+    """
+    n_i = np.einsum("...ab,nb->...na", F, b_j)  # normals of epipolar planes in camera i
+    n_j = np.einsum("...ba,na->...nb", F, b_i)  # normals in camera j
+    num = np.abs(np.einsum("na,...na->...n", b_i, n_i))
+    s_i = num / np.maximum(np.linalg.norm(n_i, axis=-1), 1e-12)
+    s_j = num / np.maximum(np.linalg.norm(n_j, axis=-1), 1e-12)
+    return np.arcsin(np.clip(np.maximum(s_i, s_j), 0.0, 1.0))
+
+
+def _msac_scores(errors: np.ndarray, threshold: float) -> np.ndarray:
+    """MSAC cost (lower is better): truncated squared error."""
+    return np.minimum(errors, threshold) ** 2
+
+
+# --------------------------------------------------------------------------------------------- robust estimation
+@dataclass(kw_only=True)
+class RansacOptions:
+    threshold_rad: float  # inlier threshold on the angular epipolar error
+    max_iterations: int = 5000  # hard cap on hypotheses
+    min_iterations: int = 100  # never stop earlier than this
+    confidence: float = 0.9999  # adaptive stopping confidence
+    batch_size: int = 256  # hypotheses evaluated together (vectorised)
+    local_optimization_steps: int = 4  # iterative re-fits on inliers of each new best model
+    refine: bool = True  # final non-linear refinement of R, t on the inliers
+    seed: int = 0  # random seed for sampling
+
+
+@dataclass(kw_only=True)
+class FResult:
+    F: np.ndarray  # (3, 3) essential matrix, b_iᵀ F b_j = 0
+    inliers: np.ndarray  # (N,) bool
+    errors: np.ndarray  # (N,) angular epipolar error, radians
+    iterations: int  # hypotheses drawn (0 when seeded by hand points)
+
+
+def _local_optimization(b_i, b_j, F, threshold, steps):
+    """LO step: re-fit on inliers with a growing set, keep the best-scoring model."""
+    best_F, best_cost = F, _msac_scores(epipolar_angular_errors(F, b_i, b_j), threshold).sum()
+    for _ in range(steps):
+        errors = epipolar_angular_errors(best_F, b_i, b_j)
+        inliers = errors < threshold
+        if inliers.sum() < 8:
+            break
+        # Cauchy-like weights so that borderline inliers pull less than clean ones.
+        w = 1.0 / (1.0 + (errors[inliers] / threshold) ** 2)
+        cand = estimate_f_linear(b_i[inliers], b_j[inliers], w)
+        cost = _msac_scores(epipolar_angular_errors(cand, b_i, b_j), threshold).sum()
+        if cost >= best_cost - 1e-15:
+            break
+        best_F, best_cost = cand, cost
+    return best_F, best_cost
+
+
+def _required_iterations(inlier_ratio: float, confidence: float, sample_size: int = 8) -> float:
+    p = inlier_ratio**sample_size
+    if p <= 1e-12:
+        return np.inf
+    if p >= 1.0:
+        return 0.0
+    return np.log(1.0 - confidence) / np.log(1.0 - p)
+
+
+def ransac_f(b_i: np.ndarray, b_j: np.ndarray, options: RansacOptions) -> FResult:
+    """LO-MSAC on bearings with the 8-point minimal solver, angular errors, optional refinement."""
+    n = len(b_i)
+    if n < 8:
+        raise ValueError(f"need at least 8 correspondences for F, got {n}")
+    rng = np.random.default_rng(options.seed)
+    thr = options.threshold_rad
+    best_F, best_cost, drawn = None, np.inf, 0
+    while drawn < options.max_iterations:
+        batch = min(options.batch_size, options.max_iterations - drawn)
+        samples = np.argsort(rng.random((batch, n)), axis=1)[:, :8] if n < 64 else rng.integers(0, n, (batch, 8))
+        Fs = estimate_f_linear(b_i[samples], b_j[samples])
+        costs = _msac_scores(epipolar_angular_errors(Fs, b_i, b_j), thr).sum(axis=1)
+        drawn += batch
+        k = int(np.argmin(costs))
+        if costs[k] < best_cost:
+            best_F, best_cost = _local_optimization(b_i, b_j, Fs[k], thr, options.local_optimization_steps)
+        ratio = float((epipolar_angular_errors(best_F, b_i, b_j) < thr).mean())
+        if drawn >= options.min_iterations and drawn >= _required_iterations(ratio, options.confidence):
+            break
+    return _finish(b_i, b_j, best_F, thr, options.refine, drawn)
+
+
+def fit_f_seeded(b_i_seed: np.ndarray, b_j_seed: np.ndarray, b_i: np.ndarray, b_j: np.ndarray,
+                 threshold_rad: float, refine: bool = True) -> FResult:
+    """The report's data augmentation: F from hand points, keep the matches near its epipolar circles, re-fit."""
+    if len(b_i_seed) < 8:
+        raise ValueError(f"need at least 8 hand points for a seeded F, got {len(b_i_seed)}")
+    F_seed = estimate_f_linear(b_i_seed, b_j_seed)
+    # Hand points are kept as observations of the final fit: they are reliable, and they anchor the re-estimate.
+    all_i, all_j = np.concatenate([b_i_seed, b_i]), np.concatenate([b_j_seed, b_j])
+    F, _ = _local_optimization(all_i, all_j, F_seed, threshold_rad, steps=4)
+    result = _finish(all_i, all_j, F, threshold_rad, refine, 0)
+    m = len(b_i_seed)
+    return FResult(F=result.F, inliers=result.inliers[m:], errors=result.errors[m:], iterations=0)
+
+
+def _finish(b_i, b_j, F, threshold, refine, iterations) -> FResult:
+    inliers = epipolar_angular_errors(F, b_i, b_j) < threshold
+    if refine and inliers.sum() >= 8:
+        F = refine_f(F, b_i[inliers], b_j[inliers], threshold)
+    errors = epipolar_angular_errors(F, b_i, b_j)
+    return FResult(F=F, inliers=errors < threshold, errors=errors, iterations=iterations)
+
+
+# --------------------------------------------------------------------------------------------- refinement
+def _f_from_params(R0: np.ndarray, t0: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """F = [T]× Rᵀ with R = exp(ω) R0 and T on the sphere around t0 (2 tangent parameters)."""
+    R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
+    u, v = _tangent_basis(t0)
+    T = normalize(t0 + x[3] * u + x[4] * v)
+    return skew(T) @ R.T
+
+
+def _tangent_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = normalize(np.cross(d, a))
+    return u, np.cross(d, u)
+
+
+def refine_f(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: float) -> np.ndarray:
+    """Non-linear refinement of (R, T) minimising angular epipolar errors with a robust loss."""
+    R, T = decompose_f_svd(F)[0]  # any of the four decompositions spans the same F up to sign
+    def residuals(x):
+        Fx = _f_from_params(R, T, x)
+        n_i = b_j @ Fx.T
+        n_j = b_i @ Fx
+        num = np.einsum("na,na->n", b_i, n_i)
+        return np.concatenate([num / np.linalg.norm(n_i, axis=1), num / np.linalg.norm(n_j, axis=1)])
+    sol = least_squares(residuals, np.zeros(5), loss="soft_l1", f_scale=threshold / 2, method="trf", max_nfev=50)
+    return project_to_essential(_f_from_params(R, T, sol.x))
+
+
+# --------------------------------------------------------------------------------------------- decomposition
+def epipoles(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """e_i (Fᵀ e_i = 0) and e_j (F e_j = 0), unit vectors, signs arbitrary."""
+    U, _, Vt = np.linalg.svd(F)
+    return U[:, 2], Vt[2]
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The report's formula: the minimal rotation taking unit a onto unit b, R = I + [v]× + [v]×²(1−c)/s²."""
+    v, c = np.cross(a, b), float(a @ b)
+    s2 = float(v @ v)
+    if s2 < 1e-20:
+        if c > 0:
+            return np.eye(3)
+        axis, _ = _tangent_basis(a)  # a half turn about any axis orthogonal to a
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    V = skew(v)
+    return np.eye(3) + V + V @ V * (1.0 - c) / s2
+
+
+def report_rotation_candidates(F: np.ndarray) -> list[np.ndarray]:
+    """Rotations R_j_from_i consistent with F via the report's epipole formula.
+
+    The report sets R to the minimal rotation with e_j = −R e_i; that fixes R only up to a twist ψ about the
+    baseline. We keep its formula for R0 and recover ψ from F itself: with M = [e_i]× R0ᵀ and N = −M [e_j]×,
+    F ∝ cos ψ · M + sin ψ · N, a 2-parameter linear least-squares fit. Each sign choice of the epipoles gives
+    candidates; cheirality picks among them (see `relative_pose_from_f`).
+    """
+    e_i, e_j = epipoles(F)
+    out = []
+    for s_i in (1.0, -1.0):
+        for s_j in (1.0, -1.0):
+            a, b = s_i * e_i, s_j * e_j
+            R0 = rotation_between(-a, b)
+            M = skew(a) @ R0.T
+            N = -M @ skew(b)
+            coef, *_ = np.linalg.lstsq(np.stack([M.ravel(), N.ravel()], 1), F.ravel(), rcond=None)
+            psi = np.arctan2(coef[1], coef[0])
+            for twist in (psi, psi + np.pi):
+                out.append(Rotation.from_rotvec(twist * b).as_matrix() @ R0)
+    return out
+
+
+def decompose_f_svd(F: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Classic SVD decomposition of E = Fᵀ into the four (R_j_from_i, t_j_from_i) candidates."""
+    U, _, Vt = np.linalg.svd(F.T)
+    if np.linalg.det(U) < 0:
+        U = -U
+    if np.linalg.det(Vt) < 0:
+        Vt = -Vt
+    W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    t = U[:, 2]
+    return [(U @ W @ Vt, t), (U @ W @ Vt, -t), (U @ W.T @ Vt, t), (U @ W.T @ Vt, -t)]
+
+
+def ray_depths(b_i: np.ndarray, b_j: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Depths (a, b) of the report's midpoint triangulation, camera i at the origin, camera j centre c = −Rᵀt.
+
+    Minimises ‖a z_i − b Rᵀ z_j − c‖: the closed form of the 2×2 normal equations.
+    """
+    c = -R.T @ t
+    d_j = b_j @ R  # Rᵀ z_j for every row
+    aa = np.einsum("na,na->n", b_i, b_i)
+    bb = np.einsum("na,na->n", d_j, d_j)
+    ab = np.einsum("na,na->n", b_i, d_j)
+    ac, bc = b_i @ c, d_j @ c
+    det = aa * bb - ab * ab
+    det = np.where(np.abs(det) < 1e-12, 1e-12, det)
+    a = (bb * ac - ab * bc) / det
+    b = (ab * ac - aa * bc) / det
+    return a, b
+
+
+def cheirality_count(b_i, b_j, R, t) -> int:
+    a, b = ray_depths(b_i, b_j, R, t)
+    return int(np.count_nonzero((a > 0) & (b > 0)))
+
+
+@dataclass(kw_only=True)
+class RelativePose:
+    R_j_from_i: np.ndarray  # (3, 3) rotation
+    t_j_from_i: np.ndarray  # (3,) unit translation direction
+    e_i: np.ndarray  # (3,) epipole in camera i: direction of camera j's centre
+    e_j: np.ndarray  # (3,) epipole in camera j: direction of camera i's centre
+    num_cheiral: int  # inliers with both ray depths positive
+    svd_rotation_diff_deg: float  # angle between the report-formula R and the SVD decomposition's R
+
+
+def relative_pose_from_f(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray) -> RelativePose:
+    """R from the report's epipole formula, sign ambiguities resolved by cheirality; cross-checked with SVD."""
+    best = None
+    for R in report_rotation_candidates(F):
+        # With R fixed, F = [T]× Rᵀ gives T ∝ e_i; t = −R T; T's sign is the remaining ambiguity.
+        T = epipoles(F)[0]
+        for sign in (1.0, -1.0):
+            t = -R @ (sign * T)
+            residual = np.linalg.norm(_unit_sign(skew(sign * T) @ R.T) - _unit_sign(F))
+            score = (cheirality_count(b_i, b_j, R, t), -residual)
+            if residual < 1e-6 and (best is None or score > best[0]):
+                best = (score, R, t, sign * T)
+    if best is None:
+        raise ValueError("F is not an essential matrix: no rotation reproduces it")
+    (count, _), R, t, T = best
+    svd_best = max(decompose_f_svd(F), key=lambda Rt: cheirality_count(b_i, b_j, *Rt))
+    diff = np.degrees(Rotation.from_matrix(R @ svd_best[0].T).magnitude())
+    return RelativePose(R_j_from_i=R, t_j_from_i=t, e_i=T, e_j=t, num_cheiral=count, svd_rotation_diff_deg=float(diff))
+
+
+def _unit_sign(M: np.ndarray) -> np.ndarray:
+    """M scaled to unit Frobenius norm with a canonical sign, so ±F compare equal."""
+    M = M / np.linalg.norm(M)
+    k = np.argmax(np.abs(M))
+    return M * np.sign(M.flat[k])

@@ -1,0 +1,93 @@
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fullview.sfm import two_view as tv
+from fullview.sfm.camera import normalize, skew
+
+PIXEL = 2 * np.pi / 2048  # one pixel at the equator of a 2048-wide panorama
+
+
+def _scene(seed=0, n=300, noise=0.0, outliers=0.0):
+    rng = np.random.default_rng(seed)
+    R = Rotation.from_euler("xyz", rng.uniform(-0.5, 0.5, 3)).as_matrix()
+    c_j = rng.normal(size=3)  # camera j's centre in camera i's frame
+    t = -R @ c_j
+    P = rng.normal(size=(n, 3)) * 4  # points all around the sphere
+    b_i = normalize(P + rng.normal(size=(n, 3)) * noise * np.linalg.norm(P, axis=1, keepdims=True))
+    Pj = P @ R.T + t
+    b_j = normalize(Pj + rng.normal(size=(n, 3)) * noise * np.linalg.norm(Pj, axis=1, keepdims=True))
+    bad = rng.random(n) < outliers
+    b_j[bad] = normalize(rng.normal(size=(bad.sum(), 3)))
+    return b_i, b_j, R, normalize(t), ~bad
+
+
+def _rot_err_deg(A, B):
+    return np.degrees(Rotation.from_matrix(A @ B.T).magnitude())
+
+
+def test_report_constraint_holds_for_true_pose():
+    b_i, b_j, R, t, _ = _scene()
+    F = skew(-R.T @ t) @ R.T  # F = [T]x R^-1 with T = camera j's centre in frame i
+    assert np.abs(np.einsum("na,ab,nb->n", b_i, F, b_j)).max() < 1e-12
+
+
+def test_eight_point_exact_and_epipoles():
+    b_i, b_j, R, t, _ = _scene()
+    F = tv.estimate_f_linear(b_i[:8], b_j[:8])
+    assert tv.epipolar_angular_errors(F, b_i, b_j).max() < 1e-9
+    e_i, e_j = tv.epipoles(F)
+    T = normalize(-R.T @ t)
+    assert min(np.linalg.norm(e_i - T), np.linalg.norm(e_i + T)) < 1e-9
+    assert min(np.linalg.norm(e_j - t), np.linalg.norm(e_j + t)) < 1e-9
+
+
+def test_report_rotation_formula_maps_epipoles():
+    rng = np.random.default_rng(3)
+    a, b = normalize(rng.normal(size=3)), normalize(rng.normal(size=3))
+    R = tv.rotation_between(a, b)
+    assert np.allclose(R @ a, b) and np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1)
+    assert np.allclose(tv.rotation_between(a, -a) @ a, -a)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_relative_pose_matches_truth_and_svd(seed):
+    b_i, b_j, R, t, _ = _scene(seed)
+    F = tv.estimate_f_linear(b_i, b_j)
+    pose = tv.relative_pose_from_f(F, b_i, b_j)
+    assert _rot_err_deg(pose.R_j_from_i, R) < 1e-6
+    assert np.linalg.norm(pose.t_j_from_i - t) < 1e-6
+    assert pose.num_cheiral == len(b_i)
+    assert pose.svd_rotation_diff_deg < 1e-6
+
+
+def test_ransac_with_noise_and_outliers():
+    b_i, b_j, R, t, good = _scene(1, n=600, noise=0.5 * PIXEL / 4, outliers=0.5)
+    opts = tv.RansacOptions(threshold_rad=3 * PIXEL, seed=0)
+    res = tv.ransac_f(b_i, b_j, opts)
+    pose = tv.relative_pose_from_f(res.F, b_i[res.inliers], b_j[res.inliers])
+    assert _rot_err_deg(pose.R_j_from_i, R) < 0.05
+    assert np.degrees(np.arccos(np.clip(pose.t_j_from_i @ t, -1, 1))) < 0.2
+    recall = (res.inliers & good).sum() / good.sum()
+    precision = (res.inliers & good).sum() / res.inliers.sum()
+    assert recall > 0.95 and precision > 0.95
+
+
+def test_ransac_is_deterministic():
+    b_i, b_j, *_ = _scene(2, n=200, noise=1e-4, outliers=0.3)
+    opts = tv.RansacOptions(threshold_rad=3 * PIXEL, seed=7)
+    assert np.array_equal(tv.ransac_f(b_i, b_j, opts).F, tv.ransac_f(b_i, b_j, opts).F)
+
+
+def test_seeded_filter_augments_hand_points():
+    b_i, b_j, R, t, good = _scene(4, n=500, noise=0.3 * PIXEL / 4, outliers=0.6)
+    hand = np.flatnonzero(good)[:12]
+    res = tv.fit_f_seeded(b_i[hand], b_j[hand], b_i, b_j, threshold_rad=3 * PIXEL)
+    assert (res.inliers & good).sum() / good.sum() > 0.95
+    assert (res.inliers & ~good).sum() <= 0.02 * (~good).sum()
+
+
+def test_too_few_points_is_a_clear_error():
+    b_i, b_j, *_ = _scene(0, n=7)
+    with pytest.raises(ValueError, match="at least 8"):
+        tv.ransac_f(b_i, b_j, tv.RansacOptions(threshold_rad=0.01))
