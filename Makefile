@@ -1,0 +1,55 @@
+# fullview — make targets (see README). Python and dependencies live in .venv.
+PYTHON_SYS ?= python3
+VENV       := .venv
+PY         := $(VENV)/bin/python
+CONFIG     ?= pipeline.yaml
+WORKSPACE  ?= workspace
+SYNTH      := $(WORKSPACE)/datasets/synth6
+DATASET    ?=
+STAGE      ?=
+
+.PHONY: setup run stage status test bench clean eval synth
+
+$(VENV)/.installed: pyproject.toml
+	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0; then \
+	  echo "installing libusb-1.0-0 (needed by open3d)"; \
+	  (apt-get install -y libusb-1.0-0 || (apt-get update && apt-get install -y libusb-1.0-0)) >/dev/null; \
+	fi
+	$(PYTHON_SYS) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[test]"
+	@touch $@
+
+setup: $(VENV)/.installed
+
+$(SYNTH)/images: | $(VENV)/.installed
+	$(PY) -m fullview synth $(SYNTH) --views 6 --width 2048 --seed 0
+
+# With no DATASET: render the default synthetic scene once, reconstruct it, print the eval metrics.
+run: setup
+ifeq ($(DATASET),)
+	@$(MAKE) --no-print-directory $(SYNTH)/images
+	$(PY) -m fullview run $(SYNTH) -c $(CONFIG) -w $(WORKSPACE)
+	$(PY) -m fullview eval $(SYNTH) -w $(WORKSPACE)
+else
+	$(PY) -m fullview run $(DATASET) -c $(CONFIG) -w $(WORKSPACE)
+endif
+
+stage: setup
+	@test -n "$(STAGE)" || (echo "usage: make stage STAGE=<name> DATASET=<path>"; exit 2)
+	$(PY) -m fullview run $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE) --only $(STAGE)
+
+status: setup
+	$(PY) -m fullview status $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)
+
+eval: setup
+	$(PY) -m fullview eval $(or $(DATASET),$(SYNTH)) -w $(WORKSPACE)
+
+test: setup
+	$(PY) -m pytest tests
+
+bench: setup
+	$(PY) benchmarks/bench.py
+
+clean:
+	rm -rf $(WORKSPACE)

@@ -1,0 +1,5 @@
+import sys
+
+from fullview.cli import main
+
+sys.exit(main())

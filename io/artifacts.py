@@ -1,0 +1,110 @@
+"""Artifact formats: versioned npz, JSON, binary PLY; every write is atomic (temp file + os.replace)."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+FORMAT_KEY = "format_version"
+
+
+class ArtifactError(RuntimeError):
+    """An artifact on disk is missing, of another version, or lacks a key."""
+
+
+@contextmanager
+def atomic_path(path: Path) -> Iterator[Path]:
+    """Yield a temporary path beside `path`; on success it replaces `path`, on error it is removed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_npz(path: Path, version: int, **arrays: np.ndarray) -> Path:
+    """Write arrays plus a format version key; never pickles objects."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **{FORMAT_KEY: np.int64(version)}, **{k: np.asarray(v) for k, v in arrays.items()})
+    return Path(path)
+
+
+def load_npz(path: Path, version: int, keys: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """Load an npz written by `save_npz`, checking its version and required keys."""
+    path = Path(path)
+    if not path.exists():
+        raise ArtifactError(f"missing artifact {path}")
+    with np.load(path, allow_pickle=False) as data:
+        found = int(data[FORMAT_KEY]) if FORMAT_KEY in data else None
+        if found != version:
+            raise ArtifactError(f"{path}: format version {found}, expected {version}; rerun its stage")
+        missing = [k for k in keys if k not in data]
+        if missing:
+            raise ArtifactError(f"{path}: missing keys {missing}")
+        return {k: data[k] for k in data.files if k != FORMAT_KEY}
+
+
+def save_json(path: Path, obj) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+    return Path(path)
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def save_ply(path: Path, points: np.ndarray, colors: np.ndarray | None = None,
+             normals: np.ndarray | None = None) -> Path:
+    """Binary little-endian PLY with float32 xyz, optional float32 normals and uint8 rgb."""
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    rec = np.empty(len(points), dtype=fields)
+    rec["x"], rec["y"], rec["z"] = points.T
+    if normals is not None:
+        rec["nx"], rec["ny"], rec["nz"] = np.asarray(normals, np.float32).reshape(-1, 3).T
+    if colors is not None:
+        rec["red"], rec["green"], rec["blue"] = np.asarray(colors, np.uint8).reshape(-1, 3).T
+    ply_type = {"<f4": "float", "u1": "uchar"}
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header += [f"property {ply_type[t]} {n}" for n, t in fields] + ["end_header"]
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(("\n".join(header) + "\n").encode("ascii"))
+            f.write(rec.tobytes())
+    return Path(path)
+
+
+def load_ply(path: Path) -> dict[str, np.ndarray]:
+    """Read a binary PLY written by `save_ply` into named columns."""
+    with open(path, "rb") as f:
+        lines = []
+        while not lines or lines[-1] != "end_header":
+            lines.append(f.readline().decode("ascii").strip())
+        count = int(next(l for l in lines if l.startswith("element vertex")).split()[-1])
+        props = [l.split() for l in lines if l.startswith("property")]
+        dtype = [(p[2], {"float": "<f4", "uchar": "u1"}[p[1]]) for p in props]
+        rec = np.frombuffer(f.read(), dtype=dtype, count=count)
+    return {name: rec[name] for name, _ in dtype}

@@ -1,0 +1,124 @@
+"""SIFT features on the six faces of a cube map, returned as equirectangular pixels and unit bearings.
+
+SIFT on the raw panorama suffers from the equirectangular stretch (the report's failure); on cube faces the local
+geometry is nearly perspective. Each face covers 90° plus a margin so that blobs straddling a seam are detected
+with full support; a keypoint is then kept only by the face whose own 90° square contains its bearing, which removes
+the duplicates the overlapping margins create.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from fullview.sfm.camera import bearings_to_lonlat, bearings_to_pixels, normalize
+
+log = logging.getLogger(__name__)
+
+# Rotation face_from_cam... stored as cam_from_face: columns are the face's x (right), y (down), z (forward) axes.
+_FACE_AXES = {
+    "front": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    "right": ((0, 0, -1), (0, 1, 0), (1, 0, 0)),
+    "back": ((-1, 0, 0), (0, 1, 0), (0, 0, -1)),
+    "left": ((0, 0, 1), (0, 1, 0), (-1, 0, 0)),
+    "up": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
+    "down": ((1, 0, 0), (0, 0, -1), (0, 1, 0)),
+}
+FACE_NAMES = tuple(_FACE_AXES)
+
+
+def face_rotations() -> np.ndarray:
+    """(6, 3, 3) R_cam_from_face for the faces in FACE_NAMES order."""
+    return np.stack([np.array(_FACE_AXES[n], dtype=np.float64).T for n in FACE_NAMES])
+
+
+@dataclass(kw_only=True)
+class FeatureOptions:
+    face_size: int = 0  # cube face side in pixels; 0 = match the panorama's resolution at the face centre
+    margin_deg: float = 5.0  # extra field of view on each side of a face's 90°
+    max_features_per_face: int = 4000  # SIFT nfeatures per face (0 = unlimited)
+    contrast_threshold: float = 0.02  # SIFT contrast threshold (OpenCV default 0.04)
+    min_latitude_deg: float = -90.0  # mask: drop features below this latitude (tripod, hand)
+    max_latitude_deg: float = 90.0  # mask: drop features above this latitude
+    root_sift: bool = True  # Hellinger-normalised descriptors (RootSIFT)
+
+
+@dataclass(kw_only=True)
+class Features:
+    pixels: np.ndarray  # (N, 2) float64 equirectangular pixel coordinates in the input image
+    bearings: np.ndarray  # (N, 3) float64 unit bearings, camera frame
+    descriptors: np.ndarray  # (N, 128) float32 descriptors
+    scales: np.ndarray  # (N,) float32 keypoint size in face pixels
+    faces: np.ndarray  # (N,) uint8 index into FACE_NAMES of the detecting face
+
+
+def face_maps(face_size: int, margin_deg: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """cv2.remap maps of every face (6, S, S) and the face focal length in pixels."""
+    half_fov = np.radians(45.0 + margin_deg)
+    focal = 0.5 * face_size / np.tan(half_fov)
+    uv = (np.arange(face_size) + 0.5 - 0.5 * face_size) / focal
+    u, v = np.meshgrid(uv, uv)
+    rays_face = normalize(np.stack([u, v, np.ones_like(u)], axis=-1))
+    rays_cam = np.einsum("fab,hwb->fhwa", face_rotations(), rays_face)
+    pix = bearings_to_pixels(rays_cam.reshape(-1, 3), width, height).reshape(6, face_size, face_size, 2)
+    # remap samples at integer pixel centres: continuous x maps to index x - 0.5
+    return (pix[..., 0] - 0.5).astype(np.float32), (pix[..., 1] - 0.5).astype(np.float32), focal
+
+
+def native_face_size(width: int, margin_deg: float) -> int:
+    """Face side whose centre pixel spans the same angle as an equatorial panorama pixel."""
+    return int(round(2.0 * np.tan(np.radians(45.0 + margin_deg)) * width / (2.0 * np.pi)))
+
+
+def render_faces(image: np.ndarray, face_size: int, margin_deg: float) -> tuple[list[np.ndarray], float]:
+    """The six perspective faces of a panorama (wrap-around in longitude) and their focal length."""
+    height, width = image.shape[:2]
+    map_x, map_y, focal = face_maps(face_size, margin_deg, width, height)
+    faces = [cv2.remap(image, map_x[f], map_y[f], cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_WRAP) for f in range(6)]
+    return faces, focal
+
+
+def _face_keypoints_to_bearings(points: np.ndarray, face: int, face_size: int, focal: float) -> np.ndarray:
+    rays = np.column_stack([(points - 0.5 * face_size) / focal, np.ones(len(points))])
+    return normalize(rays @ face_rotations()[face].T)
+
+
+def _owned_by_face(bearings: np.ndarray, face: int) -> np.ndarray:
+    """True where the face's own 90° square contains the bearing (its axis dominates)."""
+    local = bearings @ face_rotations()[face]
+    return (local[:, 2] > 0) & (np.abs(local[:, 0]) <= local[:, 2]) & (np.abs(local[:, 1]) <= local[:, 2])
+
+
+def detect_features(image: np.ndarray, options: FeatureOptions) -> Features:
+    """SIFT on the cube faces of an equirectangular image (grey or BGR uint8)."""
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    height, width = grey.shape
+    face_size = options.face_size or native_face_size(width, options.margin_deg)
+    faces, focal = render_faces(grey, face_size, options.margin_deg)
+    sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=options.contrast_threshold)
+    parts = []
+    for f, face in enumerate(faces):
+        keypoints, desc = sift.detectAndCompute(face, None)
+        if not keypoints:
+            continue
+        pts = np.array([k.pt for k in keypoints], dtype=np.float64)
+        # OpenCV keypoint coordinates are pixel-centre based: continuous coordinate = pt + 0.5
+        bearings = _face_keypoints_to_bearings(pts + 0.5, f, face_size, focal)
+        keep = _owned_by_face(bearings, f)
+        sizes = np.array([k.size for k in keypoints], dtype=np.float32)
+        parts.append((bearings[keep], desc[keep], sizes[keep], np.full(keep.sum(), f, np.uint8)))
+    bearings = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 3))
+    desc = np.concatenate([p[1] for p in parts]) if parts else np.zeros((0, 128), np.float32)
+    sizes = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0, np.float32)
+    face_ids = np.concatenate([p[3] for p in parts]) if parts else np.zeros(0, np.uint8)
+    _, lat = bearings_to_lonlat(bearings)
+    keep = (lat >= np.radians(options.min_latitude_deg)) & (lat <= np.radians(options.max_latitude_deg))
+    desc = desc[keep]
+    if options.root_sift and len(desc):
+        desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)
+    return Features(pixels=bearings_to_pixels(bearings[keep], width, height), bearings=bearings[keep],
+                    descriptors=desc, scales=sizes[keep], faces=face_ids[keep])

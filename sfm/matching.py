@@ -1,0 +1,69 @@
+"""Descriptor matching: nearest neighbours by blocked matrix products, Lowe's ratio test, mutual check."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+
+
+@dataclass(kw_only=True)
+class MatchOptions:
+    ratio: float = 0.8  # Lowe's ratio test on descriptor distances
+    mutual: bool = True  # keep only mutual nearest neighbours
+    block_size: int = 4096  # rows per matrix-product block (bounds memory)
+
+
+def pair_list(num_images: int, mode: str = "exhaustive", window: int = 3) -> list[tuple[int, int]]:
+    """Image pairs (i < j): 'exhaustive', or 'sequential' (each image with its next `window` images)."""
+    if mode == "exhaustive":
+        return list(combinations(range(num_images), 2))
+    if mode == "sequential":
+        return [(i, j) for i in range(num_images) for j in range(i + 1, min(num_images, i + 1 + window))]
+    raise ValueError(f"unknown pair mode {mode!r} (expected 'exhaustive' or 'sequential')")
+
+
+def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int):
+    """One pass over the distance matrix, in row blocks.
+
+    Returns for each row of a its nearest row of b and the squared distances to the two nearest, and for each row
+    of b its nearest row of a (for the mutual check).
+    """
+    a_sq = np.einsum("ij,ij->i", a, a)
+    b_sq = np.einsum("ij,ij->i", b, b)
+    nn = np.empty(len(a), np.int64)
+    d2 = np.empty((len(a), 2), np.float32)
+    col_best = np.full(len(b), np.inf, np.float32)
+    col_arg = np.zeros(len(b), np.int64)
+    for s in range(0, len(a), block):
+        dist = (a[s:s + block] @ b.T) * np.float32(-2.0)
+        dist += b_sq[None, :]
+        dist += a_sq[s:s + block, None]
+        rows = np.arange(len(dist))
+        first = dist.argmin(axis=1)
+        d_first = dist[rows, first]
+        dist[rows, first] = np.inf
+        d_second = dist.min(axis=1)
+        dist[rows, first] = d_first
+        nn[s:s + block] = first
+        d2[s:s + block, 0], d2[s:s + block, 1] = d_first, d_second
+        arg = dist.argmin(axis=0)
+        val = dist[arg, np.arange(len(b))]
+        better = val < col_best
+        col_best[better], col_arg[better] = val[better], arg[better] + s
+    return nn, np.maximum(d2, 0.0), col_arg
+
+
+def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchOptions) -> np.ndarray:
+    """(M, 2) int array of (feature in i, feature in j) passing the ratio test (and the mutual check)."""
+    if len(desc_i) < 2 or len(desc_j) < 2:
+        return np.zeros((0, 2), np.int64)
+    desc_i = np.ascontiguousarray(desc_i, np.float32)
+    desc_j = np.ascontiguousarray(desc_j, np.float32)
+    nn_ij, d_ij, nn_ji = _nearest_both_ways(desc_i, desc_j, options.block_size)
+    keep = d_ij[:, 0] < (options.ratio**2) * d_ij[:, 1]
+    if options.mutual:
+        keep &= nn_ji[nn_ij] == np.arange(len(desc_i))
+    rows = np.flatnonzero(keep)
+    return np.column_stack([rows, nn_ij[rows]])

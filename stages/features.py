@@ -1,0 +1,46 @@
+"""Stage 1 — SIFT features on cube-map faces of every panorama (pixels, bearings, descriptors, colours)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from fullview.io.store import FEATURES_VERSION, save_features
+from fullview.io.dataset import Dataset
+from fullview.io.workspace import Workspace
+from fullview.sfm.features import FeatureOptions, detect_features
+
+log = logging.getLogger(__name__)
+
+VERSION = FEATURES_VERSION
+UPSTREAM: tuple[str, ...] = ()
+INPUTS = ("images",)
+
+
+def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict:
+    options = FeatureOptions(**{k: v for k, v in config.items() if k != "working_width"})
+    counts = {}
+    for name in tqdm(dataset.image_names, desc="features", unit="image"):
+        full_w, full_h = dataset.image_sizes[name]
+        image = dataset.load_image(name, width=config["working_width"])
+        feats = detect_features(image, options)
+        scale = full_w / image.shape[1]
+        colors = sample_colors(image, feats.pixels / scale)
+        save_features(ws.features_path(name, out_dir), pixels=feats.pixels * scale, bearings=feats.bearings,
+                 descriptors=feats.descriptors, scales=feats.scales * scale, colors=colors,
+                 image_size=np.array([full_w, full_h]))
+        counts[name] = len(feats.bearings)
+    log.info("features per image: min %d, median %d, max %d", min(counts.values()),
+             int(np.median(list(counts.values()))), max(counts.values()))
+    return {"images": len(counts), "min_features": min(counts.values()), "per_image": counts}
+
+
+def sample_colors(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """RGB uint8 colours at continuous pixel positions (nearest pixel)."""
+    h, w = image.shape[:2]
+    cols = np.clip(np.floor(pixels[:, 0]).astype(int), 0, w - 1)
+    rows = np.clip(np.floor(pixels[:, 1]).astype(int), 0, h - 1)
+    return image[rows, cols][:, ::-1].copy()
