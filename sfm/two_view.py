@@ -39,8 +39,9 @@ def estimate_f_linear(b_i: np.ndarray, b_j: np.ndarray, weights: np.ndarray | No
     A = _design_matrix(normalize(b_i), normalize(b_j))
     if weights is not None:
         A = A * weights[..., :, None]
-    _, _, Vt = np.linalg.svd(A, full_matrices=True)
-    F = Vt[..., -1, :].reshape(A.shape[:-2] + (3, 3))
+    # The null vector of A is the eigenvector of AᵀA (9×9) with the smallest eigenvalue: cheap for any N.
+    _, vecs = np.linalg.eigh(np.swapaxes(A, -1, -2) @ A)
+    F = vecs[..., :, 0].reshape(A.shape[:-2] + (3, 3))
     return project_to_essential(F)
 
 

@@ -1,0 +1,365 @@
+"""Bundle adjustment on the sphere: angular residuals, analytic sparse Jacobian, fixed gauge.
+
+Parameters. Each camera is ``(ω, C)``: a rotation vector applied on top of the initial rotation,
+``R = exp([ω]×) R_init``, and its centre ``C`` (so ``x_cam = R (X − C)``, ``t = −R C``); points are
+free world coordinates ``X``.
+
+Residuals. For an observation with observed unit bearing ``z`` and predicted direction
+``p = normalize(R (X − C))``, let ``E`` (2×3) be an orthonormal basis of the plane orthogonal to
+``z``, ``q = E p`` (``|q| = sin θ``), ``θ = atan2(|q|, zᵀp)`` the angular error. The residual is
+``r = (θ / sin θ) q``: a 2-vector whose norm is exactly θ (radians) and whose direction is the
+tangent direction of the error. It stays large behind the camera (``|r| = θ → π`` as ``p → −z``,
+where plain ``E p`` would go back to zero); exactly at ``p = −z`` it is ``(π, 0)``.
+
+Gauge (7 dof: rotation, translation, scale). The cameras in ``fixed_cameras`` keep their poses
+exactly. If only one camera is fixed, the scale is fixed by keeping the distance between that
+camera's centre and the centre of a ``scale_camera`` (by default the camera farthest from it,
+which is well defined whatever the direction of the baseline, unlike fixing one coordinate):
+that camera's centre moves on a sphere, parametrised by 2 tangent coordinates. With two or more
+fixed cameras (distinct centres) the scale is already fixed and no camera is constrained.
+
+Jacobian. Analytic, returned as a CSR matrix whose structure is built once: every residual row
+depends on at most 6 camera parameters and 3 point parameters. The rotation part uses the left
+Jacobian of SO(3), ``∂(exp([ω+δ]×) v)/∂δ = −[exp([ω]×) v]× J_l(ω)``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import csr_matrix
+
+from fullview.sfm.camera import normalize, skew
+
+log = logging.getLogger(__name__)
+
+# Ratio between successive robust-loss scales of the graduated schedule (see _scale_schedule).
+_SCALE_STEP = 4.0
+
+# Robust losses of scipy.optimize.least_squares, rho(z) with z = (r / f_scale)^2.
+_RHO = {
+    "linear": lambda z: z,
+    "soft_l1": lambda z: 2.0 * (np.sqrt(1.0 + z) - 1.0),
+    "huber": lambda z: np.where(z <= 1.0, z, 2.0 * np.sqrt(z) - 1.0),
+    "cauchy": np.log1p,
+    "arctan": np.arctan,
+}
+
+
+@dataclass(frozen=True, kw_only=True)
+class BundleResult:
+    """Refined cameras and points, with costs and per-observation errors."""
+
+    R_cam_from_world: np.ndarray  # (N, 3, 3) refined rotations
+    t_cam_from_world: np.ndarray  # (N, 3) refined translations
+    points: np.ndarray  # (P, 3) refined world points
+    initial_cost: float  # robust cost 0.5·f²·Σρ((r/f)²) (scipy convention) before optimisation
+    final_cost: float  # same cost after optimisation
+    obs_error_rad: np.ndarray  # (K,) final angular error of every observation, radians
+    scale_camera: int  # camera whose distance to the first fixed camera was held (-1: none needed)
+    num_evaluations: int  # residual evaluations used
+    success: bool  # scipy reports convergence (a tolerance was met, not max_nfev)
+    message: str  # scipy's termination message
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Layout:
+    """Where each camera's and point's parameters live in the parameter vector."""
+
+    cam_col: np.ndarray  # (N,) first column of each camera's parameters, -1 if fixed
+    cam_dof: np.ndarray  # (N,) 0 fixed, 5 scale camera (ω + 2 sphere coordinates), 6 free (ω, C)
+    point_col: int  # first column of the points (3 per point)
+    num_params: int  # length of the parameter vector
+    scale_camera: int  # index of the scale camera, -1 if none
+    anchor: np.ndarray  # (3,) centre of the first fixed camera
+    radius: float  # held distance anchor -> scale camera centre
+    u0: np.ndarray  # (3,) initial unit direction anchor -> scale camera centre
+    tangent: np.ndarray  # (3, 2) orthonormal basis orthogonal to u0
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Problem:
+    """Fixed inputs of one bundle adjustment."""
+
+    R_init: np.ndarray  # (N, 3, 3) initial rotations (ω is applied on top)
+    t_init: np.ndarray  # (N, 3) initial translations (returned as is for fixed cameras)
+    C_init: np.ndarray  # (N, 3) initial centres (used for fixed cameras)
+    obs_camera: np.ndarray  # (K,) camera of each observation
+    obs_point: np.ndarray  # (K,) point of each observation
+    bearings: np.ndarray  # (K, 3) observed unit bearings
+    basis: np.ndarray  # (K, 2, 3) orthonormal tangent basis of each observed bearing
+    layout: _Layout  # parameter layout
+
+
+def tangent_basis(z: np.ndarray) -> np.ndarray:
+    """(K, 2, 3) orthonormal rows spanning the plane orthogonal to each unit vector z (K, 3)."""
+    helper = np.where((np.abs(z[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    e1 = normalize(np.cross(z, helper))
+    return np.stack([e1, np.cross(z, e1)], axis=1)
+
+
+def _so3_coefficients(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """sinθ/θ, (1−cosθ)/θ², (θ−sinθ)/θ³ for rotation vectors (N, 3), with series near θ = 0."""
+    th2 = np.einsum("ni,ni->n", omega, omega)
+    th = np.sqrt(th2)
+    small = th < 1e-4
+    th_s = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th_s) / th_s)
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th_s)) / th_s**2)
+    c = np.where(small, 1.0 / 6.0 - th2 / 120.0, (th_s - np.sin(th_s)) / th_s**3)
+    return a, b, c
+
+
+def rotation_exp(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation matrices exp([ω]×) and left Jacobians J_l(ω), both (N, 3, 3), for ω (N, 3)."""
+    a, b, c = _so3_coefficients(omega)
+    W = skew(omega)
+    W2 = W @ W
+    eye = np.eye(3)
+    R = eye + a[:, None, None] * W + b[:, None, None] * W2
+    J = eye + b[:, None, None] * W + c[:, None, None] * W2
+    return R, J
+
+
+def _angle_scale(s: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """θ = atan2(s, c), g = θ / s and dg/dc (c = cos θ, s = sin θ ≥ 0), series for small θ."""
+    theta = np.arctan2(s, c)
+    small = theta < 1e-3
+    s_safe = np.maximum(s, 1e-300)
+    g = np.where(small, 1.0 + theta**2 / 6.0, theta / s_safe)
+    dg = np.where(small, -1.0 / 3.0 - 2.0 * theta**2 / 15.0, (c * g - 1.0) / np.maximum(s, 1e-12) ** 2)
+    return theta, g, dg
+
+
+def _build_layout(
+    centers: np.ndarray, num_points: int, fixed: np.ndarray, scale_camera: int | None, obs_camera: np.ndarray
+) -> _Layout:
+    """Parameter layout for the given gauge choice."""
+    n = len(centers)
+    cam_dof = np.full(n, 6, dtype=np.int64)
+    cam_dof[fixed] = 0
+    anchor = centers[fixed[0]]
+    if len(fixed) >= 2:
+        scale_camera = -1
+    elif scale_camera is None:
+        dist = np.linalg.norm(centers - anchor, axis=1)
+        dist[fixed] = -1.0
+        dist[np.bincount(obs_camera, minlength=n) == 0] = -1.0  # prefer observed cameras
+        scale_camera = int(np.argmax(dist))
+    elif not 0 <= scale_camera < n or scale_camera in fixed:
+        raise ValueError(f"scale_camera={scale_camera} must be a non-fixed camera index in [0, {n})")
+    radius, u0, tangent = 0.0, np.zeros(3), np.zeros((3, 2))
+    if scale_camera >= 0:
+        baseline = centers[scale_camera] - anchor
+        radius = float(np.linalg.norm(baseline))
+        if radius <= 1e-12 * max(1.0, float(np.abs(centers).max())):
+            raise ValueError(f"scale_camera={scale_camera} has the same centre as fixed camera {fixed[0]}")
+        u0 = baseline / radius
+        tangent = tangent_basis(u0[None])[0].T
+        cam_dof[scale_camera] = 5
+    cam_col = np.where(cam_dof > 0, np.cumsum(cam_dof) - cam_dof, -1)
+    point_col = int(cam_dof.sum())
+    return _Layout(
+        cam_col=cam_col, cam_dof=cam_dof, point_col=point_col, num_params=point_col + 3 * num_points,
+        scale_camera=scale_camera, anchor=anchor, radius=radius, u0=u0, tangent=tangent,
+    )
+
+
+def _pack(layout: _Layout, centers: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Initial parameter vector (ω = 0, the given centres and points)."""
+    x = np.zeros(layout.num_params)
+    free = np.flatnonzero(layout.cam_dof == 6)
+    x[layout.cam_col[free, None] + np.arange(3, 6)] = centers[free]
+    x[layout.point_col:] = points.ravel()
+    return x
+
+
+def _unpack(x: np.ndarray, problem: _Problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rotation vectors (N, 3), centres (N, 3), points (P, 3), and dC/d(sphere coords) (3, 2)."""
+    lay = problem.layout
+    omega = np.zeros((len(lay.cam_dof), 3))
+    centers = problem.C_init.copy()
+    moving = np.flatnonzero(lay.cam_dof > 0)
+    omega[moving] = x[lay.cam_col[moving, None] + np.arange(3)]
+    free = np.flatnonzero(lay.cam_dof == 6)
+    centers[free] = x[lay.cam_col[free, None] + np.arange(3, 6)]
+    dC = np.zeros((3, 2))
+    if lay.scale_camera >= 0:
+        col = lay.cam_col[lay.scale_camera]
+        w = lay.u0 + lay.tangent @ x[col + 3 : col + 5]
+        nw = np.linalg.norm(w)
+        centers[lay.scale_camera] = lay.anchor + lay.radius * w / nw
+        dC = lay.radius * (np.eye(3) - np.outer(w, w) / nw**2) @ lay.tangent / nw
+    points = x[lay.point_col :].reshape(-1, 3)
+    return omega, centers, points, dC
+
+
+def _residuals(x: np.ndarray, problem: _Problem, with_jacobian: bool):
+    """(K, 2) residuals and, if asked, (K, 2, 9) Jacobian blocks [ω or pad (3), C or sphere (3), X (3)]."""
+    omega, centers, points, dC = _unpack(x, problem)
+    dR, J_l = rotation_exp(omega)
+    R = dR @ problem.R_init
+    cam, pt = problem.obs_camera, problem.obs_point
+    R_obs = R[cam]
+    y = np.einsum("kij,kj->ki", R_obs, points[pt] - centers[cam])
+    norm = np.maximum(np.linalg.norm(y, axis=1), 1e-300)
+    p = y / norm[:, None]
+    q = np.einsum("kij,kj->ki", problem.basis, p)
+    c = np.einsum("ki,ki->k", problem.bearings, p)
+    s = np.linalg.norm(q, axis=1)
+    theta, g, dg = _angle_scale(s, c)
+    antipodal = (s < 1e-12) & (c < 0)
+    r = np.where(antipodal[:, None], np.stack([theta, np.zeros_like(theta)], axis=1), g[:, None] * q)
+    if not with_jacobian:
+        return r, None
+    dr_dp = g[:, None, None] * problem.basis + (dg[:, None] * q)[:, :, None] * problem.bearings[:, None, :]
+    dr_dp[antipodal] = 0.0
+    proj = (np.eye(3) - p[:, :, None] * p[:, None, :]) / norm[:, None, None]
+    D = dr_dp @ proj  # (K, 2, 3) dr/dy
+    J_X = D @ R_obs
+    J = np.empty((len(cam), 2, 9))
+    J[:, :, 0:3] = -(D @ skew(y)) @ J_l[cam]
+    J[:, :, 3:6] = -J_X
+    J[:, :, 6:9] = J_X
+    on_sphere = cam == problem.layout.scale_camera
+    J[on_sphere, :, 3:5] = -J_X[on_sphere] @ dC
+    J[on_sphere, :, 5] = 0.0
+    return r, J
+
+
+def _jacobian_structure(problem: _Problem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K, 9) valid-slot mask broadcast to (K, 2, 9), CSR column indices and row pointers."""
+    lay = problem.layout
+    cam, pt = problem.obs_camera, problem.obs_point
+    cols = np.concatenate([lay.cam_col[cam, None] + np.arange(6), lay.point_col + 3 * pt[:, None] + np.arange(3)], 1)
+    valid = np.concatenate([np.arange(6) < lay.cam_dof[cam, None], np.ones((len(cam), 3), dtype=bool)], 1)
+    mask = np.broadcast_to(valid[:, None, :], (len(cam), 2, 9))
+    indices = np.broadcast_to(cols[:, None, :], (len(cam), 2, 9))[mask]
+    indptr = np.r_[0, np.cumsum(np.repeat(valid.sum(1), 2))]
+    return mask, indices, indptr
+
+
+def _robust_cost(r: np.ndarray, loss: str, f_scale: float) -> float:
+    """scipy's cost 0.5·f²·Σρ((r/f)²) of a residual vector."""
+    return float(0.5 * f_scale**2 * _RHO[loss]((r.ravel() / f_scale) ** 2).sum())
+
+
+def _validate(R, t, points, obs_camera, obs_point, obs_bearings, fixed, loss):
+    """Convert and check the inputs of bundle_adjust (errors name the argument at fault)."""
+    R, t = np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64)
+    obs_camera, obs_point = np.asarray(obs_camera, dtype=np.int64), np.asarray(obs_point, dtype=np.int64)
+    obs_bearings = np.asarray(obs_bearings, dtype=np.float64)
+    n, k = len(R), len(obs_camera)
+    if R.shape != (n, 3, 3) or t.shape != (n, 3):
+        raise ValueError(f"R_cam_from_world {R.shape} and t_cam_from_world {t.shape} must be (N,3,3), (N,3)")
+    if points.ndim != 2 or points.shape[1] != 3 or not np.isfinite(points).all():
+        raise ValueError(f"points must be a finite (P, 3) array, got shape {points.shape}")
+    if obs_camera.shape != (k,) or obs_point.shape != (k,) or obs_bearings.shape != (k, 3):
+        raise ValueError(f"obs_camera {obs_camera.shape}, obs_point {obs_point.shape}, obs_bearings "
+                         f"{obs_bearings.shape} must be (K,), (K,), (K, 3)")
+    if k and (obs_camera.min() < 0 or obs_camera.max() >= n):
+        raise ValueError(f"obs_camera values must be in [0, {n})")
+    if k and (obs_point.min() < 0 or obs_point.max() >= len(points)):
+        raise ValueError(f"obs_point values must be in [0, {len(points)})")
+    fixed = np.unique(np.asarray(fixed, dtype=np.int64))
+    if len(fixed) == 0 or fixed.min() < 0 or fixed.max() >= n:
+        raise ValueError(f"fixed_cameras={tuple(fixed)} must name at least one camera in [0, {n})")
+    if loss not in _RHO:
+        raise ValueError(f"loss={loss!r} must be one of {sorted(_RHO)}")
+    return R, t, points, obs_camera, obs_point, normalize(obs_bearings), fixed
+
+
+def bundle_adjust(
+    *,
+    R_cam_from_world: np.ndarray,
+    t_cam_from_world: np.ndarray,
+    points: np.ndarray,
+    obs_camera: np.ndarray,
+    obs_point: np.ndarray,
+    obs_bearings: np.ndarray,
+    fixed_cameras: Sequence[int] = (0,),
+    scale_camera: int | None = None,
+    loss: str = "soft_l1",
+    loss_scale_rad: float = 0.005,
+    max_nfev: int = 100,
+    ftol: float = 1e-8,
+    xtol: float = 1e-8,
+) -> BundleResult:
+    """Refine camera poses and points by minimising robust angular errors of observed bearings.
+
+    Observation k is camera ``obs_camera[k]`` seeing point ``obs_point[k]`` along unit bearing
+    ``obs_bearings[k]``. ``loss``/``loss_scale_rad`` are scipy's ``loss``/``f_scale`` (applied to
+    each of the two residual components, radians). See the module docstring for the gauge.
+    """
+    R0, t0, X0, cam, pt, z, fixed = _validate(
+        R_cam_from_world, t_cam_from_world, points, obs_camera, obs_point, obs_bearings, fixed_cameras, loss
+    )
+    C0 = -np.einsum("nji,nj->ni", R0, t0)
+    layout = _build_layout(C0, len(X0), fixed, scale_camera, cam)
+    problem = _Problem(R_init=R0, t_init=t0, C_init=C0, obs_camera=cam, obs_point=pt, bearings=z, basis=tangent_basis(z),
+                       layout=layout)
+    if (few := np.bincount(pt, minlength=len(X0)) < 2).any():
+        log.warning("bundle_adjust: %d points have fewer than 2 observations", few.sum())
+    mask, indices, indptr = _jacobian_structure(problem)
+    shape = (2 * len(cam), layout.num_params)
+
+    def fun(x):
+        return _residuals(x, problem, False)[0].ravel()
+
+    def jac(x):
+        return csr_matrix((_residuals(x, problem, True)[1][mask], indices, indptr), shape=shape)
+
+    x = x0 = _pack(layout, C0, X0)
+    r0 = fun(x0)
+    initial_cost = _robust_cost(r0, loss, loss_scale_rad)
+    nfev, sol = 0, None
+    for f_scale in _scale_schedule(r0, loss, loss_scale_rad):
+        sol = least_squares(fun, x, jac=jac, method="trf", x_scale="jac", loss=loss, f_scale=f_scale,
+                            tr_solver="lsmr", max_nfev=max(max_nfev - nfev, 1), ftol=ftol, xtol=xtol)
+        x, nfev = sol.x, nfev + sol.nfev
+        log.debug("bundle_adjust: f_scale %.3g rad, cost %.4g, %d evaluations", f_scale, sol.cost, sol.nfev)
+        if nfev >= max_nfev:
+            break
+    return _result(sol, nfev, problem, initial_cost, loss, loss_scale_rad)
+
+
+def _scale_schedule(r0: np.ndarray, loss: str, loss_scale_rad: float) -> list[float]:
+    """Robust-loss scales to solve with in turn, ending at ``loss_scale_rad``.
+
+    Far from the optimum most residuals sit in the linear part of a robust loss, where scipy's
+    trf crawls (tens of tiny steps). Starting at a scale about the size of the initial errors and
+    dividing it by 4 per stage keeps each stage near-quadratic, so each converges in a few steps.
+    """
+    if loss == "linear" or len(r0) == 0:
+        return [loss_scale_rad]
+    start = 3.0 * float(np.median(np.linalg.norm(r0.reshape(-1, 2), axis=1)))
+    scales = [loss_scale_rad]
+    while scales[-1] * _SCALE_STEP < start:
+        scales.append(scales[-1] * _SCALE_STEP)
+    return scales[::-1]
+
+
+def _result(sol, nfev: int, problem: _Problem, initial_cost: float, loss: str, f_scale: float) -> BundleResult:
+    """Poses, points and errors from scipy's solution."""
+    omega, centers, points, _ = _unpack(sol.x, problem)
+    R = rotation_exp(omega)[0] @ problem.R_init
+    fixed = problem.layout.cam_dof == 0
+    t = -np.einsum("nij,nj->ni", R, centers)
+    R[fixed], t[fixed] = problem.R_init[fixed], problem.t_init[fixed]  # exactly the input, no rounding
+    r = _residuals(sol.x, problem, False)[0]
+    obs_error = np.linalg.norm(r, axis=1)
+    final_cost = _robust_cost(r, loss, f_scale)
+    log.info(
+        "bundle_adjust: cost %.4g -> %.4g in %d evaluations, median error %.3g rad (%s)",
+        initial_cost, final_cost, nfev, np.median(obs_error) if len(obs_error) else 0.0, sol.message,
+    )
+    return BundleResult(
+        R_cam_from_world=R, t_cam_from_world=t, points=points, initial_cost=initial_cost, final_cost=final_cost,
+        obs_error_rad=obs_error, scale_camera=problem.layout.scale_camera, num_evaluations=nfev,
+        success=bool(sol.status > 0), message=str(sol.message),
+    )

@@ -1,0 +1,119 @@
+"""Stage 6 — tracks, multi-view triangulation, filtering and bundle adjustment; npz, PLY and COLMAP text model.
+
+Two rounds: triangulate with the registration's poses and keep tracks under a loose error bound, bundle-adjust,
+then re-triangulate every track with the refined poses, apply the configured bounds and bundle-adjust again.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from fullview.io.artifacts import load_npz, save_json, save_ply
+from fullview.io.colmap import write_text_model
+from fullview.io.dataset import Dataset
+from fullview.io.store import REGISTRATION_VERSION, SPARSE_VERSION, load_observations, load_pair_data, save_poses
+from fullview.io.workspace import Workspace
+from fullview.sfm.bundle import bundle_adjust
+from fullview.sfm.tracks import Tracks, build_tracks
+from fullview.sfm.triangulation import filter_tracks, gather_bearings, triangulate_multiview
+
+log = logging.getLogger(__name__)
+
+VERSION = 1
+UPSTREAM = ("registration",)
+INPUTS: tuple[str, ...] = ()
+LOOSE_FACTOR = 4.0  # first round keeps tracks up to this multiple of the final error bound
+
+
+def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict:
+    obs = load_observations(ws, dataset)
+    reg = load_npz(ws.registration_path(), REGISTRATION_VERSION)
+    registered = reg["registered"]
+    pairs, inliers, _ = load_pair_data(ws.inliers_path())
+    usable = {p: m for p, m, ok in zip(pairs, inliers, reg["pair_inlier_mask"]) if ok and len(m)}
+    tracks, _ = build_tracks(usable, [len(o["bearings"]) for o in obs])
+    bearings = [o["bearings"] for o in obs]
+    R, t = reg["R_cam_from_world"], reg["t_cam_from_world"]
+    max_err = np.radians(config["max_reprojection_error_deg"])
+    min_angle = np.radians(config["min_triangulation_angle_deg"])
+
+    keep = _triangulate_and_filter(tracks, bearings, R, t, LOOSE_FACTOR * max_err, min_angle)
+    tracks_kept, points = _subset(tracks, keep[0]), keep[1]
+    if config["bundle_adjust"] and tracks_kept.num_tracks:
+        R, t, points = _bundle(tracks_kept, bearings, R, t, points, registered, config)
+    mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
+    final = _subset(tracks, mask)
+    if config["bundle_adjust"] and final.num_tracks:
+        R, t, points = _bundle(final, bearings, R, t, points, registered, config)
+    tri = triangulate_multiview(final, bearings, R, t)
+    errors = tri.obs_error_rad
+    return _write(out_dir, ws, dataset, obs, registered, R, t, final, points, errors)
+
+
+def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
+    tri = triangulate_multiview(tracks, bearings, R, t)
+    mask = filter_tracks(tri, max_error_rad=max_err, min_angle_rad=min_angle)
+    return mask, tri.points[mask]
+
+
+def _subset(tracks: Tracks, keep: np.ndarray) -> Tracks:
+    """The tracks where `keep` is true, renumbered 0..T'-1."""
+    obs_keep = keep[tracks.track_ids]
+    new_id = np.cumsum(keep) - 1
+    lengths = np.diff(tracks.offsets)[keep]
+    return Tracks(track_ids=new_id[tracks.track_ids[obs_keep]], image_ids=tracks.image_ids[obs_keep],
+                  feature_ids=tracks.feature_ids[obs_keep], offsets=np.concatenate([[0], np.cumsum(lengths)]),
+                  num_images=tracks.num_images)
+
+
+def _bundle(tracks: Tracks, bearings, R, t, points, registered, config):
+    """Bundle adjustment over the registered cameras (reindexed), the first one fixed."""
+    cams = np.flatnonzero(registered)
+    local = np.full(len(registered), -1)
+    local[cams] = np.arange(len(cams))
+    result = bundle_adjust(
+        R_cam_from_world=R[cams], t_cam_from_world=t[cams], points=points,
+        obs_camera=local[tracks.image_ids], obs_point=tracks.track_ids,
+        obs_bearings=gather_bearings(bearings, tracks.image_ids, tracks.feature_ids),
+        fixed_cameras=(0,), loss="soft_l1", loss_scale_rad=np.radians(config["ba_loss_scale_deg"]),
+        max_nfev=config["ba_max_iterations"])
+    log.info("bundle adjustment: %d cameras, %d points, cost %.4g -> %.4g, median error %.4f deg",
+             len(cams), len(points), result.initial_cost, result.final_cost,
+             np.degrees(np.median(result.obs_error_rad)))
+    R, t = R.copy(), t.copy()
+    R[cams], t[cams] = result.R_cam_from_world, result.t_cam_from_world
+    return R, t, result.points
+
+
+def _write(out_dir, ws, dataset, obs, registered, R, t, tracks: Tracks, points, errors) -> dict:
+    colors = _mean_colors(tracks, obs)
+    point_error = np.zeros(len(points))
+    np.maximum.at(point_error, tracks.track_ids, errors)
+    names = dataset.image_names
+    save_poses(ws.sparse_path(out_dir), SPARSE_VERSION, image_names=names, registered=registered,
+               R_cam_from_world=R, t_cam_from_world=t, points=points, colors=colors, point_error_rad=point_error,
+               track_ids=tracks.track_ids, image_ids=tracks.image_ids, feature_ids=tracks.feature_ids,
+               obs_error_rad=errors)
+    save_ply(out_dir / "sparse.ply", points, colors)
+    w, h = (int(v) for v in obs[0]["image_size"])
+    write_text_model(ws.colmap_dir(out_dir), width=w, height=h, image_names=names, registered=registered,
+                     R_cam_from_world=R, t_cam_from_world=t, points=points, colors=colors,
+                     errors_rad=point_error, track_image=tracks.image_ids, track_point2d=tracks.feature_ids,
+                     track_point3d=tracks.track_ids, pixels=[o["pixels"] for o in obs])
+    lengths = np.diff(tracks.offsets)
+    summary = {"points": int(len(points)), "registered": int(registered.sum()),
+               "mean_track_length": float(lengths.mean()) if len(lengths) else 0.0,
+               "median_error_deg": float(np.degrees(np.median(errors))) if len(errors) else 0.0}
+    save_json(out_dir / "summary.json", summary)
+    return summary
+
+
+def _mean_colors(tracks: Tracks, obs) -> np.ndarray:
+    rgb = np.concatenate([o["colors"] for o in obs]).astype(np.float64)
+    offsets = np.cumsum([0] + [len(o["colors"]) for o in obs])
+    sums = np.zeros((tracks.num_tracks, 3))
+    np.add.at(sums, tracks.track_ids, rgb[offsets[tracks.image_ids] + tracks.feature_ids])
+    return np.round(sums / np.maximum(np.diff(tracks.offsets), 1)[:, None]).astype(np.uint8)
