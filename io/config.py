@@ -16,7 +16,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "working_width": 2048,  # panoramas are resized to this width before detection (0 = native)
         "face_size": 0,  # cube face side in pixels (0 = match the working resolution)
         "margin_deg": 5.0,  # extra field of view per face side, keeps features at seams
-        "max_features_per_face": 4000,  # SIFT nfeatures per face
+        "max_features_per_face": 1500,  # SIFT nfeatures per face
         "contrast_threshold": 0.02,  # SIFT contrast threshold
         "min_latitude_deg": -90.0,  # mask out features below this latitude (tripod / hand)
         "max_latitude_deg": 90.0,  # mask out features above this latitude
@@ -43,6 +43,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "registration": {
         "model": "general",  # general | planar
         "min_inliers": 30,  # pairs with fewer inliers are not used
+        "max_rotation_residual_deg": 5.0,  # pairs whose relative rotation disagrees more are rejected
+        "max_direction_residual_deg": 10.0,  # pairs whose baseline direction disagrees more are rejected
         "seed": 0,  # random seed for robust averaging
     },
     "triangulation": {
@@ -53,16 +55,27 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "ba_max_iterations": 100,  # function evaluations of bundle adjustment
     },
     "densify": {
-        "neighbours": 2,  # stereo partners per camera
-        "min_triangulation_angle_deg": 5.0,  # partner baselines must subtend at least this at the scene
+        "neighbours": 2,  # stereo partners per camera (best by inlier count, discounted for short baselines)
+        "min_triangulation_angle_deg": 5.0,  # partner baselines must subtend at least this at the scene's median depth
+        "max_triangulation_angle_deg": 60.0,  # ... and at most this
+        "min_pair_inliers": 50,  # epipolar inliers a stereo pair needs
+        "working_width": 2048,  # panoramas are resized to this width; range maps have this size (0 = native)
         "rect_height": 1024,  # rectified grid height (angle from the epipole), width = 2x
-        "min_depth_m": 0.5,  # nearest plausible depth, in model units, bounds the disparity search
+        "min_depth_percentile": 1.0,  # nearest plausible depth: this percentile of a camera's sparse-point distances
+        "min_depth_factor": 0.5,  # ... times this factor; bounds the disparity search (model units are arbitrary)
+        "max_disparity_deg": 45.0,  # cap of the disparity search (wide baselines then lose their nearest points)
         "epipole_margin_deg": 8.0,  # pixels closer than this to an epipole are masked
+        "block_size": 5,  # SGBM matching window side (odd)
+        "min_texture_std": 2.0,  # grey-level std below which a pixel counts as untextured (not matched)
+        "min_latitude_deg": -90.0,  # range maps are invalid below this latitude (tripod / hand)
+        "combine_tolerance": 0.02,  # relative agreement of a panorama's pair estimates (conflicting ones are dropped)
         "min_consistent": 1,  # other depth maps that must agree for a fused point
         "consistency_tolerance": 0.02,  # relative range tolerance for agreement
+        "fusion_views": 4,  # nearest other panoramas checking each panorama's points
         "voxel_size": 0.0,  # voxel size of the fused cloud (0 = 0.2% of the scene's size)
         "outlier_neighbours": 20,  # statistical outlier removal: neighbours
         "outlier_std_ratio": 2.0,  # statistical outlier removal: std ratio
+        "preview": True,  # render densify/dense_preview.png
     },
 }
 

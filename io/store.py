@@ -90,9 +90,10 @@ def save_poses(path: Path, version: int, *, image_names: list[str], registered: 
 
 
 def load_poses(ws: Workspace) -> tuple[dict[str, np.ndarray], str]:
-    """The most refined poses in the workspace: bundle-adjusted if triangulation ran, else registration."""
+    """The most refined poses in the workspace: bundle-adjusted if triangulation ran on the current registration."""
     keys = ("image_names", "registered", "R_cam_from_world", "t_cam_from_world", "centers")
-    if ws.sparse_path().exists():
+    tri, reg = ws.read_manifest("triangulation"), ws.read_manifest("registration")
+    if ws.sparse_path().exists() and tri and reg and tri["upstream"].get("registration") == reg["fingerprint"]:
         return load_npz(ws.sparse_path(), SPARSE_VERSION, keys), "triangulation"
     if ws.registration_path().exists():
         return load_npz(ws.registration_path(), REGISTRATION_VERSION, keys), "registration"

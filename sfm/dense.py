@@ -564,6 +564,7 @@ def fuse_depth_maps(
     rel_tol: float = 0.02,
     stride: int = 1,
     neighbors: Sequence[Sequence[int]] | None = None,
+    views: Sequence[int] | None = None,
     return_sources: bool = False,
 ):
     """Back-project per-panorama range maps to world points and keep the multi-view consistent ones.
@@ -574,6 +575,8 @@ def fuse_depth_maps(
       valid range at its projection within ``rel_tol`` (relative) of its predicted range. Views with no valid range
       there neither support nor veto it.
     - ``stride`` subsamples the pixels of every map.
+    - ``views``: back-project only these views (default all); every map still supports the others' points. Fusing
+      one view at a time bounds the memory to one view's points.
     Returns (points (N, 3) float64, colours (N, 3) uint8[, source view index (N,) int]).
     """
     R_all = np.asarray(R_cam_from_world, dtype=np.float64)
@@ -586,7 +589,8 @@ def fuse_depth_maps(
         )
     maps = [np.asarray(m, dtype=np.float32) for m in range_maps]
     all_pts, all_cols, all_src = [], [], []
-    for i, rmap in enumerate(maps):
+    for i in range(n_views) if views is None else views:
+        rmap = maps[i]
         rows, cols = _pixel_centers(*rmap.shape, stride)
         ranges = rmap[rows, cols]
         keep = _valid_range(ranges)

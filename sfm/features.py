@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -45,7 +46,7 @@ def face_rotations() -> np.ndarray:
 class FeatureOptions:
     face_size: int = 0  # cube face side in pixels; 0 = match the panorama's resolution at the face centre
     margin_deg: float = 5.0  # extra field of view on each side of a face's 90°
-    max_features_per_face: int = 4000  # SIFT nfeatures per face (0 = unlimited)
+    max_features_per_face: int = 1500  # SIFT nfeatures per face (0 = unlimited)
     contrast_threshold: float = 0.02  # SIFT contrast threshold (OpenCV default 0.04)
     min_latitude_deg: float = -90.0  # mask: drop features below this latitude (tripod, hand)
     max_latitude_deg: float = 90.0  # mask: drop features above this latitude
@@ -61,8 +62,9 @@ class Features:
     faces: np.ndarray  # (N,) uint8 index into FACE_NAMES of the detecting face
 
 
+@lru_cache(maxsize=4)
 def face_maps(face_size: int, margin_deg: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """cv2.remap maps of every face (6, S, S) and the face focal length in pixels."""
+    """cv2.remap maps of every face (6, S, S) and the face focal length in pixels (cached: same for every image)."""
     half_fov = np.radians(45.0 + margin_deg)
     focal = 0.5 * face_size / np.tan(half_fov)
     uv = (np.arange(face_size) + 0.5 - 0.5 * face_size) / focal

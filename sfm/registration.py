@@ -7,10 +7,13 @@ Two models (``register(model=...)``):
 
 ``"general"`` (default)
     1. keep the largest connected component of the view graph (pairs with weight >= ``min_weight``);
-    2. rotations: maximum-weight spanning tree initialisation, then robust rotation averaging on the
-       Lie algebra (Chatterjee & Govindu, "Robust relative rotation averaging", TPAMI 2018):
-       L1-IRLS followed by Cauchy-IRLS, each step one sparse weighted-Laplacian solve;
-       pairs with a rotation residual above ``max_rotation_residual_deg`` are rejected;
+    2. rotations: maximum spanning tree initialisation (edges ranked by the number of view-graph triangles
+       whose rotation cycle closes — outliers rarely close one — then by weight), repaired by consensus
+       moves (an image, or an internally consistent cluster, re-attached through the pair that minimises
+       its truncated residuals), then robust rotation averaging on the Lie algebra (Chatterjee & Govindu,
+       "Robust relative rotation averaging", TPAMI 2018): L1-IRLS followed by Cauchy-IRLS, each step one
+       sparse weighted-Laplacian solve; pairs with a rotation residual above
+       ``max_rotation_residual_deg`` are rejected and the rotations re-fitted on the rest;
     3. centres: translation averaging from the world-frame baseline directions
        ``d_ij ∝ c_j − c_i`` (``= −R_jᵀ t_j_from_i``): LUD (Özyeşil & Singer, CVPR 2015:
        ``min Σ‖c_j − c_i − λ_ij d_ij‖`` s.t. ``λ_ij ≥ 1`` — the constraint prevents the collapse
@@ -20,14 +23,19 @@ Two models (``register(model=...)``):
        direction residual above ``max_direction_residual_deg`` are rejected and the problem
        re-solved.  Cameras left with fewer than ``min_pairs_per_camera`` consistent pairs (their
        position along the baseline is not observable) are peeled off and reported unregistered.
+       Layouts that the directions do not pin down (collinear rows, clusters joined at one camera) are
+       not an error: they are solved (λ ≥ 1 keeps the spacing sane), logged and counted in
+       ``Registration.flexible_modes`` (:func:`flexible_modes`).
 
 ``"planar"`` (the report's method)
     Cameras are assumed level: ``R_cam_from_world = R_y(θ)``, a rotation about the world vertical
     axis.  The world y axis points *down*, as in the camera frame (the report uses z up; adapted).
-    θ is initialised by robust averaging of the relative rotations' yaw (spanning tree + IRLS) and
-    refined by damped Newton (analytic gradient / Hessian) on the report's cost
+    θ is initialised by robust averaging of the relative rotations' yaw (same tree / consensus init,
+    Cauchy-IRLS) and refined by damped Newton (analytic gradient / Hessian) on the report's cost
     ``Σ_ij 1 − |e_ij,w · e_ji,w|`` with ``e_ij,w = R_iᵀ e_ij``, ``e_ji,w = R_jᵀ e_ji``
-    (:func:`planar_epipole_cost`); positions by the same 3-D translation averaging.
+    (:func:`planar_epipole_cost`), alternated with the rejection of pairs whose relative rotation
+    (tilt included: a level model predicts none) or epipoles disagree with the estimate; positions by
+    the same translation averaging in full 3-D (heights are estimated, not assumed equal).
 
 Epipoles: ``e_ij`` = direction of camera j's centre seen from camera i (frame i) = ``−R_j_from_iᵀ t``;
 ``e_ji`` = camera i's centre seen from j (frame j) = ``t_j_from_i``.  If given explicitly (they are
@@ -49,7 +57,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
-from scipy.sparse.linalg import splu, spsolve
+from scipy.sparse.linalg import ArpackNoConvergence, eigsh, splu, spsolve
 from scipy.spatial.transform import Rotation
 
 from fullview.sfm.camera import normalize
@@ -72,7 +80,7 @@ class Registration:
     rotation_residual_deg: np.ndarray  # (P,) angle between measured and estimated R_j_from_i; NaN if not registered
     direction_residual_deg: np.ndarray  # (P,) angle between measured and estimated t_j_from_i; NaN if not registered
     epipole_cost: float  # the report's Σ 1 − |e_ij,w · e_ji,w| over the used pairs at the solution
-    flexible_modes: int  # centre motions keeping every used baseline direction, beyond translation + scale (0 = parallel rigid)
+    flexible_modes: int  # centre motions (beyond a similarity) keeping all used directions; 0 = rigid, -1 = unknown
 
     @property
     def num_registered(self) -> int:
@@ -124,11 +132,6 @@ def rotation_yaw(R: np.ndarray) -> np.ndarray:
     """Angle of the rotation about y closest to ``R`` (exact for ``yaw_rotation`` output), batched."""
     R = np.asarray(R, dtype=np.float64)
     return np.arctan2(R[..., 0, 2] - R[..., 2, 0], R[..., 0, 0] + R[..., 2, 2])
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Angles wrapped to [-π, π)."""
-    return np.mod(np.asarray(a) + np.pi, 2.0 * np.pi) - np.pi
 
 
 def similarity_alignment(src: np.ndarray, dst: np.ndarray, *, with_scale: bool = True):
@@ -192,20 +195,73 @@ def _prune_graph(num_images, pairs, mask, weights, min_degree: int) -> tuple[np.
 # ----------------------------------------------------------------------------------------------
 
 
-def spanning_tree_rotations(num_images, pairs, R_j_from_i, weights, mask, root) -> np.ndarray:
-    """Absolute rotations (N, 3, 3) chained along the maximum-weight spanning tree of ``pairs[mask]``.
-
-    Images not reached from ``root`` get NaN.
-    """
+def _unique_edges(pairs, mask, weights):
+    """Indices of ``pairs[mask]`` keeping the heaviest pair per unordered image pair, and their (min, max) keys."""
     idx = np.flatnonzero(mask)
-    # one edge per unordered image pair: the heaviest
     key = np.sort(pairs[idx], axis=1)
     order = np.lexsort((-weights[idx], key[:, 1], key[:, 0]))
     key, idx = key[order], idx[order]
     first = np.ones(len(idx), bool)
     first[1:] = (key[1:] != key[:-1]).any(1)
-    key, idx = key[first], idx[first]
-    cost = weights[idx].max() + 1.0 - weights[idx]  # > 0: zeros would mean "no edge"
+    return idx[first], key[first]
+
+
+def triangle_support(num_images, pairs, R_j_from_i, weights, mask, *, threshold_deg: float = 5.0) -> np.ndarray:
+    """(P,) number of view-graph triangles through each pair whose rotation cycle closes within the threshold.
+
+    A triangle (a, b, c) is consistent when ``R_{c←a}ᵀ R_{c←b} R_{b←a}`` is within ``threshold_deg`` of I.
+    Gross outliers rarely close a cycle, so the count is a cheap, local inlier score (pairs outside ``mask``
+    and duplicates of an unordered pair other than the heaviest get 0).
+    """
+    P = len(pairs)
+    idx, key = _unique_edges(pairs, mask, weights)
+    support = np.zeros(P)
+    if len(idx) < 3:
+        return support
+    E = len(idx)
+    lookup = sp.coo_matrix((np.arange(1, E + 1), (key[:, 0], key[:, 1])), shape=(num_images, num_images)).tocsr()
+    # incidences from the lower endpoint only: triangles a < b < c found once, at a
+    order = np.argsort(key[:, 0], kind="stable")
+    low, high, eid = key[order, 0], key[order, 1], order
+    deg = np.bincount(low, minlength=num_images)
+    start = np.concatenate([[0], np.cumsum(deg)[:-1]])
+    rep = deg[low]
+    x = np.repeat(np.arange(E), rep)
+    y = start[low[x]] + np.arange(len(x)) - np.repeat(np.cumsum(rep) - rep, rep)
+    keep = high[x] < high[y]
+    x, y = x[keep], y[keep]
+    e_bc = np.asarray(lookup[high[x], high[y]]).ravel() - 1
+    tri = e_bc >= 0
+    e_ab, e_ac, e_bc = eid[x[tri]], eid[y[tri]], e_bc[tri]
+    if len(e_ab) == 0:
+        return support
+
+    def rel(e, src):
+        """R_{dst←src} of unique edge e."""
+        R = R_j_from_i[idx[e]]
+        forward = pairs[idx[e], 0] == src
+        return np.where(forward[:, None, None], R, np.swapaxes(R, -1, -2))
+
+    a, b = key[e_ab, 0], key[e_ab, 1]
+    cycle = np.swapaxes(rel(e_ac, a), -1, -2) @ rel(e_bc, b) @ rel(e_ab, a)
+    ok = rotation_angle_deg(cycle, np.eye(3)) < threshold_deg
+    counts = np.bincount(np.concatenate([e_ab[ok], e_ac[ok], e_bc[ok]]), minlength=E)
+    support[idx] = counts
+    return support
+
+
+def spanning_tree_rotations(num_images, pairs, R_j_from_i, weights, mask, root, *, priority=None) -> np.ndarray:
+    """Absolute rotations (N, 3, 3) chained along the maximum spanning tree of ``pairs[mask]``.
+
+    Edges are ranked by ``priority`` (e.g. :func:`triangle_support`), then by weight.  Images not reached
+    from ``root`` get NaN.
+    """
+    idx, key = _unique_edges(pairs, mask, weights)
+    w = weights[idx]
+    pr = np.zeros(len(idx)) if priority is None else np.asarray(priority, dtype=np.float64)[idx]
+    # lexicographic (priority, weight) as one positive cost; zeros would mean "no edge"
+    w_rank = (w - w.min()) / (w.max() - w.min() + 1.0)  # in [0, 1)
+    cost = (pr.max() - pr) + (1.0 - w_rank) + 1.0
     G = sp.coo_matrix((cost, (key[:, 0], key[:, 1])), shape=(num_images, num_images)).tocsr()
     tree = minimum_spanning_tree(G)
     visit, pred = breadth_first_order(tree, root, directed=False, return_predecessors=True)
@@ -222,20 +278,9 @@ def spanning_tree_rotations(num_images, pairs, R_j_from_i, weights, mask, root) 
     return R
 
 
-def consensus_sweeps(R: np.ndarray, pairs: np.ndarray, R_j_from_i: np.ndarray, *, threshold_deg: float = 5.0,
-                     max_sweeps: int = 20) -> np.ndarray:
-    """Repair a rotation initialisation (e.g. a spanning tree through outlier pairs) by local consensus.
-
-    Each image k may take any rotation predicted by one of its pairs (``R_j_from_i R_i`` or
-    ``R_j_from_iᵀ R_j``); it switches to the one minimising its truncated cost
-    ``Σ_incident min(angle, threshold)²`` when that beats its current cost.  Images whose gain is the
-    largest in their neighbourhood switch together (no two neighbours at once, so the total truncated
-    cost decreases monotonically).  ``R`` (N, 3, 3) must be finite on the images of ``pairs``.
-    """
-    R = np.asarray(R, dtype=np.float64).copy()
-    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+def _camera_sweeps(R, pairs, R_j_from_i, thr, max_sweeps):
+    """Image-level consensus moves (see :func:`consensus_sweeps`); returns the number of moves."""
     N, P = len(R), len(pairs)
-    thr = np.radians(threshold_deg)
     cam = np.concatenate([pairs[:, 1], pairs[:, 0]])  # image whose rotation is predicted
     other = np.concatenate([pairs[:, 0], pairs[:, 1]])
     rel = np.concatenate([R_j_from_i, np.swapaxes(R_j_from_i, -1, -2)])  # R_cam = rel @ R_other
@@ -247,6 +292,7 @@ def consensus_sweeps(R: np.ndarray, pairs: np.ndarray, R_j_from_i: np.ndarray, *
     a_idx = np.repeat(np.arange(2 * P), deg[cam])
     first = np.repeat(np.cumsum(deg[cam]) - deg[cam], deg[cam])
     b_idx = start[cam[a_idx]] + np.arange(len(a_idx)) - first
+    moves = 0
     for sweep in range(max_sweeps):
         pred = rel @ R[other]
         trunc_a = np.minimum(np.radians(rotation_angle_deg(pred[a_idx], pred[b_idx])), thr) ** 2
@@ -258,19 +304,90 @@ def consensus_sweeps(R: np.ndarray, pairs: np.ndarray, R_j_from_i: np.ndarray, *
         gain[gain < 1e-3 * thr**2] = 0.0
         if not gain.any():
             break
+        # move where the gain is the largest of the neighbourhood (equal gains: the lower index)
         nb_max = np.zeros(N)
         np.maximum.at(nb_max, pairs[:, 0], gain[pairs[:, 1]])
         np.maximum.at(nb_max, pairs[:, 1], gain[pairs[:, 0]])
-        move = (gain > 0) & (gain > nb_max)
-        ties = (gain > 0) & (gain == nb_max)  # equal gains among neighbours: lowest index moves
-        if ties.any():
-            lower_tie = np.zeros(N, bool)
-            t_pairs = pairs[ties[pairs[:, 0]] & ties[pairs[:, 1]] & (gain[pairs[:, 0]] == gain[pairs[:, 1]])]
-            lower_tie[t_pairs.max(1)] = True
-            move |= ties & ~lower_tie
+        move = (gain > 0) & (gain >= nb_max)
+        tie = (gain[pairs[:, 0]] == gain[pairs[:, 1]]) & (gain[pairs[:, 0]] > 0)
+        move[pairs[tie].max(1)] = False
         moving = best[move[cam[best]]]
         R[cam[moving]] = pred[moving]
+        moves += len(moving)
         log.debug("consensus sweep %d: %d image(s) switched", sweep, len(moving))
+    return moves
+
+
+def _cluster_moves(R, pairs, R_j_from_i, thr) -> int:
+    """Cluster-level consensus: re-attach each internally consistent cluster to the largest one."""
+    N = len(R)
+    nodes = np.unique(pairs)
+    res = np.radians(rotation_angle_deg(R_j_from_i, R[pairs[:, 1]] @ np.swapaxes(R[pairs[:, 0]], -1, -2)))
+    ok = res < thr
+    G = sp.coo_matrix((np.ones(ok.sum()), (pairs[ok, 0], pairs[ok, 1])), shape=(N, N))
+    _, labels = connected_components(G, directed=False)
+    sizes = np.bincount(labels[nodes], minlength=labels.max() + 1)
+    if np.count_nonzero(sizes) <= 1:
+        return 0
+    main = int(np.argmax(sizes))
+    li, lj = labels[pairs[:, 0]], labels[pairs[:, 1]]
+    moved = 0
+    for comp in np.flatnonzero(sizes)[np.argsort(-sizes[np.flatnonzero(sizes)], kind="stable")]:
+        if comp == main:
+            continue
+        a = np.flatnonzero((li == comp) & (lj == main))  # i in the cluster: G = R_iᵀ R_relᵀ R_j
+        b = np.flatnonzero((li == main) & (lj == comp))  # j in the cluster: G = R_jᵀ R_rel R_i
+        if len(a) + len(b) == 0:
+            continue
+        cand = np.concatenate([
+            np.swapaxes(R[pairs[a, 0]], -1, -2) @ np.swapaxes(R_j_from_i[a], -1, -2) @ R[pairs[a, 1]],
+            np.swapaxes(R[pairs[b, 1]], -1, -2) @ R_j_from_i[b] @ R[pairs[b, 0]],
+        ])
+        # residual of crossing pair q under candidate G: angle between R_rel and R_j' R_i'ᵀ
+        Ra_i, Ra_j = R[pairs[a, 0]], R[pairs[a, 1]]
+        Rb_i, Rb_j = R[pairs[b, 0]], R[pairs[b, 1]]
+        costs = np.zeros(len(cand))
+        for Ri, Rj, Rrel, in_i in ((Ra_i, Ra_j, R_j_from_i[a], True), (Rb_i, Rb_j, R_j_from_i[b], False)):
+            if len(Ri) == 0:
+                continue
+            if in_i:  # R_i' = R_i G
+                pred = Rj[None] @ np.swapaxes(Ri[None] @ cand[:, None], -1, -2)
+            else:  # R_j' = R_j G
+                pred = (Rj[None] @ cand[:, None]) @ np.swapaxes(Ri[None], -1, -2)
+            costs += (np.minimum(np.radians(rotation_angle_deg(Rrel[None], pred)), thr) ** 2).sum(1)
+        current = (np.minimum(res[np.concatenate([a, b])], thr) ** 2).sum()
+        best = int(np.argmin(costs))
+        if costs[best] < current - 1e-3 * thr**2:
+            members = np.flatnonzero(labels == comp)
+            R[members] = R[members] @ cand[best]
+            labels[members] = main
+            li, lj = labels[pairs[:, 0]], labels[pairs[:, 1]]
+            moved += 1
+    log.debug("consensus: %d cluster(s) re-attached", moved)
+    return moved
+
+
+def consensus_sweeps(R: np.ndarray, pairs: np.ndarray, R_j_from_i: np.ndarray, *, threshold_deg: float = 5.0,
+                     max_sweeps: int = 20, max_rounds: int = 10) -> np.ndarray:
+    """Repair a rotation initialisation (e.g. a spanning tree through outlier pairs) by local consensus.
+
+    Image moves: an image may take any rotation predicted by one of its pairs (``R_j_from_i R_i`` or
+    ``R_j_from_iᵀ R_j``); it switches to the one minimising its truncated cost
+    ``Σ_incident min(angle, threshold)²`` when that beats its current cost.  Images whose gain is the largest
+    in their neighbourhood switch together (never two neighbours, so the total truncated cost decreases).
+    Cluster moves: the components of the graph of consistent pairs (residual < threshold) are re-attached to
+    the largest one by the common right factor ``R_k ← R_k G`` (which keeps their internal relative rotations)
+    predicted by one of the crossing pairs, again minimising the truncated cost of the crossing pairs.
+    ``R`` (N, 3, 3) must be finite on the images of ``pairs``.
+    """
+    R = np.asarray(R, dtype=np.float64).copy()
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    R_j_from_i = np.asarray(R_j_from_i, dtype=np.float64)
+    thr = np.radians(threshold_deg)
+    for _ in range(max_rounds):
+        _camera_sweeps(R, pairs, R_j_from_i, thr, max_sweeps)
+        if _cluster_moves(R, pairs, R_j_from_i, thr) == 0:
+            break
     return R
 
 
@@ -335,7 +452,8 @@ def rotation_averaging_irls(
         step = np.abs(omega).max()
         if step < (l1_tol_rad if stage == "l1" else tol_rad):
             stage_done = stage
-        log.debug("rotation IRLS %s it %d: median residual %.4f°, max step %.2e", stage, it, np.degrees(np.median(r)), step)
+        log.debug("rotation IRLS %s it %d: median residual %.4f°, max step %.2e",
+                  stage, it, np.degrees(np.median(r)), step)
     return R
 
 
@@ -361,7 +479,7 @@ def _lud_centres(local, col, directions, n, iterations: int) -> np.ndarray:
 
     For fixed IRLS weights the optimal ``λ_p = max(1, ⟨c_j − c_i, d_p⟩)``; eliminating it leaves a piecewise
     quadratic in c, minimised by an active-set iteration: pairs with ``λ_p = 1`` contribute
-    ``w‖c_j − c_i − d_p‖²``, the others ``w‖(I − d dᵀ)(c_j − c_i)‖²`` (one sparse 3(n−1) solve each).
+    ``w‖c_j − c_i − d_p‖²``, the others ``w‖(I − d dᵀ)(c_j − c_i)‖²`` (one sparse solve per step).
     """
     M = len(local)
     i, j = local[:, 0], local[:, 1]
@@ -398,7 +516,7 @@ def _lud_centres(local, col, directions, n, iterations: int) -> np.ndarray:
 
 
 def _block_system(local, free_idx3, blocks, vec, n):
-    """Assemble ``Σ_p A_pᵀ B_p A_p`` and ``Σ_p A_pᵀ v_p`` for ``A_p = (e_j − e_i) ⊗ I₃`` (root columns dropped)."""
+    """``Σ_p A_pᵀ B_p A_p`` and ``Σ_p A_pᵀ v_p`` for ``A_p = (e_j − e_i) ⊗ I₃``, fixed (-1) columns dropped."""
     M = len(local)
     i, j = local[:, 0], local[:, 1]
     ii9, jj9 = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
@@ -425,7 +543,7 @@ def _free_index(col, n):
 
 
 def _refine_centres(local, col, directions, c0, robust_scale_deg: float, max_iterations: int = 100) -> np.ndarray:
-    """Robust chordal refinement ``min Σ_p ρ(‖(c_j − c_i)/‖c_j − c_i‖ − d_p‖)``, Cauchy ρ, root fixed at 0.
+    """Robust chordal refinement ``min Σ_p ρ(‖(c_j − c_i)/‖c_j − c_i‖ − d_p‖)``, Cauchy ρ, root fixed.
 
     Levenberg-Marquardt with IRLS weights on the per-pair residual norm and sparse normal equations; the
     (otherwise free) scale is fixed by the linear gauge ``mean_p ⟨c_j − c_i, d_p⟩ = const``.
@@ -437,8 +555,9 @@ def _refine_centres(local, col, directions, c0, robust_scale_deg: float, max_ite
     sigma2 = np.radians(robust_scale_deg) ** 2
     c = np.asarray(c0, dtype=np.float64) - c0[~free][0]
     s0 = np.einsum("pa,pa->", c[j] - c[i], directions) / M
-    if not s0 > 0:
-        raise ValueError(f"translation refinement: mean baseline projection is {s0}, expected > 0")
+    if not s0 > 0:  # cannot happen after LUD (λ ≥ 1) unless the input is degenerate: keep the initialisation
+        log.warning("translation refinement skipped: mean baseline projection %.3g is not positive", s0)
+        return c
     gauge_row = np.zeros((n, 3))  # ∂gauge/∂c
     np.add.at(gauge_row, j, directions / (M * s0))
     np.add.at(gauge_row, i, -directions / (M * s0))
@@ -554,8 +673,9 @@ def flexible_modes(centers: np.ndarray, pairs: np.ndarray, *, max_modes: int = 1
 
     0 means the centres are determined up to a similarity; > 0 means part of the layout can move (e.g. the
     spacing along a collinear row, or the relative scale of two clusters joined at one camera).  Counted
-    from the smallest eigenvalues of ``Σ_p A_pᵀ (I − d_p d_pᵀ) A_p`` (sparse shift-invert, capped at
-    ``max_modes − 4``).  Images not in ``pairs`` are ignored.
+    from the smallest eigenvalues of ``Σ_p A_pᵀ (I − d_p d_pᵀ) A_p`` (sparse shift-invert; at most
+    ``max_modes − 4``, so large counts are lower bounds); -1 if the eigen-solver fails.  Images not in
+    ``pairs`` are ignored.
     """
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     if len(pairs) == 0:
@@ -572,9 +692,11 @@ def flexible_modes(centers: np.ndarray, pairs: np.ndarray, *, max_modes: int = 1
     if 3 * n <= 60:
         ev = np.linalg.eigvalsh(K.toarray())[:k]
     else:
-        from scipy.sparse.linalg import eigsh
-
-        ev = eigsh(K, k=k, sigma=-1e-6 * top, which="LM", return_eigenvectors=False)
+        try:
+            ev = eigsh(K, k=k, sigma=-1e-6 * top, which="LM", return_eigenvectors=False)
+        except (ArpackNoConvergence, RuntimeError) as exc:  # diagnostic only: never fail the registration
+            log.warning("parallel-rigidity check failed (%s)", exc)
+            return -1
     trivial = 4 if n > 2 else 3 * n - 2  # translation + scale (two cameras: only their distance is fixed)
     return max(int(np.sum(ev < rel_tol * top)) - min(trivial, 3 * n), 0)
 
@@ -585,7 +707,7 @@ def flexible_modes(centers: np.ndarray, pairs: np.ndarray, *, max_modes: int = 1
 
 
 def planar_epipole_cost(theta, pairs, e_ij, e_ji, weights=None) -> float:
-    """The report's cost ``Σ_p w_p (1 − |e_ij,w · e_ji,w|)``, ``e_ij,w = R_y(θ_i)ᵀ e_ij``, ``e_ji,w = R_y(θ_j)ᵀ e_ji``.
+    """The report's cost ``Σ_p w_p (1 − |e_ij,w · e_ji,w|)``, ``e_ij,w = R_y(θ_i)ᵀ e_ij``, ``e_ji,w = R_y(θ_j)ᵀ e_ji``
 
     ``theta`` (N,) yaw of each ``R_cam_from_world = R_y(θ)``; ``e_ij`` / ``e_ji`` (M, 3) unit epipoles
     (sign irrelevant); zero at the truth for level cameras.
@@ -596,7 +718,8 @@ def planar_epipole_cost(theta, pairs, e_ij, e_ji, weights=None) -> float:
 def planar_epipole_cost_derivatives(theta, pairs, e_ij, e_ji, weights=None):
     """``(cost, gradient (N,), Hessian (N, N) sparse csr)`` of :func:`planar_epipole_cost` w.r.t. θ.
 
-    With horizontal (x, z) parts in polar form, ``e_ij,w · e_ji,w = y_i y_j + r_i r_j cos(θ_j − θ_i + φ_j − φ_i)``.
+    With the horizontal (x, z) parts in polar form (r, φ):
+    ``e_ij,w · e_ji,w = y_i y_j + r_i r_j cos(θ_j − θ_i + φ_j − φ_i)``.
     """
     theta = np.asarray(theta, dtype=np.float64)
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
@@ -685,17 +808,21 @@ def _check_inputs(num_images, pairs, R_j_from_i, t_j_from_i, weights, model, e_i
 
 
 def _epipoles(R, t, e_ij, e_ji):
-    """Unit epipoles (M, 3) each, derived from (R, t) or sign-aligned with them when given."""
+    """Unit epipoles (M, 3) each, derived from (R, t) or, when given, sign-aligned with them.
+
+    Given epipoles that are non-finite or zero fall back to the derived ones.
+    """
     d_ij = normalize(-np.einsum("pba,pb->pa", R, t))  # c_j seen from i
     d_ji = normalize(t)  # c_i seen from j
     out = []
     for given, derived in ((e_ij, d_ij), (e_ji, d_ji)):
         if given is None:
             out.append(derived)
-        else:
-            g = normalize(given)
-            flip = np.einsum("pa,pa->p", g, derived) < 0
-            out.append(np.where(flip[:, None], -g, g))
+            continue
+        g = normalize(np.nan_to_num(given, nan=0.0, posinf=0.0, neginf=0.0))
+        ok = np.linalg.norm(g, axis=1) > 0.5
+        flip = np.einsum("pa,pa->p", g, derived) < 0
+        out.append(np.where(ok[:, None], np.where(flip[:, None], -g, g), derived))
     return out
 
 
@@ -718,12 +845,19 @@ def register(
 ) -> Registration:
     """Absolute poses of ``num_images`` cameras from relative poses of ``pairs`` (P, 2); see module doc.
 
+    ``R_j_from_i`` (P, 3, 3), ``t_j_from_i`` (P, 3) (any norm > 0), ``weights`` (P,) (inlier counts);
+    ``e_ij`` / ``e_ji`` (P, 3) optional epipoles (default: derived from R, t; signs are aligned with t).
     A pair is used only if its weight is > 0 and >= ``min_weight`` and its R / t are finite (t ≠ 0).
+    Pairs are rejected when their rotation residual exceeds ``max_rotation_residual_deg`` or their
+    baseline direction residual exceeds ``max_direction_residual_deg``; ``robust_scale_deg`` is the
+    Cauchy scale of both averaging steps; images with fewer than ``min_pairs_per_camera`` consistent
+    pairs are not placed (1 accepts positions fixed only along a ray).
     Never raises for disconnected or unconstrained images: they are reported unregistered.
     ``seed`` is unused (the method is deterministic) and kept for a uniform stage API.
     """
     del seed
-    pairs, R_rel, t_rel, w, e_ij, e_ji = _check_inputs(num_images, pairs, R_j_from_i, t_j_from_i, weights, model, e_ij, e_ji)
+    pairs, R_rel, t_rel, w, e_ij, e_ji = _check_inputs(
+        num_images, pairs, R_j_from_i, t_j_from_i, weights, model, e_ij, e_ji)
     P, N = len(pairs), num_images
     finite = (
         np.isfinite(R_rel).all((1, 2)) & np.isfinite(t_rel).all(1) & (np.linalg.norm(t_rel, axis=1) > 0)
@@ -750,7 +884,9 @@ def register(
         nodes, use = _prune_graph(N, pairs, use, w, 1)
         if len(nodes) >= 2:
             root = int(nodes[0])
-            d = normalize(np.einsum("pba,pb->pa", R_abs[pairs[:, 0]], e_i) - np.einsum("pba,pb->pa", R_abs[pairs[:, 1]], e_j))
+            # world baseline direction c_j − c_i, seen from both ends: R_iᵀ e_ij and −R_jᵀ e_ji
+            d = normalize(np.einsum("pba,pb->pa", R_abs[pairs[:, 0]], e_i)
+                          - np.einsum("pba,pb->pa", R_abs[pairs[:, 1]], e_j))
             d = np.where(use[:, None], np.nan_to_num(d), 0.0)
             centres, use = translation_averaging(
                 N, pairs, d, root, weights=w, max_direction_residual_deg=max_direction_residual_deg,
@@ -767,7 +903,8 @@ def register(
 
 
 def _general_rotations(N, pairs, R_rel, w, use, root, thr_deg, robust_scale_deg):
-    R0 = spanning_tree_rotations(N, pairs, R_rel, w, use, root)
+    support = triangle_support(N, pairs, R_rel, w, use, threshold_deg=thr_deg)
+    R0 = spanning_tree_rotations(N, pairs, R_rel, w, use, root, priority=support)
     sel = np.flatnonzero(use)
     R0 = consensus_sweeps(R0, pairs[sel], R_rel[sel], threshold_deg=thr_deg)
     R_abs = rotation_averaging_irls(R0, pairs[sel], R_rel[sel], root, robust_scale_deg=robust_scale_deg)
@@ -792,10 +929,13 @@ def _general_rotations(N, pairs, R_rel, w, use, root, thr_deg, robust_scale_deg)
 def _planar_rotations(N, pairs, R_rel, w, use, root, e_i, e_j, rot_thr_deg, dir_thr_deg, robust_scale_deg):
     psi = rotation_yaw(R_rel)
     R_yaw = yaw_rotation(psi)
-    R0 = spanning_tree_rotations(N, pairs, R_yaw, w, use, root)
+    support = triangle_support(N, pairs, R_rel, w, use, threshold_deg=rot_thr_deg)  # cycles close for any poses
+    R0 = spanning_tree_rotations(N, pairs, R_yaw, w, use, root, priority=support)
     sel = np.flatnonzero(use)
     R0 = consensus_sweeps(R0, pairs[sel], R_yaw[sel], threshold_deg=rot_thr_deg)
-    R_abs = rotation_averaging_irls(R0, pairs[sel], R_yaw[sel], root, robust_scale_deg=robust_scale_deg)
+    # no L1 stage: in 1-D the L1 optimum is a median, which scattered outlier yaws can drag off the inlier mode
+    R_abs = rotation_averaging_irls(R0, pairs[sel], R_yaw[sel], root, l1_iterations=0,
+                                    robust_scale_deg=robust_scale_deg)
     theta = np.where(np.isfinite(R_abs[:, 0, 0]), rotation_yaw(R_abs), 0.0)
     theta -= theta[root]
     cos_thr = np.cos(np.radians(dir_thr_deg))

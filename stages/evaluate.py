@@ -28,5 +28,10 @@ def evaluate(dataset: Dataset, ws: Workspace) -> dict:
     c_gt = np.stack([gt[n].center for n in dataset.image_names])
     metrics = {"dataset": dataset.name, "poses_from": source}
     metrics.update(pose_metrics(est["R_cam_from_world"], est["centers"], R_gt, c_gt, est["registered"]))
+    if ws.stage_dir("densify").exists() and dataset.ground_truth_depth(dataset.image_names[0]) is not None:
+        from fullview.stages.densify import evaluate_dense
+        dense = evaluate_dense(dataset, ws, est, R_gt, c_gt)
+        if dense is not None:
+            metrics["dense"] = dense
     save_json(ws.eval_path(), metrics)
     return metrics

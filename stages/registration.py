@@ -28,7 +28,9 @@ def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict
     names = dataset.image_names
     reg = register(num_images=len(names), pairs=epi["pairs"], R_j_from_i=epi["R_j_from_i"],
                    t_j_from_i=epi["t_j_from_i"], weights=weights, model=config["model"], seed=config["seed"],
-                   e_ij=epi["e_i"], e_ji=epi["e_j"], min_weight=config["min_inliers"])
+                   e_ij=epi["e_i"], e_ji=epi["e_j"], min_weight=config["min_inliers"],
+                   max_rotation_residual_deg=config["max_rotation_residual_deg"],
+                   max_direction_residual_deg=config["max_direction_residual_deg"])
     R = np.where(reg.registered[:, None, None], reg.R_cam_from_world, np.eye(3))
     t = np.where(reg.registered[:, None], reg.t_cam_from_world, 0.0)
     save_poses(ws.registration_path(out_dir), REGISTRATION_VERSION, image_names=names, registered=reg.registered,

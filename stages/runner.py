@@ -1,7 +1,8 @@
 """The cached stage runner: fingerprints decide what reruns, like DVC.
 
 A stage's fingerprint hashes its format version, its config section, the fingerprints its upstream stages *should*
-have now, and the dataset inputs it reads (image contents, hand points). A stage is fresh when its manifest carries
+have now, the dataset inputs it reads (image contents, hand points) and the source of the fullview modules its code
+reaches (so a fix in `sfm/` reruns the stages that use it, and only those). A stage is fresh when its manifest carries
 that fingerprint; otherwise it is stale (with the reason) or missing. Running a stage makes everything downstream of
 it stale through the chained fingerprints, while editing one stage's config never touches the stages before it.
 """
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib
+import inspect
 import json
 import logging
 import resource
@@ -35,6 +37,22 @@ def stage_module(name: str):
     if name not in PIPELINE_STAGES:
         raise RunnerError(f"unknown stage {name!r} (stages: {', '.join(PIPELINE_STAGES)})")
     return importlib.import_module(f"fullview.stages.{name}")
+
+
+def code_hashes(module) -> dict[str, str]:
+    """sha256 (short) of the source of `module` and of every fullview module it reaches through its globals."""
+    seen: dict[str, str] = {}
+    todo = [module]
+    while todo:
+        mod = todo.pop()
+        if mod.__name__ in seen or not mod.__name__.startswith("fullview.") or not getattr(mod, "__file__", None):
+            continue
+        seen[mod.__name__] = hashlib.sha256(Path(mod.__file__).read_bytes()).hexdigest()[:12]
+        for value in vars(mod).values():
+            dep = value if inspect.ismodule(value) else inspect.getmodule(value)
+            if dep is not None and dep.__name__.startswith("fullview."):
+                todo.append(dep)
+    return dict(sorted(seen.items()))
 
 
 @dataclass(kw_only=True)
@@ -69,6 +87,7 @@ class Pipeline:
             "params": self.config[stage],
             "upstream": {u: self.fingerprint(u) for u in module.UPSTREAM},
             "inputs": self.inputs_of(stage),
+            "code": code_hashes(module),
         }
 
     def fingerprint(self, stage: str) -> str:
@@ -96,6 +115,10 @@ class Pipeline:
         for up, fp in now["upstream"].items():
             if manifest.get("upstream", {}).get(up) != fp:
                 reasons.append(f"upstream {up} changed")
+        old_code = manifest.get("code", {})
+        changed = sorted(k for k in set(old_code) | set(now["code"]) if old_code.get(k) != now["code"].get(k))
+        if changed:
+            reasons.append(f"code changed: {', '.join(changed)}")
         for kind, hashes in now["inputs"].items():
             old = manifest.get("inputs", {}).get(kind, {})
             changed = sorted(k for k in set(old) | set(hashes) if old.get(k) != hashes.get(k))

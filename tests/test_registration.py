@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fullview.sfm.registration import (
+    consensus_sweeps,
     flexible_modes,
     planar_epipole_cost,
     planar_epipole_cost_derivatives,
@@ -15,6 +16,8 @@ from fullview.sfm.registration import (
     rotation_angle_deg,
     rotation_yaw,
     similarity_alignment,
+    spanning_tree_rotations,
+    triangle_support,
     yaw_rotation,
 )
 
@@ -118,9 +121,11 @@ def test_rotation_angle_deg_matches_scipy_including_extremes():
     np.testing.assert_allclose(rotation_angle_deg(Ra, Rb), expected, atol=1e-9)
     tiny = Rotation.from_rotvec([1e-9, 0, 0]).as_matrix()
     assert rotation_angle_deg(tiny, np.eye(3)) == pytest.approx(np.degrees(1e-9), rel=1e-6)
-    half = Rotation.from_rotvec(np.pi * rng.normal(size=3) / np.linalg.norm(rng.normal(size=3))).as_matrix()
-    assert rotation_angle_deg(Rotation.from_rotvec([np.pi, 0, 0]).as_matrix(), np.eye(3)) == pytest.approx(180.0)
-    assert rotation_angle_deg(half, half) == pytest.approx(0.0, abs=1e-6)
+    axis = rng.normal(size=3)
+    half = Rotation.from_rotvec((np.pi - 1e-7) * axis / np.linalg.norm(axis)).as_matrix()
+    assert rotation_angle_deg(half, np.eye(3)) == pytest.approx(180.0 - np.degrees(1e-7), abs=1e-9)
+    assert rotation_angle_deg(half, half) == pytest.approx(0.0, abs=1e-12)
+    assert rotation_angle_deg(Ra[:, None], Rb[None]).shape == (50, 50)  # broadcasts
 
 
 def test_relative_from_absolute_follows_convention():
@@ -226,6 +231,52 @@ def test_heaviest_pairs_being_outliers_do_not_break_the_spanning_tree_init():
     rot_err, c_err = pose_errors(reg, R, c)
     assert reg.registered.all() and rot_err < 0.1 and c_err < 0.01
     np.testing.assert_array_equal(reg.pair_inlier_mask, ~outlier)
+
+
+def test_triangle_support_and_consensus_repair_a_tree_through_outliers():
+    rng = np.random.default_rng(31)
+    n = 12
+    R, c = make_scene(rng, n)
+    pairs = knn_pairs(c, 5)
+    R_rel, t_rel, w, outlier = make_measurements(rng, R, c, pairs, rot_noise_deg=0.05, outlier_fraction=0.2)
+    mask = np.ones(len(pairs), bool)
+    support = triangle_support(n, pairs, R_rel, w, mask)
+    assert (support[outlier] == 0).all() and np.median(support[~outlier]) >= 2
+    w_bad = np.where(outlier, 1e4, w)  # the maximum-weight tree takes every outlier it can
+
+    def errors(R_est):  # up to the best-supported global rotation R_est_k ≈ R_k G
+        G = np.swapaxes(R, -1, -2) @ R_est
+        err = rotation_angle_deg(R_est[None], R[None] @ G[:, None])
+        return err[np.argmin(np.median(err, axis=1))]
+
+    R_tree = spanning_tree_rotations(n, pairs, R_rel, w_bad, mask, 0)
+    assert (errors(R_tree) > 20).sum() >= 2
+    R_fixed = consensus_sweeps(R_tree, pairs, R_rel)
+    assert errors(R_fixed).max() < 0.5
+    R_prior = spanning_tree_rotations(n, pairs, R_rel, w_bad, mask, 0, priority=support)
+    assert errors(R_prior).max() < 0.5
+
+
+def test_reversed_and_duplicate_pairs():
+    rng = np.random.default_rng(32)
+    R, c = make_scene(rng, 8)
+    pairs = knn_pairs(c, 4)
+    R_rel, t_rel, w, _ = make_measurements(rng, R, c, pairs, rot_noise_deg=0.05, dir_noise_deg=0.2)
+    flip = np.arange(len(pairs)) % 2 == 1  # express every other pair as (j, i)
+    pairs2 = np.where(flip[:, None], pairs[:, ::-1], pairs)
+    t = -np.einsum("nab,nb->na", R, c)
+    R2, t2 = relative_from_absolute(R, t, pairs2[:, 0], pairs2[:, 1])
+    R2 = np.where(flip[:, None, None], R2, R_rel)
+    t2 = np.where(flip[:, None], t2, t_rel)
+    # plus a duplicate of pair 0 that is a gross outlier with a low weight
+    pairs2 = np.vstack([pairs2, pairs2[:1]])
+    R2 = np.concatenate([R2, Rotation.from_rotvec([[0, 2.0, 0]]).as_matrix() @ R2[:1]])
+    t2 = np.vstack([t2, [[1.0, 0, 0]]])
+    w2 = np.append(w, 1.0)
+    reg = run(R, c, pairs2, R2, t2, w2)
+    rot_err, c_err = pose_errors(reg, R, c)
+    assert reg.registered.all() and rot_err < 0.1 and c_err < 0.01
+    assert not reg.pair_inlier_mask[-1] and reg.pair_inlier_mask[:-1].all()
 
 
 def test_disconnected_images_are_unregistered():
@@ -358,6 +409,9 @@ def test_explicit_sign_ambiguous_epipoles_give_same_result():
     signs = rng.choice([-1.0, 1.0], size=(len(pairs), 1))
     ref = run(R, c, pairs, R_rel, t_rel, w)
     reg = run(R, c, pairs, R_rel, t_rel, w, e_ij=signs * e_ij, e_ji=-signs * t_rel)
+    np.testing.assert_allclose(reg.centers, ref.centers, atol=1e-9)
+    e_ij[0] = np.nan  # a missing epipole falls back to the one derived from (R, t)
+    reg = run(R, c, pairs, R_rel, t_rel, w, e_ij=e_ij, e_ji=np.zeros_like(t_rel))
     np.testing.assert_allclose(reg.centers, ref.centers, atol=1e-9)
 
 
