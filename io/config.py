@@ -72,6 +72,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "min_consistent": 1,  # other depth maps that must agree for a fused point
         "consistency_tolerance": 0.02,  # relative range tolerance for agreement
         "fusion_views": 4,  # nearest other panoramas checking each panorama's points
+        "fusion_stride": 2,  # fuse every n-th pixel of the range maps in both directions (the cloud is voxelised)
         "voxel_size": 0.0,  # voxel size of the fused cloud (0 = 0.2% of the scene's size)
         "outlier_neighbours": 20,  # statistical outlier removal: neighbours
         "outlier_std_ratio": 2.0,  # statistical outlier removal: std ratio

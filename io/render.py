@@ -1,8 +1,9 @@
 """Off-screen pictures of reconstructions: colour-mapped range maps and point-cloud previews (atomic PNG writes).
 
 Point clouds are drawn with matplotlib's Agg backend (no display, no OpenGL): orthographic views, points sorted far
-to near (painter's algorithm) and splatted at about their spacing. Indoor scenes are seen from inside, so points
-above the cameras (ceiling, upper walls) are dropped before rendering: the previews look down into the room.
+to near (painter's algorithm) and splatted at about their spacing. Indoor scenes are seen from inside, so the
+surfaces facing away from a view (given normals) or the points above the cameras (without normals) are left out:
+the previews look into the room like into a doll's house.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from fullview.io.artifacts import atomic_path
 log = logging.getLogger(__name__)
 
 CEILING_CUT = 0.35  # keep points up to the cameras' height + this share of the way to the highest points
+FRAME_PERCENTILES = (1.0, 99.0)  # each view is framed on the points between these percentiles of its coordinates
 
 
 def save_png(path: Path, image: np.ndarray) -> Path:
@@ -76,8 +78,8 @@ def _view_basis(up, e1, e2, azimuth_deg: float, elevation_deg: float) -> tuple[n
     return right, np.cross(towards, right), towards
 
 
-def render_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, *, up: np.ndarray | None = None,
-                       cameras: np.ndarray | None = None,
+def render_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, *, normals: np.ndarray | None = None,
+                       up: np.ndarray | None = None, cameras: np.ndarray | None = None,
                        views: Sequence[tuple[str, float, float]] = (("top", 0.0, 90.0), ("oblique", 30.0, 45.0),
                                                                    ("oblique", 210.0, 45.0)),
                        max_points: int = 400_000, panel_px: int = 900, title: str | None = None,
@@ -85,7 +87,9 @@ def render_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, *, up
     """Render ``points`` (N, 3) with RGB uint8 ``colors`` to a PNG with one panel per view (name, azimuth°,
     elevation°; azimuth from the points' main horizontal axis). ``up``: the scene's up direction (default: the
     points' least-variance axis); ``cameras`` (M, 3) centres are drawn as red triangles and set the height above
-    which points are cut away. At most ``max_points`` points (random subset, ``seed``) are drawn."""
+    which points are cut away. With ``normals`` (N, 3) (oriented towards the cameras) each view shows only the points
+    facing it instead (back-face culling: one looks into the room through the walls and ceiling that face away).
+    At most ``max_points`` points (random subset, ``seed``) are drawn."""
     import matplotlib
     matplotlib.use("Agg", force=False)
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -98,14 +102,21 @@ def render_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, *, up
         raise ValueError(f"colors has {len(colors)} rows but points has {len(points)}")
     if len(points) < 3:
         raise ValueError(f"need at least 3 points to render, got {len(points)}")
+    normals = None if normals is None else np.asarray(normals, np.float64).reshape(-1, 3)
+    if normals is not None and len(normals) != len(points):
+        raise ValueError(f"normals has {len(normals)} rows but points has {len(points)}")
     if len(points) > max_points:
         keep = np.random.default_rng(seed).choice(len(points), max_points, replace=False)
         points, colors = points[keep], colors[keep]
+        normals = None if normals is None else normals[keep]
     up, e1, e2 = _up_and_axes(points, up)
-    height = points @ up
-    top = np.percentile(height, 99)
-    base = np.median(np.asarray(cameras) @ up) if cameras is not None and len(cameras) else np.percentile(height, 50)
-    shown = height <= base + CEILING_CUT * max(top - base, 0.0)
+    shown = np.ones(len(points), bool)
+    if normals is None:
+        height = points @ up
+        top = np.percentile(height, 99)
+        base = (np.median(np.asarray(cameras) @ up) if cameras is not None and len(cameras)
+                else np.percentile(height, 50))
+        shown = height <= base + CEILING_CUT * max(top - base, 0.0)
     pts, cols = points[shown], colors[shown].astype(np.float64) / 255.0
     spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 2 else 0.0
 
@@ -116,21 +127,24 @@ def render_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, *, up
         ax = fig.add_axes((k / len(views), 0.0, 1.0 / len(views), panel_px / (panel_px + 50)))
         right, screen_up, towards = _view_basis(up, e1, e2, azimuth, elevation)
         order = np.argsort(pts @ towards)  # far first
+        if normals is not None:
+            order = order[normals[order] @ towards > 0.0]  # back faces culled
         x, y = pts[order] @ right, pts[order] @ screen_up
-        extent = max(np.ptp(x), np.ptp(y), 1e-9) * 1.04
+        (x_lo, x_hi), (y_lo, y_hi) = np.percentile(x, FRAME_PERCENTILES), np.percentile(y, FRAME_PERCENTILES)
+        extent = max(x_hi - x_lo, y_hi - y_lo, 1e-9) * 1.08  # framed on the bulk, stray points may fall outside
         px_per_unit = panel_px / extent
         diameter_pt = max(1.0, 1.6 * spacing * px_per_unit) * 72.0 / dpi
         ax.scatter(x, y, s=diameter_pt**2, c=cols[order], marker="s", linewidths=0, rasterized=True)
         if cameras is not None and len(cameras):
             cams = np.asarray(cameras, np.float64)
             ax.scatter(cams @ right, cams @ screen_up, s=40, c="red", marker="^", edgecolors="white", linewidths=0.5)
-        cx, cy = (x.min() + x.max()) / 2, (y.min() + y.max()) / 2
+        cx, cy = (x_lo + x_hi) / 2, (y_lo + y_hi) / 2
         ax.set_xlim(cx - extent / 2, cx + extent / 2)
         ax.set_ylim(cy - extent / 2, cy + extent / 2)
         ax.set_aspect("equal")
         ax.set_axis_off()
         ax.set_facecolor("#151515")
-        label = f"{name} (az {azimuth:g}°, el {elevation:g}°)" if name != "top" else "top (ceiling removed)"
+        label = f"{name} (az {azimuth:g}°, el {elevation:g}°)" if name != "top" else "top"
         ax.set_title(label, color="white", fontsize=11)
     if title:
         fig.suptitle(title, color="white", fontsize=12, y=0.995)

@@ -150,8 +150,8 @@ def _build_layout(
     elif scale_camera is None:
         dist = np.linalg.norm(centers - anchor, axis=1)
         dist[fixed] = -1.0
-        dist[np.bincount(obs_camera, minlength=n) == 0] = -1.0  # prefer observed cameras
-        scale_camera = int(np.argmax(dist))
+        dist[np.bincount(obs_camera, minlength=n) == 0] = -1.0  # only observed cameras
+        scale_camera = int(np.argmax(dist)) if dist.max() > 0 else -1  # -1: no camera to hold
     elif not 0 <= scale_camera < n or scale_camera in fixed:
         raise ValueError(f"scale_camera={scale_camera} must be a non-fixed camera index in [0, {n})")
     radius, u0, tangent = 0.0, np.zeros(3), np.zeros((3, 2))
@@ -273,7 +273,7 @@ class _WeightedResiduals:
         return csr_matrix((J[self.mask], self.indices, self.indptr), shape=self.shape)
 
 
-def _validate(R, t, points, obs_camera, obs_point, obs_bearings, fixed, loss):
+def _validate(R, t, points, obs_camera, obs_point, obs_bearings, fixed, loss, loss_scale_rad, max_nfev):
     """Convert and check the inputs of bundle_adjust (errors name the argument at fault)."""
     R, t = np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
     points = np.asarray(points, dtype=np.float64)
@@ -287,15 +287,19 @@ def _validate(R, t, points, obs_camera, obs_point, obs_bearings, fixed, loss):
     if obs_camera.shape != (k,) or obs_point.shape != (k,) or obs_bearings.shape != (k, 3):
         raise ValueError(f"obs_camera {obs_camera.shape}, obs_point {obs_point.shape}, obs_bearings "
                          f"{obs_bearings.shape} must be (K,), (K,), (K, 3)")
-    if k and (obs_camera.min() < 0 or obs_camera.max() >= n):
+    if k == 0 or not (np.isfinite(obs_bearings).all() and (np.abs(obs_bearings).sum(1) > 0).all()):
+        raise ValueError("obs_bearings must be non-empty, finite and non-zero")
+    if obs_camera.min() < 0 or obs_camera.max() >= n:
         raise ValueError(f"obs_camera values must be in [0, {n})")
-    if k and (obs_point.min() < 0 or obs_point.max() >= len(points)):
+    if obs_point.min() < 0 or obs_point.max() >= len(points):
         raise ValueError(f"obs_point values must be in [0, {len(points)})")
     fixed = np.unique(np.asarray(fixed, dtype=np.int64))
     if len(fixed) == 0 or fixed.min() < 0 or fixed.max() >= n:
         raise ValueError(f"fixed_cameras={tuple(fixed)} must name at least one camera in [0, {n})")
     if loss not in _LOSSES:
         raise ValueError(f"loss={loss!r} must be one of {sorted(_LOSSES)}")
+    if not loss_scale_rad > 0 or max_nfev < 1:
+        raise ValueError(f"loss_scale_rad={loss_scale_rad} and max_nfev={max_nfev} must be positive")
     return R, t, points, obs_camera, obs_point, normalize(obs_bearings), fixed
 
 
@@ -323,7 +327,8 @@ def bundle_adjust(
     See the module docstring for the residuals and the gauge.
     """
     R0, t0, X0, cam, pt, z, fixed = _validate(
-        R_cam_from_world, t_cam_from_world, points, obs_camera, obs_point, obs_bearings, fixed_cameras, loss
+        R_cam_from_world, t_cam_from_world, points, obs_camera, obs_point, obs_bearings, fixed_cameras, loss,
+        loss_scale_rad, max_nfev,
     )
     C0 = -np.einsum("nji,nj->ni", R0, t0)
     layout = _build_layout(C0, len(X0), fixed, scale_camera, cam)

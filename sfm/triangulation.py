@@ -115,7 +115,8 @@ def gather_bearings(
         k = int(np.argmin(valid))
         raise ValueError(f"observation {k} (image {image_ids[k]}, feature {feature_ids[k]}) has no bearing "
                          f"in bearings_per_image ({len(counts)} images)")
-    flat = np.concatenate([np.zeros((0, 3))] + [np.asarray(b, dtype=np.float64).reshape(-1, 3) for b in bearings_per_image])
+    arrays = [np.asarray(b, dtype=np.float64).reshape(-1, 3) for b in bearings_per_image]
+    flat = np.concatenate([np.zeros((0, 3)), *arrays])
     return normalize(flat[(np.cumsum(counts) - counts)[image_ids] + feature_ids])
 
 

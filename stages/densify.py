@@ -63,7 +63,7 @@ def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict
     points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
     save_ply(ws.dense_ply_path(out_dir), points, colors, normals)
     if config["preview"] and len(points) >= 3:
-        render_point_cloud(out_dir / "dense_preview.png", points, colors, up=scene_up(R[cams]),
+        render_point_cloud(out_dir / "dense_preview.png", points, colors, normals=normals, up=scene_up(R[cams]),
                            cameras=centers[cams], title=f"{dataset.name}: {len(points)} points")
     summary = {
         "pairs": int(len(pairs)), "panoramas": len(maps), "points": int(len(points)), "voxel_size": voxel,
@@ -239,7 +239,8 @@ def _fuse(config, images, maps, R, t, centers, sparse):
     parts, part_cols, raw = [], [], 0
     for v in tqdm(range(len(cams)), desc="fusion", unit="pano"):
         pts, cols = dense.fuse_depth_maps(ranges, rgb, R[cams], t[cams], min_consistent=config["min_consistent"],
-                                          rel_tol=config["consistency_tolerance"], neighbors=neighbours, views=[v])
+                                          rel_tol=config["consistency_tolerance"], stride=config["fusion_stride"],
+                                          neighbors=neighbours, views=[v])
         raw += len(pts)
         pts, cols = voxel_downsample(pts, voxel, cols)
         parts.append(pts)

@@ -25,7 +25,8 @@ def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict
     counts = {}
     for name in tqdm(dataset.image_names, desc="features", unit="image"):
         full_w, full_h = dataset.image_sizes[name]
-        image = dataset.load_image(name, width=config["working_width"])
+        # Never upsample: a working width above the native width means "native".
+        image = dataset.load_image(name, width=min(config["working_width"] or full_w, full_w))
         feats = detect_features(image, options)
         scale = full_w / image.shape[1]
         colors = sample_colors(image, feats.pixels / scale)

@@ -1,0 +1,200 @@
+"""fullview benchmark: seeded synthetic scenes and the openMVG panoramas, ours against pycolmap in one run.
+
+For every scene, in one process tree and one run:
+- ours: `fullview run` in a fresh workspace (a subprocess): per-stage wall time and peak memory from the manifests,
+  then `fullview eval` metrics when ground truth exists;
+- COLMAP: `pycolmap.panorama.reconstruct` (SPHERICAL, exhaustive, CPU) on the same images in a subprocess: wall
+  time, peak memory and the same metrics.
+Prints a table with the ratio ours/COLMAP, writes benchmarks/results/<date>.json and a plot of time against views.
+
+    python benchmarks/bench.py [--views 2 6 12 24] [--width 2048] [--no-colmap] [--no-real]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import logging
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "datasets" / "openmvg-360"
+RESULTS = ROOT / "benchmarks" / "results"
+SPARSE_STAGES = ("features", "matches", "filter", "epipoles", "registration", "triangulation")
+log = logging.getLogger("bench")
+
+
+def run(cmd: list[str]) -> subprocess.CompletedProcess:
+    log.info("$ %s", " ".join(cmd))
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+
+
+def synth_dataset(work: Path, views: int, width: int, seed: int) -> Path:
+    path = work / "datasets" / f"synth{views}_w{width}_s{seed}"
+    if not (path / "images").exists():
+        proc = run([sys.executable, "-m", "fullview", "synth", str(path), "--views", str(views), "--width",
+                    str(width), "--seed", str(seed)])
+        if proc.returncode:
+            raise RuntimeError(proc.stderr[-2000:])
+    return path
+
+
+def ours(dataset: Path, work: Path, label: str, extra: list[str]) -> dict:
+    ws = work / "ws" / label
+    cmd = [sys.executable, "-m", "fullview", "run", str(dataset), "-w", str(ws), "-c", str(ROOT / "pipeline.yaml"),
+           "--until", "triangulation", "--force"]
+    for item in extra:
+        cmd += ["--set", item]
+    t0 = time.perf_counter()
+    proc = run(cmd)
+    wall = time.perf_counter() - t0
+    if proc.returncode:
+        return {"error": proc.stderr[-2000:]}
+    root = ws / dataset.name
+    manifests = {s: json.loads((root / s / "manifest.json").read_text()) for s in SPARSE_STAGES}
+    out = {
+        "wall_time_s": round(wall, 2),
+        "stage_time_s": {s: m["wall_time_s"] for s, m in manifests.items()},
+        "sparse_time_s": round(sum(m["wall_time_s"] for m in manifests.values()), 2),
+        "peak_rss_mb": max(m["peak_rss_mb"] for m in manifests.values()),
+        "registered": manifests["registration"]["summary"]["registered"],
+        "points": manifests["triangulation"]["summary"]["points"],
+    }
+    if (dataset / "ground_truth" / "poses.yaml").exists():
+        proc = run([sys.executable, "-m", "fullview", "eval", str(dataset), "-w", str(ws)])
+        out["metrics"] = json.loads(proc.stdout) if proc.returncode == 0 else {"error": proc.stderr[-2000:]}
+    return out
+
+
+def colmap(dataset: Path, work: Path, label: str) -> dict:
+    proc = run([sys.executable, str(Path(__file__).resolve()), "--colmap-worker", str(dataset),
+                str(work / "colmap" / label)])
+    if proc.returncode:
+        return {"error": proc.stderr[-2000:]}
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def colmap_worker(dataset: Path, out_dir: Path) -> None:
+    """Runs in its own process so that its peak memory is its own."""
+    from fullview.io.colmap import poses_by_panorama, run_panorama_reconstruct
+    from fullview.io.dataset import Dataset
+    from fullview.sfm.metrics import pose_metrics
+
+    ds = Dataset(dataset)
+    result = run_panorama_reconstruct(ds.images_dir, out_dir, render_type="spherical", matcher="exhaustive")
+    out = {"wall_time_s": round(result["wall_time_s"], 2),
+           "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+    rec = result["reconstruction"]
+    poses = poses_by_panorama(rec, ds.image_names) if rec is not None else None
+    out["registered"] = int(poses["registered"].sum()) if poses else 0
+    out["points"] = int(rec.num_points3D()) if rec is not None else 0
+    if poses and ds.has_ground_truth():
+        gt = ds.ground_truth_poses()
+        R_gt = np.stack([gt[n].R_world_from_cam.T for n in ds.image_names])
+        c_gt = np.stack([gt[n].center for n in ds.image_names])
+        out["metrics"] = pose_metrics(poses["R_cam_from_world"], poses["centers"], R_gt, c_gt, poses["registered"])
+    print(json.dumps(out))
+
+
+def fmt(x, spec=".2f"):
+    return "—" if x is None else format(x, spec)
+
+
+def table(rows: list[dict]) -> str:
+    head = ("scene", "ours reg", "colmap reg", "ours AUC@0.5/1", "colmap AUC@0.5/1", "ours rot°", "colmap rot°",
+            "ours s", "colmap s", "ratio", "ours MB", "colmap MB")
+    lines = [" | ".join(head), " | ".join("---" for _ in head)]
+    for r in rows:
+        o, c = r["ours"], r.get("colmap", {})
+        om, cm = o.get("metrics", {}), c.get("metrics", {})
+        ratio = o.get("sparse_time_s", 0) / c["wall_time_s"] if c.get("wall_time_s") else None
+        lines.append(" | ".join([
+            r["scene"], str(o.get("registered", "err")), str(c.get("registered", "—")),
+            f"{fmt(om.get('auc@0.5'), '.1f')}/{fmt(om.get('auc@1'), '.1f')}",
+            f"{fmt(cm.get('auc@0.5'), '.1f')}/{fmt(cm.get('auc@1'), '.1f')}",
+            fmt(om.get("median_relative_rotation_error_deg"), ".4f"),
+            fmt(cm.get("median_relative_rotation_error_deg"), ".4f"),
+            fmt(o.get("sparse_time_s"), ".1f"), fmt(c.get("wall_time_s"), ".1f"), fmt(ratio, ".2f"),
+            fmt(o.get("peak_rss_mb"), ".0f"), fmt(c.get("peak_rss_mb"), ".0f")]))
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    synth = [r for r in rows if r.get("views") and r["scene"].endswith("hand")]
+    if not synth:
+        return
+    v = [r["views"] for r in synth]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(v, [r["ours"].get("sparse_time_s", np.nan) for r in synth], "o-", label="fullview (sparse)")
+    if any("colmap" in r for r in synth):
+        ax.plot(v, [r.get("colmap", {}).get("wall_time_s", np.nan) for r in synth], "s-", label="COLMAP SPHERICAL")
+    ax.set_xlabel("views")
+    ax.set_ylabel("wall time (s)")
+    ax.set_title("time against number of views (2048×1024)")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--views", type=int, nargs="+", default=[2, 6, 12, 24])
+    parser.add_argument("--width", type=int, default=2048)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-colmap", action="store_true")
+    parser.add_argument("--no-real", action="store_true")
+    parser.add_argument("--work", type=Path, default=ROOT / "workspace" / "bench")
+    parser.add_argument("--colmap-worker", nargs=2, type=Path, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.colmap_worker:
+        colmap_worker(*args.colmap_worker)
+        return 0
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    rows = []
+    for views in args.views:
+        dataset = synth_dataset(args.work, views, args.width, args.seed)
+        for hand in (True, False):
+            label = f"synth{views}-{'hand' if hand else 'nohand'}"
+            row = {"scene": label, "views": views, "ours": ours(dataset, args.work, label,
+                                                                [f"filter.use_hand_points={str(hand).lower()}"])}
+            if hand and not args.no_colmap:
+                row["colmap"] = colmap(dataset, args.work, label)
+            elif not hand and rows and "colmap" in rows[-1]:
+                row["colmap"] = rows[-1]["colmap"]  # same images: COLMAP has no hand points to use
+            rows.append(row)
+            log.info("%s: %s", label, json.dumps(row)[:400])
+    if not args.no_real:
+        if SHARED.exists():
+            for name in ("360_Flat", "360_school"):
+                row = {"scene": name, "ours": ours(SHARED / name, args.work, name, [])}
+                if not args.no_colmap:
+                    row["colmap"] = colmap(SHARED / name, args.work, name)
+                rows.append(row)
+                log.info("%s: %s", name, json.dumps(row)[:400])
+        else:
+            print(f"skipping real datasets: {SHARED} not found")
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    stamp = dt.datetime.now().strftime("%Y-%m-%d")
+    out = RESULTS / f"{stamp}.json"
+    out.write_text(json.dumps({"date": dt.datetime.now().isoformat(timespec="seconds"), "width": args.width,
+                               "rows": rows}, indent=2) + "\n")
+    plot(rows, RESULTS / f"{stamp}-time-vs-views.png")
+    print(table(rows))
+    print(f"\nratio = ours sparse-pipeline wall time / COLMAP wall time, same run. Results: {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

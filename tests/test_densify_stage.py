@@ -1,0 +1,193 @@
+import cv2
+import numpy as np
+import pytest
+
+from fullview.io.artifacts import FORMAT_KEY, load_ply
+from fullview.io.config import load_config
+from fullview.io.dataset import Dataset
+from fullview.io.render import colorize_range, render_point_cloud
+from fullview.io.synth_io import write_synthetic_dataset
+from fullview.io.workspace import Workspace
+from fullview.sfm import dense
+from fullview.sfm.dense_metrics import (backproject_range_map, cloud_accuracy_completeness, dense_metrics,
+                                        range_map_errors, voxel_downsample)
+from fullview.sfm.metrics import Similarity, umeyama
+from fullview.stages import densify
+from fullview.stages.evaluate import evaluate
+from fullview.stages.runner import Pipeline
+
+SMALL = [
+    "features.working_width=512", "features.max_features_per_face=1500",
+    "densify.working_width=512", "densify.rect_height=256", "densify.min_pair_inliers=30",
+]
+
+
+@pytest.fixture(scope="module")
+def reconstructed(tmp_path_factory):
+    """A tiny synthetic scene (3 views, 512 px) run through the pipeline up to densify."""
+    root = tmp_path_factory.mktemp("densify")
+    dataset = Dataset(write_synthetic_dataset(root / "scene", views=3, width=512, seed=1))
+    ws = Workspace(root / "ws", dataset.name)
+    pipeline = Pipeline(dataset, ws, load_config(None, SMALL))
+    ran = pipeline.run(until="densify")
+    assert ran[-1] == "densify"
+    return dataset, ws, pipeline
+
+
+def _gt_poses(dataset):
+    gt = dataset.ground_truth_poses()
+    R = np.stack([gt[n].R_world_from_cam.T for n in dataset.image_names])
+    c = np.stack([gt[n].center for n in dataset.image_names])
+    return R, c
+
+
+# --------------------------------------------------------------------------------------------- end to end
+def test_dense_ply_is_binary_with_sensible_points(reconstructed):
+    dataset, ws, pipeline = reconstructed
+    path = ws.dense_ply_path()
+    head = path.read_bytes()[:400]
+    assert b"format binary_little_endian 1.0" in head and b"property float nx" in head
+    cloud = load_ply(path)
+    n = len(cloud["x"])
+    summary = ws.read_manifest("densify")["summary"]
+    assert summary["points"] == n
+    assert 5_000 < n < 3 * 512 * 256  # far more than the sparse points, fewer than the pixels of all maps
+    normals = np.column_stack([cloud["nx"], cloud["ny"], cloud["nz"]])
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)
+    assert np.ptp(cloud["red"].astype(int)) > 50  # real colours, not a constant
+    assert pipeline.status("densify").state == "fresh"
+
+
+def test_depth_maps_are_saved_per_panorama(reconstructed):
+    dataset, ws, _ = reconstructed
+    for name in dataset.image_names:
+        stem = name.rsplit(".", 1)[0]
+        with np.load(ws.depth_dir() / f"{stem}.npz") as data:
+            assert int(data[FORMAT_KEY]) == densify.DEPTH_VERSION
+            rng, valid = data["range"], data["valid"]
+        assert rng.shape == (256, 512) and rng.dtype == np.float32 and valid.dtype == bool
+        assert np.all(np.isnan(rng[~valid])) and np.all(rng[valid] > 0)
+        png = cv2.imread(str(ws.depth_dir() / f"{stem}.png"))
+        assert png.shape == (256, 512, 3) and png[valid].any(axis=-1).mean() > 0.99
+    preview = cv2.imread(str(ws.stage_dir("densify") / "dense_preview.png"))
+    assert preview is not None and preview.std() > 10
+
+
+def test_eval_reports_dense_metrics(reconstructed):
+    dataset, ws, _ = reconstructed
+    metrics = evaluate(dataset, ws)
+    d = metrics["dense"]
+    assert set(d["per_panorama"]) == set(dataset.image_names)
+    for name, m in d["per_panorama"].items():
+        assert m["median_rel_error"] < 0.03, name
+        assert m["valid_share"] > 0.4, name
+    assert d["cloud"]["accuracy"] > 0.85
+    assert d["cloud"]["completeness"] > 0.5
+    assert np.isclose(d["cloud"]["tau"], 0.01 * d["scene_size"])
+
+
+def test_fusion_drops_a_corrupted_panorama(reconstructed):
+    """Stage-level consistency: a panorama whose ranges are 30 % off finds no support, so the cloud stays accurate;
+    without the check its points pollute the cloud."""
+    dataset, ws, _ = reconstructed
+    names = dataset.image_names
+    maps = {k: (d["range"], d["valid"]) for k, d in enumerate(densify.load_depth(ws, n) for n in names)}
+    maps[2] = (maps[2][0] * 1.3, maps[2][1])
+    poses = np.load(ws.sparse_path())
+    R, t, centers = poses["R_cam_from_world"], poses["t_cam_from_world"], poses["centers"]
+    sparse = {"points": poses["points"]}
+    images = {k: dataset.load_image(n, width=512) for k, n in enumerate(names)}
+    R_gt, c_gt = _gt_poses(dataset)
+    sim = umeyama(centers, c_gt)
+    gt = [dataset.ground_truth_depth(n) for n in names]
+    t_gt = -np.einsum("nab,nb->na", R_gt, c_gt)
+    scene = float(np.load(dataset.ground_truth_dir / "scene.npz")["scene_size"])
+    config = load_config(None, SMALL)["densify"]
+    acc = {}
+    for min_consistent in (1, 0):
+        config["min_consistent"] = min_consistent
+        pts, _, _, _ = densify._fuse(config, images, maps, R, t, centers, sparse)
+        m = dense_metrics(range_est=[None] * 3, valid_est=[None] * 3, range_gt=gt, R_gt_cam_from_world=R_gt,
+                          t_gt_cam_from_world=t_gt, sim=sim, points=pts, scene_size=scene, names=names)
+        acc[min_consistent] = m["cloud"]["accuracy"]
+    assert acc[1] > 0.85 and acc[0] < acc[1] - 0.1
+
+
+# --------------------------------------------------------------------------------------------- pure parts
+def test_combine_range_estimates():
+    a = np.array([[2.0, 2.0, np.nan, 5.0, np.nan]], np.float32)
+    b = np.array([[2.02, 3.0, 4.0, np.nan, np.nan]], np.float32)
+    c = np.array([[1.98, 2.0, np.nan, np.nan, np.nan]], np.float32)
+    rng, valid = densify.combine_range_estimates([a, b, c], rel_tol=0.02)
+    # px0: three agree -> mean; px1: two of three agree; px2 / px3: single estimates kept; px4: none
+    assert np.allclose(rng[0, :4], [2.0, 2.0, 4.0, 5.0], atol=1e-5) and valid.tolist() == [[True] * 4 + [False]]
+    rng, valid = densify.combine_range_estimates([a, b], rel_tol=0.02)
+    assert valid[0].tolist() == [True, False, True, True, False]  # 2 vs 3: a conflict is dropped
+    assert np.isnan(rng[0, 1])
+    single, ok = densify.combine_range_estimates([b], rel_tol=0.02)
+    assert ok[0].tolist() == [True, True, True, False, False]
+
+
+def test_mask_below_latitude():
+    rng = np.ones((8, 16), np.float32)
+    out, valid = densify.mask_below_latitude(rng, np.ones((8, 16), bool), -45.0)
+    assert valid[:6].all() and not valid[6:].any() and np.isnan(out[6:]).all()  # rows 6, 7 centre below -45°
+
+
+def test_pair_min_depth_ratio_is_capped():
+    assert np.isclose(densify.pair_min_depth_ratio(4.0, 3.0, 1.0, 0.5, 45.0), 1.5)
+    assert np.isclose(densify.pair_min_depth_ratio(1.0, 1.0, 1.0, 0.5, 45.0), np.sqrt(2))  # capped at 45°
+    assert np.isclose(densify.pair_min_depth_ratio(np.nan, 2.0, 1.0, 1.0, 90.0), 2.0)
+
+
+def test_fuse_depth_maps_views_subset_matches_full():
+    rng = np.random.default_rng(0)
+    Rs = np.stack([np.eye(3)] * 3)
+    ts = -np.array([[0, 0, 0], [0.3, 0, 0], [0, 0, 0.3]], float)
+    maps = [np.full((32, 64), 3.0, np.float32) + rng.normal(0, 0.001, (32, 64)).astype(np.float32) for _ in range(3)]
+    imgs = [np.zeros((32, 64, 3), np.uint8)] * 3
+    full, _, src = dense.fuse_depth_maps(maps, imgs, Rs, ts, min_consistent=0, return_sources=True)
+    one, _ = dense.fuse_depth_maps(maps, imgs, Rs, ts, min_consistent=0, views=[1])
+    assert np.array_equal(one, full[src == 1])
+
+
+def test_voxel_downsample_means():
+    pts = np.array([[0.01, 0.01, 0.01], [0.03, 0.03, 0.03], [0.51, 0.0, 0.0]])
+    cols = np.array([[0, 0, 0], [100, 200, 50], [9, 9, 9]], np.uint8)
+    out, c = voxel_downsample(pts, 0.1, cols)
+    order = np.argsort(out[:, 0])
+    assert np.allclose(out[order], [[0.02, 0.02, 0.02], [0.51, 0, 0]])
+    assert c.dtype == np.uint8 and c[order].tolist() == [[50, 100, 25], [9, 9, 9]]
+
+
+def test_range_map_errors_and_cloud_metrics():
+    gt = np.full((16, 32), 2.0, np.float32)
+    est = np.full((8, 16), 1.0, np.float32)  # half size, half scale
+    valid = np.ones((8, 16), bool)
+    valid[:4] = False
+    m = range_map_errors(est, valid, gt, scale=2.0 * 1.01)
+    assert np.isclose(m["median_rel_error"], 0.01, atol=1e-5) and np.isclose(m["valid_share"], 0.5)
+    surface = backproject_range_map(gt, np.eye(3), np.zeros(3))
+    assert np.allclose(np.linalg.norm(surface, axis=1), 2.0)
+    shifted = surface[: len(surface) // 2] * 1.2  # half the sphere, 0.4 off
+    c = cloud_accuracy_completeness(np.vstack([surface[: len(surface) // 2], shifted]), surface, tau=0.1)
+    assert np.isclose(c["accuracy"], 0.5) and 0.4 < c["completeness"] < 0.6
+    sim = Similarity(scale=2.0, R=np.eye(3), t=np.zeros(3))
+    m = dense_metrics(range_est=[est], valid_est=[valid], range_gt=[gt], R_gt_cam_from_world=np.eye(3)[None],
+                      t_gt_cam_from_world=np.zeros((1, 3)), sim=sim, points=surface / 2, scene_size=10.0,
+                      names=["a"])
+    assert m["cloud"]["accuracy"] == 1.0 and m["cloud"]["completeness"] > 0.95
+    assert np.isclose(m["per_panorama"]["a"]["median_rel_error"], 0.0)
+
+
+def test_render_point_cloud_and_colorize(tmp_path):
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (5000, 3)) * [3, 1, 2]
+    cols = rng.integers(0, 255, (5000, 3), dtype=np.uint8)
+    path = render_point_cloud(tmp_path / "p.png", pts, cols, up=np.array([0, 1.0, 0]), panel_px=200)
+    img = cv2.imread(str(path))
+    assert img.shape[1] == 600 and img.std() > 5
+    rmap = np.linspace(1, 5, 64 * 32, dtype=np.float32).reshape(32, 64)
+    rmap[0, 0] = np.nan
+    pic = colorize_range(rmap)
+    assert pic.shape == (32, 64, 3) and not pic[0, 0].any() and pic[5:].any(axis=-1).all()

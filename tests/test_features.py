@@ -1,0 +1,103 @@
+import cv2
+import numpy as np
+import pytest
+
+from fullview.sfm import features as ft
+from fullview.sfm.camera import bearings_to_pixels, normalize, pixels_to_bearings, pixel_grid_bearings
+
+
+def test_pixel_bearing_round_trip_and_convention():
+    W, H = 2048, 1024
+    assert np.allclose(pixels_to_bearings(np.array([[W / 2, H / 2]]), W, H), [[0, 0, 1]])  # image centre: +z
+    assert np.allclose(pixels_to_bearings(np.array([[3 * W / 4, H / 2]]), W, H), [[1, 0, 0]])  # lon 90°: +x
+    assert np.allclose(pixels_to_bearings(np.array([[W / 2, 0.0]]), W, H), [[0, -1, 0]])  # top: -y (up)
+    rng = np.random.default_rng(0)
+    px = rng.uniform([0, 1], [W, H - 1], (1000, 2))
+    assert np.allclose(bearings_to_pixels(pixels_to_bearings(px, W, H), W, H), px, atol=1e-8)
+    grid = pixel_grid_bearings(8, 4)
+    assert grid.shape == (4, 8, 3) and np.allclose(np.linalg.norm(grid, axis=-1), 1)
+
+
+def test_face_rotations_are_proper_and_cover_the_sphere():
+    R = ft.face_rotations()
+    assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3)) and np.allclose(np.linalg.det(R), 1)
+    rng = np.random.default_rng(1)
+    b = normalize(rng.normal(size=(5000, 3)))
+    owners = np.stack([ft._owned_by_face(b, f) for f in range(6)])
+    # every bearing belongs to at least one face; only the measure-zero seams to two
+    assert owners.any(axis=0).all() and owners.sum(axis=0).max() <= 2 and (owners.sum(axis=0) == 1).mean() > 0.999
+
+
+def test_face_maps_sample_the_right_directions():
+    W, H = 512, 256
+    size, margin = 64, 5.0
+    map_x, map_y, focal = ft.face_maps(size, margin, W, H)
+    # the centre pixel of the front face looks along +z (image centre)
+    c = size // 2
+    assert abs(map_x[0, c, c] + 0.5 - W / 2) < 2 and abs(map_y[0, c, c] + 0.5 - H / 2) < 2
+    assert np.isclose(focal, 0.5 * size / np.tan(np.radians(45 + margin)))
+
+
+def _blob_panorama(width, rng, n=300):
+    """Gaussian blobs at random bearings: a panorama with known feature positions."""
+    H = width // 2
+    grid = pixel_grid_bearings(width, H)
+    centres = normalize(rng.normal(size=(n, 3)))
+    centres = centres[np.abs(centres[:, 1]) < 0.8]
+    img = np.zeros((H, width))
+    sigma = np.radians(0.6)
+    for c in centres:  # test-only loop over a few hundred blobs
+        ang = np.arccos(np.clip(grid @ c, -1, 1))
+        img += np.exp(-(ang / sigma) ** 2 / 2)
+    return (np.clip(img, 0, 1) * 220 + 20).astype(np.uint8), centres
+
+
+def test_detected_bearings_are_unbiased_and_unique():
+    rng = np.random.default_rng(2)
+    img, centres = _blob_panorama(1024, rng)
+    feats = ft.detect_features(img, ft.FeatureOptions(contrast_threshold=0.01))
+    assert len(feats.bearings) > 0.8 * len(centres)
+    ang = np.degrees(np.arccos(np.clip(feats.bearings @ centres.T, -1, 1)))
+    nearest = ang.min(axis=1)
+    good = nearest < 0.3
+    assert good.sum() > 0.6 * len(centres)
+    # sub-pixel accuracy: median error well under one panorama pixel (0.35° at 1024 px)
+    assert np.median(nearest[good]) < 0.05
+    # margins overlap, yet no blob is reported by two faces (one face may give several orientations of it)
+    close = np.degrees(np.arccos(np.clip(feats.bearings @ feats.bearings.T, -1, 1))) < 0.1
+    i, j = np.nonzero(np.triu(close, 1))
+    assert len(i) and (feats.faces[i] == feats.faces[j]).all()
+    assert len(np.unique(feats.faces)) == 6
+    assert np.allclose(np.linalg.norm(feats.bearings, axis=1), 1)
+    assert np.allclose(pixels_to_bearings(feats.pixels, 1024, 512), feats.bearings, atol=1e-9)
+
+
+def test_latitude_mask():
+    rng = np.random.default_rng(3)
+    img, _ = _blob_panorama(512, rng)
+    feats = ft.detect_features(img, ft.FeatureOptions(min_latitude_deg=-10, max_latitude_deg=20))
+    lat = 90 - 180 * feats.pixels[:, 1] / 256
+    assert len(lat) and lat.min() >= -10 - 1e-9 and lat.max() <= 20 + 1e-9
+
+
+def test_opencv_sift_offset_is_corrected():
+    """Blobs at known sub-pixel positions on a flat image: OpenCV's keypoints + our offset hit them."""
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:256, 0:256] + 0.5  # continuous coordinates of pixel centres
+    img = np.zeros((256, 256))
+    pts = rng.uniform(30, 226, (30, 2))
+    for x, y in pts:
+        img += np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * 3.0**2))
+    kp = cv2.SIFT_create(contrastThreshold=0.01).detect((img / img.max() * 200 + 20).astype(np.uint8))
+    found = np.array([k.pt for k in kp]) + ft.OPENCV_SIFT_TO_CONTINUOUS
+    d = np.linalg.norm(found[:, None] - pts[None], axis=2)
+    ok = d.min(axis=1) < 1
+    offset = (found[ok] - pts[d[ok].argmin(axis=1)]).mean(axis=0)
+    assert np.abs(offset).max() < 0.08
+
+
+@pytest.mark.parametrize("mode,expected", [("exhaustive", 10), ("sequential", 7)])
+def test_pair_list(mode, expected):
+    from fullview.sfm.matching import pair_list
+    pairs = pair_list(5, mode, window=2)
+    assert len(pairs) == expected and all(i < j for i, j in pairs)
