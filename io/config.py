@@ -65,6 +65,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "min_depth_factor": 0.5,  # ... times this factor; bounds the disparity search (model units are arbitrary)
         "max_disparity_deg": 45.0,  # cap of the disparity search (wide baselines then lose their nearest points)
         "epipole_margin_deg": 8.0,  # pixels closer than this to an epipole are masked
+        "max_range_error_per_px": 0.05,  # drop ranges whose relative error per pixel of disparity error exceeds this
         "block_size": 5,  # SGBM matching window side (odd)
         "min_texture_std": 2.0,  # grey-level std below which a pixel counts as untextured (not matched)
         "min_latitude_deg": -90.0,  # range maps are invalid below this latitude (tripod / hand)

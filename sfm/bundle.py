@@ -18,6 +18,11 @@ which is well defined whatever the direction of the baseline, unlike fixing one 
 that camera's centre moves on a sphere, parametrised by 2 tangent coordinates. With two or more
 fixed cameras (distinct centres) the scale is already fixed and no camera is constrained.
 
+Robust loss. The cost is ``½·f²·Σ_k ρ((θ_k/f)²)`` with scipy's loss names. It is minimised by
+iteratively reweighted least squares around ``scipy.optimize.least_squares`` (trf, lsmr,
+``x_scale='jac'``, linear loss on weighted residuals), with the scale f lowered from about the
+initial error size to ``loss_scale_rad``; see ``_irls`` for why not scipy's own robust losses.
+
 Jacobian. Analytic, returned as a CSR matrix whose structure is built once: every residual row
 depends on at most 6 camera parameters and 3 point parameters. The rotation part uses the left
 Jacobian of SO(3), ``∂(exp([ω+δ]×) v)/∂δ = −[exp([ω]×) v]× J_l(ω)``.

@@ -52,7 +52,7 @@ class MultiviewPoints:
 
     points: np.ndarray  # (T, 3) world points (NaN where all rays are near parallel)
     max_error_rad: np.ndarray  # (T,) largest angular reprojection error over the track's observations
-    max_angle_rad: np.ndarray  # (T,) largest angle between two rays centre->point of the track
+    max_angle_rad: np.ndarray  # (T,) largest angle between two rays centre->point of the track (NaN if no point)
     positive_depth: np.ndarray  # (T,) bool: every ray depth r_i = d_iᵀ(X − C_i) is > 0
     obs_error_rad: np.ndarray  # (K,) angular reprojection error of every observation (tracks order)
 
@@ -136,14 +136,37 @@ def _solve_points(track_ids, centers, dirs, num_tracks) -> np.ndarray:
 
 
 def _pairs_within_tracks(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (first, second) of every unordered pair of observations inside each track."""
+    """Indices (first, second) of every unordered pair of observations inside each track.
+
+    ``offsets`` are CSR offsets of consecutive tracks (``offsets[0]`` need not be 0).
+    """
+    base, offsets = offsets[0], offsets - offsets[0]
     lengths = np.diff(offsets)
     pos = np.arange(offsets[-1]) - np.repeat(offsets[:-1], lengths)  # position inside the track
     count = np.repeat(lengths, lengths) - 1 - pos  # partners after each observation
     first = np.repeat(np.arange(offsets[-1]), count)
     starts = np.cumsum(count) - count
     second = first + 1 + np.arange(count.sum()) - np.repeat(starts, count)
-    return first, second
+    return first + base, second + base
+
+
+def _max_pair_angle(rays: np.ndarray, offsets: np.ndarray, chunk_pairs: int = 2_000_000) -> np.ndarray:
+    """(T,) largest angle between two unit rays of each track (0 for single rays).
+
+    The angle is arccos of the smallest pairwise dot product (exact to ~1e-8 rad). Tracks are taken
+    in chunks of about ``chunk_pairs`` pairs, so memory stays bounded for long tracks.
+    """
+    num_tracks = len(offsets) - 1
+    lengths = np.diff(offsets)
+    cum_pairs = np.cumsum(lengths * (lengths - 1) // 2)
+    total = int(cum_pairs[-1]) if num_tracks else 0
+    splits = np.unique(np.searchsorted(cum_pairs, np.arange(chunk_pairs, total, chunk_pairs)))
+    min_dot = np.ones(num_tracks)
+    for lo, hi in zip(np.r_[0, splits], np.r_[splits, num_tracks], strict=True):
+        first, second = _pairs_within_tracks(offsets[lo : hi + 1])
+        track = np.repeat(np.arange(lo, hi), lengths[lo:hi])[first - offsets[lo]]
+        np.minimum.at(min_dot, track, np.einsum("ki,ki->k", rays[first], rays[second]))
+    return np.arccos(np.clip(min_dot, -1.0, 1.0))
 
 
 def _max_per_track(values: np.ndarray, track_ids: np.ndarray, num_tracks: int) -> np.ndarray:
@@ -177,14 +200,12 @@ def triangulate_multiview(
     to_point = points[tid] - centers
     depth = np.einsum("ki,ki->k", dirs, to_point)
     obs_err = angular_errors(bearings, np.einsum("kij,kj->ki", R[cam], to_point))
-    first, second = _pairs_within_tracks(tracks.offsets)
-    pair_angle = angular_errors(to_point[first], to_point[second])
     positive = np.ones(tracks.num_tracks, dtype=bool)
     np.logical_and.at(positive, tid, depth > 0)  # NaN depth compares False
     return MultiviewPoints(
         points=points,
         max_error_rad=_max_per_track(obs_err, tid, tracks.num_tracks),
-        max_angle_rad=_max_per_track(pair_angle, tid[first], tracks.num_tracks),
+        max_angle_rad=_max_pair_angle(normalize(to_point), tracks.offsets),
         positive_depth=positive,
         obs_error_rad=obs_err,
     )

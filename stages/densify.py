@@ -140,12 +140,21 @@ def _range_maps(config, names, images, R, t, near, pairs, depth_dir: Path):
                                  out_width=images[i].shape[1], min_depth_ratio=ratio,
                                  min_epipole_angle_deg=config["epipole_margin_deg"], params=params)
         elapsed = time.perf_counter() - t0
+        kept = {}
+        for cam, other, rng in ((i, j, res.range_i), (j, i, res.range_j)):
+            err = range_error_per_pixel(rng, R[cam], dense.camera_center(R[cam], t[cam]),
+                                        dense.camera_center(R[other], t[other]), np.pi / config["rect_height"])
+            with np.errstate(invalid="ignore"):
+                rng[~(err <= config["max_range_error_per_px"])] = np.nan
+            kept[cam] = float(np.isfinite(rng).mean())
         pair_log.append({"pair": [names[i], names[j]], "baseline": baseline, "min_depth_ratio": ratio,
                          "num_disparities": dense.disparity_search_range(config["rect_height"], ratio),
                          "valid_i": float(res.valid_i.mean()), "valid_j": float(res.valid_j.mean()),
+                         "well_conditioned_i": kept[i], "well_conditioned_j": kept[j],
                          "time_s": round(elapsed, 3), "timings_s": {k: round(v, 3) for k, v in res.timings.items()}})
-        log.info("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%%, %.1f s", names[i], names[j],
-                 baseline, ratio, 100 * res.valid_i.mean(), 100 * res.valid_j.mean(), elapsed)
+        log.info("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%% (well conditioned %.0f%% / "
+                 "%.0f%%), %.1f s", names[i], names[j], baseline, ratio, 100 * res.valid_i.mean(),
+                 100 * res.valid_j.mean(), 100 * kept[i], 100 * kept[j], elapsed)
         for cam, rng in ((i, res.range_i), (j, res.range_j)):
             estimates[cam].append(rng)
             remaining[cam] -= 1
@@ -155,6 +164,29 @@ def _range_maps(config, names, images, R, t, near, pairs, depth_dir: Path):
                 _save_depth(depth_dir, names[cam], *combined)
                 maps[cam] = combined
     return maps, pair_log
+
+
+def range_error_per_pixel(range_map: np.ndarray, R_cam_from_world: np.ndarray, center: np.ndarray,
+                          other_center: np.ndarray, pixel_angle: float) -> np.ndarray:
+    """Relative range error caused by one rectified pixel (``pixel_angle`` rad) of disparity error, per pixel of a
+    camera's equirectangular range map from the pair with the camera at ``other_center``.
+
+    With r = |O_i P|, r_j = |O_j P|, baseline T and θ the angle at O_i between the baseline and the ray, the law of
+    sines r = T sin(θ + d) / sin(d) gives |∂r/∂d| / r = r_j² / (r T sin θ): large near the epipoles and for distant
+    points. NaN where the range is invalid."""
+    height, width = range_map.shape
+    baseline = np.asarray(other_center, np.float64) - np.asarray(center, np.float64)
+    T = float(np.linalg.norm(baseline))
+    e = (np.asarray(R_cam_from_world, np.float64) @ baseline / T).astype(np.float32)  # epipole, camera frame
+    lon = (2 * np.pi * ((np.arange(width) + 0.5) / width - 0.5)).astype(np.float32)
+    lat = (np.pi * (0.5 - (np.arange(height) + 0.5) / height)).astype(np.float32)
+    cos_theta = (np.cos(lat)[:, None] * (np.sin(lon) * e[0] + np.cos(lon) * e[2])[None, :]
+                 - np.sin(lat)[:, None] * e[1])
+    sin_theta = np.sqrt(np.maximum(1.0 - cos_theta**2, 1e-12))
+    r = np.asarray(range_map, np.float32)
+    r_j_sq = r * r + T * T - 2.0 * T * r * cos_theta
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (r_j_sq * np.float32(pixel_angle) / (r * np.float32(T) * sin_theta)).astype(np.float32)
 
 
 def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float) -> tuple[np.ndarray, np.ndarray]:

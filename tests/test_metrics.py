@@ -8,8 +8,9 @@ from fullview.sfm.metrics import pose_auc, pose_metrics, relative_pose_errors, u
 def test_auc_matches_reference_values():
     assert pose_auc(np.zeros(4))["auc@1"] == 100.0
     assert pose_auc(np.full(4, np.inf))["auc@10"] == 0.0
-    # errors 0.5° for all pairs: recall jumps to 1 at 0.5 -> AUC@1 = 50%
-    assert np.isclose(pose_auc(np.full(10, 0.5))["auc@1"], 50.0)
+    # ten pairs at 0.5°: the reference implementation ramps recall linearly from (0, 0) to (0.5°, 0.1), then
+    # jumps to 1: area = 0.5·0.05 + 0.5·1 = 0.525 of the 1° square
+    assert np.isclose(pose_auc(np.full(10, 0.5))["auc@1"], 52.5)
 
 
 def test_umeyama_recovers_similarity():

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from fullview.sfm.camera import normalize
 from fullview.sfm.tracks import Tracks, build_tracks
 from fullview.sfm.triangulation import (
+    _max_pair_angle,
     _pairs_within_tracks,
     angular_errors,
     filter_tracks,
@@ -192,6 +193,20 @@ def test_pairs_within_tracks_lists_every_pair_once():
         (int(o + i), int(o + j)) for o, n in zip(offsets[:-1], lengths) for i, j in itertools.combinations(range(n), 2)
     )
     assert sorted(zip(first.tolist(), second.tolist())) == expected
+    first, second = _pairs_within_tracks(offsets[2:])  # a slice of the tracks keeps global indices
+    assert sorted(zip(first.tolist(), second.tolist())) == [p for p in expected if p[0] >= offsets[2]]
+
+
+@pytest.mark.parametrize("chunk_pairs", [1, 7, 10_000])
+def test_max_pair_angle_in_chunks_matches_brute_force(chunk_pairs):
+    rng = np.random.default_rng(9)
+    lengths = rng.integers(1, 9, size=30)
+    offsets = np.r_[0, np.cumsum(lengths)]
+    rays = normalize(rng.normal(size=(offsets[-1], 3)) + [0, 0, 2])
+    got = _max_pair_angle(rays, offsets, chunk_pairs=chunk_pairs)
+    for k, (o, n) in enumerate(zip(offsets[:-1], lengths)):
+        angles = [np.arccos(np.clip(rays[o + i] @ rays[o + j], -1, 1)) for i, j in itertools.combinations(range(n), 2)]
+        assert got[k] == pytest.approx(max(angles, default=0.0), abs=1e-7)
 
 
 def test_angular_and_reprojection_errors():
@@ -210,3 +225,10 @@ def test_bad_pose_shapes_are_rejected():
     tracks = _full_tracks(3, 4)
     with pytest.raises(ValueError, match="poses"):
         triangulate_multiview(tracks, [np.eye(3)[[2, 2, 2, 2]]] * 3, np.stack([np.eye(3)] * 2), np.zeros((2, 3)))
+
+
+def test_no_tracks_gives_empty_results():
+    tracks, _ = build_tracks({}, [3, 3])
+    res = triangulate_multiview(tracks, [np.eye(3)] * 2, np.stack([np.eye(3)] * 2), np.zeros((2, 3)))
+    assert res.points.shape == (0, 3) and res.max_angle_rad.shape == (0,)
+    assert filter_tracks(res, max_error_rad=0.01, min_angle_rad=0.01).shape == (0,)
