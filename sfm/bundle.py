@@ -68,7 +68,7 @@ class BundleResult:
     final_cost: float  # same cost after optimisation
     obs_error_rad: np.ndarray  # (K,) final angular error of every observation, radians
     scale_camera: int  # camera whose distance to the first fixed camera was held (-1: none needed)
-    num_evaluations: int  # residual evaluations used
+    num_evaluations: int  # residual evaluations made (Jacobian evaluations not counted)
     success: bool  # converged (cost decrease below ftol) before max_nfev ran out
     message: str  # how it stopped
 
@@ -205,7 +205,7 @@ def _unpack(x: np.ndarray, problem: _Problem) -> tuple[np.ndarray, np.ndarray, n
     return omega, centers, points, dC
 
 
-def _residuals(x: np.ndarray, problem: _Problem, with_jacobian: bool):
+def _residuals(x: np.ndarray, problem: _Problem, with_jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """(K, 2) residuals and, if asked, (K, 2, 9) Jacobian blocks [ω or pad (3), C or sphere (3), X (3)]."""
     omega, centers, points, dC = _unpack(x, problem)
     dR, J_l = rotation_exp(omega)
@@ -256,21 +256,35 @@ def _robust_cost(theta: np.ndarray, loss: str, f_scale: float) -> float:
 
 
 class _WeightedResiduals:
-    """Residuals √w·r and their CSR Jacobian for scipy, with per-observation weights w."""
+    """Residuals √w·r and their CSR Jacobian for scipy, with per-observation weights w.
+
+    The unweighted residuals of the last point are cached, so scipy's first evaluation of a round
+    (at the point where the weights were just computed) costs nothing; ``evaluations`` counts the
+    residual evaluations actually made.
+    """
 
     def __init__(self, problem: _Problem):
         self.problem = problem
         self.mask, self.indices, self.indptr = _jacobian_structure(problem)
         self.shape = (2 * len(problem.obs_camera), problem.layout.num_params)
         self.sqrt_w = np.ones(len(problem.obs_camera))
+        self.evaluations = 0
+        self._cache: tuple[np.ndarray, np.ndarray] | None = None
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """(K, 2) unweighted residuals (cached for the last x)."""
+        if self._cache is None or not np.array_equal(self._cache[0], x):
+            self._cache = (x.copy(), _residuals(x, self.problem, False)[0])
+            self.evaluations += 1
+        return self._cache[1]
 
     def errors(self, x: np.ndarray) -> np.ndarray:
         """(K,) unweighted angular errors θ (the norm of each 2-D residual)."""
-        return np.linalg.norm(_residuals(x, self.problem, False)[0], axis=1)
+        return np.linalg.norm(self.residuals(x), axis=1)
 
     def fun(self, x: np.ndarray) -> np.ndarray:
         """(2K,) weighted residuals."""
-        return (_residuals(x, self.problem, False)[0] * self.sqrt_w[:, None]).ravel()
+        return (self.residuals(x) * self.sqrt_w[:, None]).ravel()
 
     def jac(self, x: np.ndarray) -> csr_matrix:
         """(2K, n) weighted Jacobian, sparse."""
@@ -328,7 +342,8 @@ def bundle_adjust(
     Observation k is camera ``obs_camera[k]`` seeing point ``obs_point[k]`` along unit bearing
     ``obs_bearings[k]``. Minimises ``½·f²·Σ_k ρ((θ_k/f)²)``, θ_k the angular error of observation
     k, ρ the ``loss`` (scipy's names) and f = ``loss_scale_rad``. ``max_nfev`` bounds the residual
-    evaluations in all; it stops when a round lowers the cost by less than ``ftol`` (relative).
+    evaluations in all (the last round may overrun it by one); it stops when a reweighting round
+    lowers the cost by less than ``ftol`` (relative).
     See the module docstring for the residuals and the gauge.
     """
     R0, t0, X0, cam, pt, z, fixed = _validate(
@@ -344,12 +359,14 @@ def bundle_adjust(
     objective = _WeightedResiduals(problem)
     x0 = _pack(layout, C0, X0)
     initial_cost = _robust_cost(objective.errors(x0), loss, loss_scale_rad)
-    x, nfev, converged = _irls(objective, x0, loss=loss, f_target=loss_scale_rad, max_nfev=max_nfev, ftol=ftol)
-    return _result(x, nfev, converged, problem, initial_cost, loss, loss_scale_rad)
+    x, converged = _irls(objective, x0, loss=loss, f_target=loss_scale_rad, max_nfev=max_nfev, ftol=ftol)
+    return _result(x, objective.evaluations, converged, problem, initial_cost, loss, loss_scale_rad)
 
 
-def _irls(objective: _WeightedResiduals, x: np.ndarray, *, loss: str, f_target: float, max_nfev: int, ftol: float):
-    """Iteratively reweighted least squares; returns (x, residual evaluations, converged).
+def _irls(
+    objective: _WeightedResiduals, x: np.ndarray, *, loss: str, f_target: float, max_nfev: int, ftol: float
+) -> tuple[np.ndarray, bool]:
+    """Iteratively reweighted least squares from x; returns (x, converged).
 
     Each round fixes weights w_k = ρ'((θ_k/f)²) and takes a few trf steps on ½Σ w_k |r_k|²
     (scipy, linear loss, ``x_scale='jac'``, lsmr). As ρ is concave in s, ρ(s) ≤ ρ(s₀) + ρ'(s₀)(s − s₀),
@@ -360,20 +377,22 @@ def _irls(objective: _WeightedResiduals, x: np.ndarray, *, loss: str, f_target: 
     """
     theta = objective.errors(x)
     scales = _scale_schedule(theta, loss, f_target)
-    cost, nfev, rounds = _robust_cost(theta, loss, f_target), 1, 0
-    while nfev < max_nfev:
+    cost, rounds = _robust_cost(theta, loss, f_target), 0
+    while (budget := max_nfev - objective.evaluations) > 0:
         f_scale = scales[min(rounds, len(scales) - 1)]
         objective.sqrt_w = np.sqrt(_LOSSES[loss][1]((theta / f_scale) ** 2))
+        # scipy counts its first, cached evaluation at x too, hence budget + 1.
         sol = least_squares(objective.fun, x, jac=objective.jac, method="trf", x_scale="jac", tr_solver="lsmr",
-                            max_nfev=max(1, min(_ROUND_NFEV, max_nfev - nfev)), ftol=ftol, xtol=1e-10, gtol=1e-10)
-        x, nfev, rounds = sol.x, nfev + sol.nfev + 1, rounds + 1
+                            max_nfev=min(_ROUND_NFEV, budget) + 1, ftol=ftol, xtol=1e-10, gtol=1e-10)
+        x, rounds = sol.x, rounds + 1
         theta = objective.errors(x)
         new_cost, old_cost = _robust_cost(theta, loss, f_target), cost
         cost = new_cost
-        log.debug("bundle_adjust round %d: f %.3g rad, cost %.6g, %d evaluations", rounds, f_scale, cost, nfev)
+        log.debug("bundle_adjust round %d: f %.3g rad, cost %.6g, %d evaluations",
+                  rounds, f_scale, cost, objective.evaluations)
         if rounds >= len(scales) and old_cost - new_cost <= ftol * old_cost:
-            return x, nfev, True
-    return x, nfev, False
+            return x, True
+    return x, False
 
 
 def _scale_schedule(theta: np.ndarray, loss: str, f_target: float) -> list[float]:

@@ -23,6 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fullview.io.artifacts import load_npz, load_ply, save_json, save_npz, save_ply
+from fullview.io.config import ConfigError
 from fullview.io.dataset import Dataset
 from fullview.io.render import colorize_range, render_point_cloud, save_png
 from fullview.io.store import EPIPOLES_VERSION, SPARSE_VERSION, load_poses
@@ -51,7 +52,7 @@ def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict
     near, median_depth = camera_depths(centers, sparse, config["min_depth_percentile"])
     pairs = _stereo_pairs(ws, centers, registered, median_depth, config)
     if not len(pairs):
-        raise RuntimeError(f"densify: no stereo pair satisfies the selection ({len(names)} images, "
+        raise ConfigError(f"densify: no stereo pair satisfies the selection ({len(names)} images, "
                            f"{int(registered.sum())} registered); lower densify.min_triangulation_angle_deg "
                            "or densify.min_pair_inliers")
     cams = sorted(set(pairs.ravel().tolist()))
@@ -294,21 +295,22 @@ def evaluate_dense(dataset: Dataset, ws: Workspace, est: dict, R_gt_cam_from_wor
     names = dataset.image_names
     gt = [dataset.ground_truth_depth(n) for n in names]
     registered = est["registered"].astype(bool)
-    if ws.read_manifest("densify") is None or any(g is None for g in gt) or registered.sum() < 3:
+    manifest = ws.read_manifest("densify")
+    if manifest is None or any(g is None for g in gt) or registered.sum() < 3:
         return None
     sim: Similarity = umeyama(est["centers"][registered], c_gt[registered])
     depth = [load_depth(ws, n) if registered[k] else None for k, n in enumerate(names)]
+    missing = {"range": np.full((1, 2), np.nan, np.float32), "valid": np.zeros((1, 2), bool)}
+    depth = [d if d is not None else missing for d in depth]  # no range map: nothing of it is valid
     ply = ws.dense_ply_path()
     cloud = load_ply(ply) if ply.exists() else None
     points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]) if cloud is not None else None
     t_gt = -np.einsum("nab,nb->na", R_gt_cam_from_world, c_gt)
-    out = dense_metrics(range_est=[d["range"] if d else None for d in depth],
-                        valid_est=[d["valid"] if d else None for d in depth], range_gt=gt,
+    out = dense_metrics(range_est=[d["range"] for d in depth], valid_est=[d["valid"] for d in depth], range_gt=gt,
                         R_gt_cam_from_world=R_gt_cam_from_world, t_gt_cam_from_world=t_gt, sim=sim, points=points,
                         scene_size=_gt_scene_size(dataset, c_gt), names=names)
-    summary = (ws.read_manifest("densify") or {}).get("summary", {})
-    out["median_pair_time_s"] = summary.get("median_pair_time_s")
-    out["stage_wall_time_s"] = ws.read_manifest("densify").get("wall_time_s")
+    out["median_pair_time_s"] = manifest.get("summary", {}).get("median_pair_time_s")
+    out["stage_wall_time_s"] = manifest.get("wall_time_s")
     return out
 
 

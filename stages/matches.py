@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -25,8 +27,10 @@ def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict
     descriptors = [load_features(ws, n)["descriptors"] for n in names]
     options = MatchOptions(ratio=config["ratio"], mutual=config["mutual"])
     pairs = pair_list(len(names), config["pairs"], config["window"])
-    per_pair = [match_descriptors(descriptors[i], descriptors[j], options)
-                for i, j in tqdm(pairs, desc="matches", unit="pair")]
+    # numpy releases the GIL in the products and reductions, so threads over pairs use every core.
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        jobs = pool.map(lambda p: match_descriptors(descriptors[p[0]], descriptors[p[1]], options), pairs)
+        per_pair = list(tqdm(jobs, total=len(pairs), desc="matches", unit="pair"))
     save_pair_data(ws.matches_path(out_dir), pairs, per_pair)
     counts = [len(m) for m in per_pair]
     return {"pairs": len(pairs), "median_matches": int(np.median(counts)) if counts else 0}

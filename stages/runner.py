@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
+from threadpoolctl import threadpool_limits
+
 from fullview.io.config import STAGE_ORDER
 from fullview.io.dataset import Dataset
 from fullview.io.workspace import Workspace
@@ -154,7 +156,9 @@ class Pipeline:
         module = stage_module(stage)
         log.info("%-13s running", stage)
         t0 = time.perf_counter()
-        with self.ws.stage_transaction(stage) as out_dir:
+        # Single-threaded BLAS: our solvers make many small calls, which OpenBLAS threads only slow down (4-10x on
+        # a loaded 2-core machine); stages parallelise over pairs or images themselves where it pays.
+        with self.ws.stage_transaction(stage) as out_dir, threadpool_limits(limits=1, user_api="blas"):
             summary = module.run(config=self.config[stage], dataset=self.dataset, ws=self.ws, out_dir=out_dir)
             manifest = {
                 **self.fingerprint_record(stage),

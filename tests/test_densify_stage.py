@@ -19,6 +19,7 @@ from fullview.stages.runner import Pipeline
 SMALL = [
     "features.working_width=512", "features.max_features_per_face=1500",
     "densify.working_width=512", "densify.rect_height=256", "densify.min_pair_inliers=30",
+    "densify.max_range_error_per_px=0.2",  # pixels are 4x the default's angle: the same conditioning bound
 ]
 
 
@@ -191,3 +192,24 @@ def test_render_point_cloud_and_colorize(tmp_path):
     rmap[0, 0] = np.nan
     pic = colorize_range(rmap)
     assert pic.shape == (32, 64, 3) and not pic[0, 0].any() and pic[5:].any(axis=-1).all()
+
+
+def test_range_error_per_pixel_matches_law_of_sines_derivative():
+    from scipy.spatial.transform import Rotation
+    from fullview.sfm.camera import pixel_grid_bearings
+    R = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
+    c_i, c_j = np.array([0.2, 0.1, -0.3]), np.array([1.0, 0.3, 0.1])
+    rng_map = np.linspace(1.0, 6.0, 32 * 64, dtype=np.float32).reshape(32, 64)
+    pixel_angle = np.pi / 512
+    err = densify.range_error_per_pixel(rng_map, R, c_i, c_j, pixel_angle)
+    w = pixel_grid_bearings(64, 32) @ R  # world directions of the pixel rays
+    T = np.linalg.norm(c_j - c_i)
+    theta = np.arccos(np.clip(w @ (c_j - c_i) / T, -1, 1))
+    P = c_i + rng_map[..., None] * w
+    a, b = c_i - P, c_j - P
+    d = np.arccos(np.einsum("...k,...k", a, b) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1))
+    r_of = lambda dd: T * np.sin(theta + dd) / np.sin(dd)
+    assert np.allclose(r_of(d), rng_map, rtol=1e-4)  # the triangle is the law of sines' one
+    h = 1e-6
+    numeric = np.abs(r_of(d + h) - r_of(d - h)) / (2 * h) * pixel_angle / rng_map
+    assert np.allclose(err, numeric, rtol=1e-3)

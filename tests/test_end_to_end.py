@@ -92,3 +92,16 @@ def test_planar_model_runs(reconstructed, tmp_path, capsys, tiny_set_args):
     metrics = json.loads(capsys.readouterr().out)
     # The synthetic cameras tilt by up to 5°, which the level-camera model cannot represent.
     assert metrics["registered"] == 3 and metrics["auc@10"] > 20
+
+
+def test_unrelated_image_is_reported_not_fatal(dataset_copy, tmp_path, capsys, tiny_set_args):
+    import cv2
+    rng = np.random.default_rng(0)
+    noise = cv2.GaussianBlur(rng.integers(0, 255, (256, 512, 3), dtype=np.uint8), (5, 5), 0)
+    cv2.imwrite(str(dataset_copy / "images" / "zz_unrelated.png"), noise)
+    ws = tmp_path / "ws"
+    assert main(["run", str(dataset_copy), "-w", str(ws), "--until", SPARSE_UNTIL, *tiny_set_args]) == 0
+    summary = json.loads((ws / "tiny" / "registration" / "manifest.json").read_text())["summary"]
+    assert summary["registered"] == 3 and summary["unregistered"] == ["zz_unrelated.png"]
+    rec = pycolmap.Reconstruction(str(ws / "tiny" / "triangulation" / "colmap"))
+    assert rec.num_reg_images() == 3
