@@ -57,6 +57,29 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_colmap_check(args) -> int:
+    from fullview.stages.colmap_check import colmap_check
+    pipeline = _pipeline(args)
+    report = colmap_check(pipeline.dataset, pipeline.ws, pipeline, max_features=args.colmap_max_features)
+    print(report["markdown"])
+    print(f"written: {pipeline.ws.root / 'colmap_check' / 'check.json'}, check.md")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from fullview.stages.compare import compare
+    pipeline = _pipeline(args)
+    result = compare(pipeline.dataset, pipeline.ws, pipeline, render_type=args.render_type,
+                     force_colmap=args.force_colmap, baseline_path=None if args.no_gate else args.baseline)
+    print(result["markdown"])
+    print(f"written: {pipeline.ws.root / 'compare'}/")
+    if result["gate"]["status"] == "fail":
+        print("fullview: regression against the baseline: " + "; ".join(result["gate"]["failures"]),
+              file=sys.stderr)
+        return 1
+    return 0
+
+
 def _common(p: argparse.ArgumentParser, config: bool = True) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder (images/, optional hand_points.yaml, ground_truth/)")
     p.add_argument("-w", "--workspace", type=Path, default=Path("workspace"), help="workspace root")
@@ -88,6 +111,20 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="metrics against ground_truth/")
     _common(p, config=False)
     p.set_defaults(func=cmd_eval)
+    p = sub.add_parser("colmap-check", help="our SIFT stage against COLMAP's SIFT on the same cube faces")
+    _common(p)
+    p.add_argument("--colmap-max-features", type=int, default=None, metavar="N",
+                   help="COLMAP features per face (default: ours, features.max_features_per_face; 0: COLMAP's)")
+    p.set_defaults(func=cmd_colmap_check)
+    p = sub.add_parser("compare", help="our reconstruction against pycolmap's panorama pipeline (+ baseline gate)")
+    _common(p)
+    p.add_argument("--render-type", default="spherical",
+                   choices=("spherical", "perspective_overlapping", "perspective_non_overlapping"))
+    p.add_argument("--force-colmap", action="store_true", help="rerun COLMAP even when its cached run is fresh")
+    p.add_argument("--baseline", type=Path, default=Path(__file__).resolve().parent / "benchmarks" / "baseline.json",
+                   help="stored baseline (default: benchmarks/baseline.json)")
+    p.add_argument("--no-gate", action="store_true", help="compare without checking the baseline")
+    p.set_defaults(func=cmd_compare)
     return parser
 
 

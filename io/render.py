@@ -150,5 +150,6 @@ def render_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, *, no
         fig.suptitle(title, color="white", fontsize=12, y=0.995)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi, facecolor=fig.get_facecolor())
-    log.info("rendered %d points (%d below the ceiling cut) to %s", len(points), len(pts), path)
+    log.info("rendered %d points (%s) to %s", len(points),
+             "back faces culled" if normals is not None else f"{len(pts)} below the ceiling cut", path)
     return Path(path)

@@ -1,0 +1,187 @@
+"""`fullview colmap-check`: our SIFT stage against COLMAP's SIFT on the very same cube faces.
+
+Everything but the detector/descriptor is held equal: the faces are rendered by `sfm.features.render_faces` from
+the same grey image at the same working width, face size and margin (and written as PNG,
+`colmap_check/faces/<stem>_<face>.png`, one PINHOLE camera per face size with the face focal length); COLMAP's
+keypoints (continuous pixel coordinates, (0, 0) the top-left corner — measured: no half-pixel offset, unlike
+OpenCV's) go back to bearings through the face rotation, the same owner-face dedup and latitude mask; COLMAP's
+descriptors (uint8, L1-root) are turned into unit float vectors and matched with our `match_descriptors` (ratio
+test, mutual check) over our pair list; verification is our unseeded `ransac_f` with the filter stage's threshold,
+iterations, confidence, seeds and minimum inlier count. Ours come from the workspace's matches/filter artifacts
+(hand correspondences excluded). A pair is flagged where ours fall below half of COLMAP's.
+
+COLMAP's per-face feature cap defaults to ours (`features.max_features_per_face`), so both detectors get the same
+budget; `max_features=0` gives COLMAP its own default (8192 per face).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from fullview.io.artifacts import atomic_path, save_json
+from fullview.io.colmap import extract_sift_on_images, pycolmap_version
+from fullview.io.dataset import Dataset
+from fullview.io.store import load_features, load_pair_data
+from fullview.io.workspace import Workspace
+from fullview.sfm import two_view
+from fullview.sfm.camera import bearings_to_lonlat
+from fullview.sfm.features import (FACE_NAMES, _face_keypoints_to_bearings, _owned_by_face, native_face_size,
+                                   render_faces)
+from fullview.sfm.matching import MatchOptions, match_descriptors, pair_list
+from fullview.stages.runner import Pipeline
+
+log = logging.getLogger(__name__)
+
+FLAG_RATIO = 0.5  # a pair is flagged where ours < FLAG_RATIO x COLMAP's
+
+
+def colmap_features(bearing_parts: list[tuple[np.ndarray, int, np.ndarray]], face_size: int, focal: float,
+                    min_lat_deg: float, max_lat_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bearings (N,3), unit float32 descriptors (N,128) and face ids of one panorama's COLMAP features.
+
+    `bearing_parts` holds per face (keypoints (K,2) in COLMAP pixel coordinates, face index, uint8 descriptors).
+    """
+    bearings, descs, faces = [], [], []
+    for xy, face, desc in bearing_parts:
+        b = _face_keypoints_to_bearings(xy, face, face_size, focal)
+        keep = _owned_by_face(b, face)
+        bearings.append(b[keep])
+        descs.append(desc[keep])
+        faces.append(np.full(int(keep.sum()), face, np.uint8))
+    bearings = np.concatenate(bearings) if bearings else np.zeros((0, 3))
+    descs = np.concatenate(descs).astype(np.float32) if descs else np.zeros((0, 128), np.float32)
+    faces = np.concatenate(faces) if faces else np.zeros(0, np.uint8)
+    _, lat = bearings_to_lonlat(bearings)
+    keep = (lat >= np.radians(min_lat_deg)) & (lat <= np.radians(max_lat_deg))
+    descs = descs[keep]
+    descs /= np.maximum(np.linalg.norm(descs, axis=1, keepdims=True), 1e-12)
+    return bearings[keep], descs, faces[keep]
+
+
+def verify(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, config: dict, seed: int) -> int:
+    """Inlier count of the filter stage's unseeded verification (0 below its min_inliers)."""
+    if len(matches) < 8:
+        return 0
+    opts = two_view.RansacOptions(threshold_rad=np.radians(config["threshold_deg"]),
+                                  max_iterations=config["max_iterations"], confidence=config["confidence"], seed=seed)
+    try:
+        res = two_view.ransac_f(bear_i[matches[:, 0]], bear_j[matches[:, 1]], opts)
+    except ValueError:
+        return 0
+    count = int(res.inliers.sum())
+    return count if count >= config["min_inliers"] else 0
+
+
+def _ours(dataset: Dataset, ws: Workspace) -> tuple[list, list, list, dict[str, int]]:
+    """Pairs, raw and verified (SIFT-only) match counts from the matches/filter artifacts, features per image."""
+    num_sift = {n: len(load_features(ws, n)["bearings"]) for n in dataset.image_names}
+    sift = [num_sift[n] for n in dataset.image_names]
+    pairs, raw, _ = load_pair_data(ws.matches_path())
+    pairs_f, inliers, _ = load_pair_data(ws.inliers_path())
+    if pairs != pairs_f:
+        raise RuntimeError(f"{ws.root}: matches and filter artifacts disagree on the pair list; rerun filter")
+    verified = [int(((m[:, 0] < sift[i]) & (m[:, 1] < sift[j])).sum()) for (i, j), m in zip(pairs, inliers)]
+    return pairs, [len(m) for m in raw], verified, num_sift
+
+
+def colmap_check(dataset: Dataset, ws: Workspace, pipeline: Pipeline, *, max_features: int | None = None) -> dict:
+    """Run the check; writes colmap_check/{check.json, check.md, faces/, database.db}; returns the report."""
+    ran = pipeline.run(until="filter")
+    log.info("our pipeline until filter: %s", ", ".join(ran) if ran else "fresh")
+    fcfg, mcfg, vcfg = (pipeline.config[s] for s in ("features", "matches", "filter"))
+    cap = fcfg["max_features_per_face"] if max_features is None else max_features
+    names = dataset.image_names
+    pairs, ours_raw, ours_verified, ours_features = _ours(dataset, ws)
+    expected = pair_list(len(names), mcfg["pairs"], mcfg["window"])
+    if [tuple(p) for p in expected] != pairs:
+        raise RuntimeError(f"{ws.root}: the matches artifact's pair list differs from the config's; rerun matches")
+
+    out_root = ws.root / "colmap_check"
+    faces_dir = out_root / "faces"
+    faces_dir.mkdir(parents=True, exist_ok=True)
+    geometry, groups = {}, {}
+    for name in tqdm(names, desc="faces", unit="image"):
+        full_w, _ = dataset.image_sizes[name]
+        image = dataset.load_image(name, width=min(fcfg["working_width"] or full_w, full_w))
+        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        face_size = fcfg["face_size"] or native_face_size(grey.shape[1], fcfg["margin_deg"])
+        faces, focal = render_faces(grey, face_size, fcfg["margin_deg"])
+        geometry[name] = (face_size, focal)
+        params = f"{focal:.17g},{focal:.17g},{face_size / 2:.17g},{face_size / 2:.17g}"
+        for f, face in enumerate(faces):
+            face_name = f"{Path(name).stem}_{FACE_NAMES[f]}.png"
+            ok, png = cv2.imencode(".png", face)
+            if not ok:
+                raise RuntimeError(f"cannot encode {faces_dir / face_name}")
+            with atomic_path(faces_dir / face_name) as tmp:
+                tmp.write_bytes(png.tobytes())
+            groups.setdefault(params, []).append(face_name)
+    log.info("COLMAP SIFT (CPU) on %d faces, max %s features per face", sum(map(len, groups.values())),
+             cap if cap > 0 else "default")
+    extracted = extract_sift_on_images(faces_dir, out_root / "database.db", groups, max_num_features=cap)
+
+    bearings, descriptors, colmap_counts = [], [], {}
+    for name in names:
+        face_size, focal = geometry[name]
+        parts = []
+        for f in range(6):
+            xy, desc = extracted.get(f"{Path(name).stem}_{FACE_NAMES[f]}.png", (np.zeros((0, 2)), np.zeros((0, 128))))
+            parts.append((xy, f, desc))
+        b, d, _ = colmap_features(parts, face_size, focal, fcfg["min_latitude_deg"], fcfg["max_latitude_deg"])
+        bearings.append(b)
+        descriptors.append(d)
+        colmap_counts[name] = len(b)
+
+    options = MatchOptions(ratio=mcfg["ratio"], mutual=mcfg["mutual"])
+    rows = []
+    for k, (i, j) in enumerate(tqdm(pairs, desc="colmap-check", unit="pair")):
+        matches = match_descriptors(descriptors[i], descriptors[j], options)
+        verified = verify(bearings[i], bearings[j], matches, vcfg, seed=vcfg["seed"] + k)
+        row = {"pair": [names[i], names[j]], "ours_raw": ours_raw[k], "colmap_raw": int(len(matches)),
+               "ours_verified": ours_verified[k], "colmap_verified": verified}
+        row["flag_raw"] = row["ours_raw"] < FLAG_RATIO * row["colmap_raw"]
+        row["flag_verified"] = row["ours_verified"] < FLAG_RATIO * row["colmap_verified"]
+        rows.append(row)
+    report = {"dataset": dataset.name, "pycolmap": pycolmap_version(),
+              "settings": {"working_width": fcfg["working_width"], "face_size": {n: g[0] for n, g in geometry.items()},
+                           "margin_deg": fcfg["margin_deg"], "colmap_max_features_per_face": cap,
+                           "ours_max_features_per_face": fcfg["max_features_per_face"],
+                           "latitude_deg": [fcfg["min_latitude_deg"], fcfg["max_latitude_deg"]],
+                           "ratio": mcfg["ratio"], "mutual": mcfg["mutual"], "threshold_deg": vcfg["threshold_deg"],
+                           "min_inliers": vcfg["min_inliers"], "flag_ratio": FLAG_RATIO},
+              "features": {n: {"ours": ours_features[n], "colmap": colmap_counts[n]} for n in names},
+              "pairs": rows, "flagged": [r["pair"] for r in rows if r["flag_raw"] or r["flag_verified"]]}
+    save_json(out_root / "check.json", report)
+    markdown = format_markdown(report)
+    with atomic_path(out_root / "check.md") as tmp:
+        tmp.write_text(markdown)
+    report["markdown"] = markdown
+    return report
+
+
+def format_markdown(report: dict) -> str:
+    s = report["settings"]
+    cap = s["colmap_max_features_per_face"]
+    lines = [f"## {report['dataset']}: our SIFT vs COLMAP SIFT (pycolmap {report['pycolmap']}) on the same cube faces",
+             "", f"Working width {s['working_width']}, margin {s['margin_deg']}°, features per face: ours ≤ "
+             f"{s['ours_max_features_per_face']}, COLMAP ≤ {cap if cap > 0 else 'default (8192)'}; ratio "
+             f"{s['ratio']}, mutual {s['mutual']}; F-RANSAC {s['threshold_deg']}°, min {s['min_inliers']} inliers. "
+             f"⚠ = ours < {s['flag_ratio']:g} × COLMAP's.", "",
+             "| pair | ours raw | COLMAP raw | ours verified | COLMAP verified | verified ratio | flag |",
+             "|---|---:|---:|---:|---:|---:|---|"]
+    for r in report["pairs"]:
+        ratio = r["ours_verified"] / r["colmap_verified"] if r["colmap_verified"] else None
+        flag = " ".join(x for x, on in (("⚠ raw", r["flag_raw"]), ("⚠ verified", r["flag_verified"])) if on)
+        a, b = (Path(p).stem for p in r["pair"])
+        lines.append(f"| {a}–{b} | {r['ours_raw']} | {r['colmap_raw']} | {r['ours_verified']} | "
+                     f"{r['colmap_verified']} | {'—' if ratio is None else f'{ratio:.2f}'} | {flag} |")
+    lines += ["", "| image | ours features | COLMAP features |", "|---|---:|---:|"]
+    for name, c in report["features"].items():
+        lines.append(f"| {Path(name).stem} | {c['ours']} | {c['colmap']} |")
+    lines += ["", f"Flagged pairs: {len(report['flagged'])} of {len(report['pairs'])}"]
+    return "\n".join(lines) + "\n"
