@@ -53,3 +53,22 @@ bench: setup
 
 clean:
 	rm -rf $(WORKSPACE)
+
+# COLMAP as baseline and reference (README, "COLMAP as baseline and reference").
+RENDER_TYPE ?= spherical
+.PHONY: colmap-check compare-colmap
+
+# Our SIFT stage against COLMAP's SIFT on the same cube faces: workspace/<dataset>/colmap_check/check.{json,md}.
+colmap-check: setup
+ifeq ($(DATASET),)
+	@$(MAKE) --no-print-directory $(SYNTH)/images
+endif
+	$(PY) -m fullview colmap-check $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)
+
+# Our reconstruction against pycolmap.panorama.reconstruct; exits non-zero when benchmarks/baseline.json's
+# tolerances are exceeded for this dataset. Results: workspace/<dataset>/compare/.
+compare-colmap: setup
+ifeq ($(DATASET),)
+	@$(MAKE) --no-print-directory $(SYNTH)/images
+endif
+	$(PY) -m fullview compare $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE) --render-type $(RENDER_TYPE)

@@ -2,7 +2,8 @@
 
 For every scene, in one process tree and one run:
 - ours: `fullview run` in a fresh workspace (a subprocess): per-stage wall time and peak memory from the manifests,
-  then `fullview eval` metrics when ground truth exists;
+  then `fullview eval` metrics when ground truth exists; the 6-view scene and 360_Flat also run `densify` (time per
+  pair, depth and cloud metrics);
 - COLMAP: `pycolmap.panorama.reconstruct` (SPHERICAL, exhaustive, CPU) on the same images in a subprocess: wall
   time, peak memory and the same metrics.
 Prints a table with the ratio ours/COLMAP, writes benchmarks/results/<date>.json and a plot of time against views.
@@ -46,10 +47,10 @@ def synth_dataset(work: Path, views: int, width: int, seed: int) -> Path:
     return path
 
 
-def ours(dataset: Path, work: Path, label: str, extra: list[str]) -> dict:
+def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = False) -> dict:
     ws = work / "ws" / label
     cmd = [sys.executable, "-m", "fullview", "run", str(dataset), "-w", str(ws), "-c", str(ROOT / "pipeline.yaml"),
-           "--until", "triangulation", "--force"]
+           "--until", "densify" if dense else "triangulation", "--force"]
     for item in extra:
         cmd += ["--set", item]
     t0 = time.perf_counter()
@@ -67,6 +68,10 @@ def ours(dataset: Path, work: Path, label: str, extra: list[str]) -> dict:
         "registered": manifests["registration"]["summary"]["registered"],
         "points": manifests["triangulation"]["summary"]["points"],
     }
+    if dense:
+        summary = json.loads((root / "densify" / "manifest.json").read_text())["summary"]
+        out["densify"] = {k: summary.get(k) for k in ("pairs", "points", "median_pair_time_s", "valid_share")}
+        out["densify"]["stage_time_s"] = json.loads((root / "densify" / "manifest.json").read_text())["wall_time_s"]
     if (dataset / "ground_truth" / "poses.yaml").exists():
         proc = run([sys.executable, "-m", "fullview", "eval", str(dataset), "-w", str(ws)])
         out["metrics"] = json.loads(proc.stdout) if proc.returncode == 0 else {"error": proc.stderr[-2000:]}
@@ -126,6 +131,23 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def dense_table(rows: list[dict]) -> str:
+    head = ("scene", "pairs", "median s/pair", "stage s", "points", "max median rel. depth err", "min valid share",
+            "accuracy", "completeness")
+    lines = [" | ".join(head), " | ".join("---" for _ in head)]
+    for r in rows:
+        d = r["ours"].get("densify")
+        if not d:
+            continue
+        m = r["ours"].get("metrics", {}).get("dense", {})
+        cloud = m.get("cloud", {})
+        lines.append(" | ".join([r["scene"], str(d["pairs"]), fmt(d["median_pair_time_s"]), fmt(d["stage_time_s"], ".1f"),
+                                 str(d["points"]), fmt(m.get("max_median_rel_error"), ".4f"),
+                                 fmt(m.get("min_valid_share"), ".3f"), fmt(cloud.get("accuracy"), ".3f"),
+                                 fmt(cloud.get("completeness"), ".3f")]))
+    return "\n".join(lines)
+
+
 def plot(rows: list[dict], path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
@@ -153,6 +175,7 @@ def main() -> int:
     parser.add_argument("--views", type=int, nargs="+", default=[2, 6, 12, 24])
     parser.add_argument("--width", type=int, default=2048)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--dense-views", type=int, default=6, help="synthetic scene that also runs densify")
     parser.add_argument("--no-colmap", action="store_true")
     parser.add_argument("--no-real", action="store_true")
     parser.add_argument("--work", type=Path, default=ROOT / "workspace" / "bench")
@@ -167,8 +190,9 @@ def main() -> int:
         dataset = synth_dataset(args.work, views, args.width, args.seed)
         for hand in (True, False):
             label = f"synth{views}-{'hand' if hand else 'nohand'}"
+            dense = hand and views == args.dense_views
             row = {"scene": label, "views": views, "ours": ours(dataset, args.work, label,
-                                                                [f"filter.use_hand_points={str(hand).lower()}"])}
+                                                                [f"filter.use_hand_points={str(hand).lower()}"], dense)}
             if hand and not args.no_colmap:
                 row["colmap"] = colmap(dataset, args.work, label)
             elif not hand and rows and "colmap" in rows[-1]:
@@ -178,7 +202,7 @@ def main() -> int:
     if not args.no_real:
         if SHARED.exists():
             for name in ("360_Flat", "360_school"):
-                row = {"scene": name, "ours": ours(SHARED / name, args.work, name, [])}
+                row = {"scene": name, "ours": ours(SHARED / name, args.work, name, [], dense=name == "360_Flat")}
                 if not args.no_colmap:
                     row["colmap"] = colmap(SHARED / name, args.work, name)
                 rows.append(row)
@@ -192,6 +216,8 @@ def main() -> int:
                                "rows": rows}, indent=2) + "\n")
     plot(rows, RESULTS / f"{stamp}-time-vs-views.png")
     print(table(rows))
+    print()
+    print(dense_table(rows))
     print(f"\nratio = ours sparse-pipeline wall time / COLMAP wall time, same run. Results: {out}")
     return 0
 

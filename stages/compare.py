@@ -37,6 +37,12 @@ DEFAULT_BASELINE = Path(__file__).resolve().parents[1] / "benchmarks" / "baselin
 
 
 # --------------------------------------------------------------------------------------------- COLMAP, cached
+def images_fingerprint(dataset: Dataset) -> str:
+    """sha256 (short) over the dataset's image names and contents: which scene a baseline entry belongs to."""
+    record = {n: dataset.image_hash(n) for n in dataset.image_names}
+    return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
+
+
 def colmap_record(dataset: Dataset, render_type: str, matcher: str = "exhaustive", seed: int = 0) -> dict:
     """What the cached COLMAP run depends on: images, options, pycolmap version."""
     return {"stage": f"colmap_{render_type}", "version": COLMAP_VERSION,
@@ -63,7 +69,9 @@ def colmap_reference(dataset: Dataset, ws: Workspace, *, render_type: str = "sph
         log.info("%s %s: running pycolmap.panorama.reconstruct (%s, %s matcher, CPU)", name,
                  "missing" if manifest is None else "stale", render_type, matcher)
         with ws.stage_transaction(name) as out_dir:
-            images = out_dir / "images"  # exactly the dataset's image list (no stray files such as README.md)
+            # exactly the dataset's image list (no stray files such as README.md); not "images", which the
+            # perspective render types fill with their rendered views
+            images = out_dir / "panoramas"
             images.mkdir()
             for image_name in dataset.image_names:
                 os.symlink(dataset.image_path(image_name).resolve(), images / image_name)
@@ -130,7 +138,7 @@ def compare(dataset: Dataset, ws: Workspace, pipeline: Pipeline, *, render_type:
     our_time = sum(m["wall_time_s"] for m in manifests.values() if m)
 
     result = {"dataset": dataset.name, "render_type": render_type, "pycolmap": colmap_manifest["pycolmap"],
-              "images": names,
+              "images": names, "images_sha256": images_fingerprint(dataset),
               "ours": _side_stats(ours, our_time), "colmap": _side_stats(theirs, colmap_manifest["wall_time_s"])}
     result["ours"]["stage_time_s"] = {s: m["wall_time_s"] for s, m in manifests.items() if m}
     result["registered"] = {"ours": ours["registered"].tolist(), "colmap": theirs["registered"].tolist()}
@@ -173,16 +181,21 @@ def compare(dataset: Dataset, ws: Workspace, pipeline: Pipeline, *, render_type:
 def check_against_baseline(result: dict, baseline_path: Path | None) -> dict:
     """Gate the result with the stored baseline of its dataset (same render type); not gated when absent."""
     current = cmp.gated_metrics(result)
-    if baseline_path is None or not Path(baseline_path).exists():
-        return {"status": "not gated", "reason": "no baseline file", "metrics": current, "failures": []}
+    if baseline_path is None:
+        return {"status": "not gated", "reason": "no baseline given", "metrics": current, "failures": []}
+    if not Path(baseline_path).exists():
+        return {"status": "not gated", "reason": f"{baseline_path} not found", "metrics": current, "failures": []}
     baseline = json.loads(Path(baseline_path).read_text())
     entry = baseline.get("datasets", {}).get(result["dataset"])
     if entry is None:
         return {"status": "not gated", "reason": f"{result['dataset']} not in {baseline_path}", "metrics": current,
                 "failures": []}
     if entry.get("render_type", baseline.get("render_type", "spherical")) != result["render_type"]:
-        return {"status": "not gated", "reason": f"baseline recorded with another render type", "metrics": current,
+        return {"status": "not gated", "reason": "baseline recorded with another render type", "metrics": current,
                 "failures": []}
+    if entry.get("images_sha256") and result.get("images_sha256") != entry["images_sha256"]:
+        return {"status": "not gated", "reason": f"baseline {result['dataset']!r} was recorded on other images",
+                "metrics": current, "failures": []}
     tolerances = {**baseline.get("tolerances", {}), **entry.get("tolerances", {})}
     failures = cmp.gate(current, entry["metrics"], tolerances)
     return {"status": "fail" if failures else "pass", "baseline": entry["metrics"], "tolerances": tolerances,

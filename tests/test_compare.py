@@ -196,6 +196,11 @@ def test_baseline_file_gates_listed_datasets_only(tmp_path):
     assert check_against_baseline(_result("other"), path)["status"] == "not gated"
     assert check_against_baseline(_result(render_type="perspective_overlapping"), path)["status"] == "not gated"
     assert check_against_baseline(_result(), tmp_path / "absent.json")["status"] == "not gated"
+    # an entry recorded on other images (same folder name, another scene) is not applied
+    path.write_text(json.dumps({"tolerances": TOL, "datasets": {"scene": {"metrics": BASE, "images_sha256": "abc"}}}))
+    assert check_against_baseline(_result(images_sha256="abc"), path)["status"] == "pass"
+    g = check_against_baseline(_result(images_sha256="def", ours={"registered": 1}), path)
+    assert g["status"] == "not gated" and "other images" in g["reason"]
 
 
 def test_markdown_report_renders_every_section():
