@@ -56,7 +56,8 @@ def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int):
 
 
 def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchOptions) -> np.ndarray:
-    """(M, 2) int array of (feature in i, feature in j) passing the ratio test (and the mutual check)."""
+    """(M, 2) int array of (feature in i, feature in j) passing the ratio test (and the mutual check), ordered from
+    the most distinctive match (smallest ratio) to the least."""
     if len(desc_i) < 2 or len(desc_j) < 2:
         return np.zeros((0, 2), np.int64)
     desc_i = np.ascontiguousarray(desc_i, np.float32)
@@ -66,4 +67,6 @@ def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchOpti
     if options.mutual:
         keep &= nn_ji[nn_ij] == np.arange(len(desc_i))
     rows = np.flatnonzero(keep)
+    # Most distinctive first (smallest distance ratio): robust estimation samples the head more often.
+    rows = rows[np.argsort(d_ij[rows, 0] / np.maximum(d_ij[rows, 1], 1e-30), kind="stable")]
     return np.column_stack([rows, nn_ij[rows]])

@@ -52,11 +52,11 @@ def epipolar_angular_errors(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray) -> 
     The epipolar plane of b_j in camera i has normal F b_j; b_i's angle to that plane is asin(|b_i·n|/|n|).
     Returns the larger of the two angles. Batched: F (B,3,3) with bearings (N,3) gives (B, N).
     """
-    n_i = np.einsum("...ab,nb->...na", F, b_j)  # normals of epipolar planes in camera i
-    n_j = np.einsum("...ba,na->...nb", F, b_i)  # normals in camera j
-    num = np.abs(np.einsum("na,...na->...n", b_i, n_i))
-    s_i = num / np.maximum(np.linalg.norm(n_i, axis=-1), 1e-12)
-    s_j = num / np.maximum(np.linalg.norm(n_j, axis=-1), 1e-12)
+    n_i = F @ b_j.T  # (..., 3, N) normals of the epipolar planes in camera i
+    n_j = np.swapaxes(F, -1, -2) @ b_i.T  # normals in camera j
+    num = np.abs((n_i * b_i.T).sum(axis=-2))
+    s_i = num / np.maximum(np.sqrt((n_i * n_i).sum(axis=-2)), 1e-12)
+    s_j = num / np.maximum(np.sqrt((n_j * n_j).sum(axis=-2)), 1e-12)
     return np.arcsin(np.clip(np.maximum(s_i, s_j), 0.0, 1.0))
 
 
@@ -73,6 +73,7 @@ class RansacOptions:
     min_iterations: int = 100  # never stop earlier than this
     confidence: float = 0.9999  # adaptive stopping confidence
     batch_size: int = 256  # hypotheses evaluated together (vectorised)
+    head_share: float = 0.25  # guided samples draw from this leading share of the (quality-ordered) matches
     local_optimization_steps: int = 4  # iterative re-fits on inliers of each new best model
     refine: bool = True  # final non-linear refinement of R, t on the inliers
     seed: int = 0  # random seed for sampling
@@ -86,21 +87,28 @@ class FResult:
     iterations: int  # hypotheses drawn (0 when seeded by hand points)
 
 
+LO_THRESHOLD_SCHEDULE = (3.0, 2.0, 1.5, 1.0)  # inlier-set thresholds of the LO re-fits, in units of the threshold
+
+
 def _local_optimization(b_i, b_j, F, threshold, steps):
-    """LO step: re-fit on inliers with a growing set, keep the best-scoring model."""
+    """LO step: weighted re-fits on inlier sets chosen at a shrinking threshold; keep the best-scoring model.
+
+    Starting loose lets a model from a noisy minimal sample pull in the inliers it narrowly misses.
+    """
     best_F, best_cost = F, _msac_scores(epipolar_angular_errors(F, b_i, b_j), threshold).sum()
-    for _ in range(steps):
-        errors = epipolar_angular_errors(best_F, b_i, b_j)
-        inliers = errors < threshold
+    schedule = LO_THRESHOLD_SCHEDULE + (1.0,) * max(0, steps - len(LO_THRESHOLD_SCHEDULE))
+    current = F
+    for factor in schedule[:max(steps, 1)]:
+        errors = epipolar_angular_errors(current, b_i, b_j)
+        inliers = errors < factor * threshold
         if inliers.sum() < 8:
             break
         # Cauchy-like weights so that borderline inliers pull less than clean ones.
-        w = 1.0 / (1.0 + (errors[inliers] / threshold) ** 2)
-        cand = estimate_f_linear(b_i[inliers], b_j[inliers], w)
-        cost = _msac_scores(epipolar_angular_errors(cand, b_i, b_j), threshold).sum()
-        if cost >= best_cost - 1e-15:
-            break
-        best_F, best_cost = cand, cost
+        w = 1.0 / (1.0 + (errors[inliers] / (factor * threshold)) ** 2)
+        current = estimate_f_linear(b_i[inliers], b_j[inliers], w)
+        cost = _msac_scores(epipolar_angular_errors(current, b_i, b_j), threshold).sum()
+        if cost < best_cost:
+            best_F, best_cost = current, cost
     return best_F, best_cost
 
 
@@ -113,6 +121,19 @@ def _required_iterations(inlier_ratio: float, confidence: float, sample_size: in
     return np.log(1.0 - confidence) / np.log(1.0 - p)
 
 
+def _draw_samples(rng: np.random.Generator, batch: int, n: int, head_share: float) -> np.ndarray:
+    """(batch, 8) distinct indices; half the samples come from the first `head_share` of the correspondences.
+
+    Matches arrive ordered by distinctiveness, and the head holds a larger share of inliers, so guided samples find a
+    good model far sooner (PROSAC's idea); the other half samples uniformly, so a bad ordering costs at most 2x.
+    """
+    head = max(16, int(np.ceil(head_share * n)))
+    pool = np.where(np.arange(batch) % 2 == 0, min(head, n), n)[:, None]
+    keys = rng.random((batch, n))
+    keys[np.arange(n)[None, :] >= pool] = 2.0  # outside this sample's pool: never among the 8 smallest
+    return np.argpartition(keys, 7, axis=1)[:, :8]
+
+
 def ransac_f(b_i: np.ndarray, b_j: np.ndarray, options: RansacOptions) -> FResult:
     """LO-MSAC on bearings with the 8-point minimal solver, angular errors, optional refinement."""
     n = len(b_i)
@@ -123,7 +144,7 @@ def ransac_f(b_i: np.ndarray, b_j: np.ndarray, options: RansacOptions) -> FResul
     best_F, best_cost, drawn = None, np.inf, 0
     while drawn < options.max_iterations:
         batch = min(options.batch_size, options.max_iterations - drawn)
-        samples = np.argsort(rng.random((batch, n)), axis=1)[:, :8] if n < 64 else rng.integers(0, n, (batch, 8))
+        samples = _draw_samples(rng, batch, n, options.head_share)
         Fs = estimate_f_linear(b_i[samples], b_j[samples])
         costs = _msac_scores(epipolar_angular_errors(Fs, b_i, b_j), thr).sum(axis=1)
         drawn += batch

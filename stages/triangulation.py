@@ -41,15 +41,20 @@ def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict
     min_angle = np.radians(config["min_triangulation_angle_deg"])
 
     keep = _triangulate_and_filter(tracks, bearings, R, t, LOOSE_FACTOR * max_err, min_angle)
-    tracks_kept, points = _subset(tracks, keep[0]), keep[1]
+    tracks_kept, points = tracks.subset(keep[0]), keep[1]
     if config["bundle_adjust"] and tracks_kept.num_tracks:
-        R, t, points = _bundle(tracks_kept, bearings, R, t, points, registered, config)
+        R, t, points, _ = _bundle(tracks_kept, bearings, R, t, points, registered, config)
     mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
-    final = _subset(tracks, mask)
+    final = tracks.subset(mask)
+    errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     if config["bundle_adjust"] and final.num_tracks:
-        R, t, points = _bundle(final, bearings, R, t, points, registered, config)
-    tri = triangulate_multiview(final, bearings, R, t)
-    errors = tri.obs_error_rad
+        R, t, points, errors = _bundle(final, bearings, R, t, points, registered, config)
+        # The last adjustment moved the points: drop the few tracks it left beyond the bound, so the stored
+        # errors describe the stored points.
+        worst = np.full(final.num_tracks, 0.0)
+        np.maximum.at(worst, final.track_ids, errors)
+        good = worst <= max_err
+        final, points, errors = final.subset(good), points[good], errors[good[final.track_ids]]
     return _write(out_dir, ws, dataset, obs, registered, R, t, final, points, errors)
 
 
@@ -59,18 +64,10 @@ def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
     return mask, tri.points[mask]
 
 
-def _subset(tracks: Tracks, keep: np.ndarray) -> Tracks:
-    """The tracks where `keep` is true, renumbered 0..T'-1."""
-    obs_keep = keep[tracks.track_ids]
-    new_id = np.cumsum(keep) - 1
-    lengths = np.diff(tracks.offsets)[keep]
-    return Tracks(track_ids=new_id[tracks.track_ids[obs_keep]], image_ids=tracks.image_ids[obs_keep],
-                  feature_ids=tracks.feature_ids[obs_keep], offsets=np.concatenate([[0], np.cumsum(lengths)]),
-                  num_images=tracks.num_images)
-
-
 def _bundle(tracks: Tracks, bearings, R, t, points, registered, config):
-    """Bundle adjustment over the registered cameras (reindexed), the first one fixed."""
+    """Bundle adjustment over the registered cameras (reindexed), the first one fixed.
+
+    Returns refined (R, t) of every camera, the points and the final angular error of every observation."""
     cams = np.flatnonzero(registered)
     local = np.full(len(registered), -1)
     local[cams] = np.arange(len(cams))
@@ -85,7 +82,7 @@ def _bundle(tracks: Tracks, bearings, R, t, points, registered, config):
              np.degrees(np.median(result.obs_error_rad)))
     R, t = R.copy(), t.copy()
     R[cams], t[cams] = result.R_cam_from_world, result.t_cam_from_world
-    return R, t, result.points
+    return R, t, result.points, result.obs_error_rad
 
 
 def _write(out_dir, ws, dataset, obs, registered, R, t, tracks: Tracks, points, errors) -> dict:
