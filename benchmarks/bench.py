@@ -4,8 +4,8 @@ For every scene, in one process tree and one run:
 - ours: `fullview run` in a fresh workspace (a subprocess): per-stage wall time and peak memory from the manifests,
   then `fullview eval` metrics when ground truth exists; the 6-view scene and 360_Flat also run `densify` (time per
   pair, depth and cloud metrics);
-- COLMAP: `pycolmap.panorama.reconstruct` (SPHERICAL, exhaustive, CPU) on the same images in a subprocess: wall
-  time, peak memory and the same metrics.
+- COLMAP: `pycolmap.panorama.reconstruct` (SPHERICAL, exhaustive, CPU) on the same images in a subprocess, through
+  the cached reference of `fullview compare` (forced to rerun): wall time, peak memory and the same metrics.
 Prints a table with the ratio ours/COLMAP, writes benchmarks/results/<date>.json and a plot of time against views.
 
     python benchmarks/bench.py [--views 2 6 12 24] [--width 2048] [--no-colmap] [--no-real]
@@ -86,25 +86,29 @@ def colmap(dataset: Path, work: Path, label: str) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def colmap_worker(dataset: Path, out_dir: Path) -> None:
+def colmap_worker(dataset: Path, work: Path) -> None:
     """Runs in its own process so that its peak memory is its own."""
-    from fullview.io.colmap import poses_by_panorama, run_panorama_reconstruct
+    from fullview.io.colmap import load_reconstruction, model_arrays
     from fullview.io.dataset import Dataset
+    from fullview.io.workspace import Workspace
     from fullview.sfm.metrics import pose_metrics
+    from fullview.stages.compare import colmap_reference
 
     ds = Dataset(dataset)
-    result = run_panorama_reconstruct(ds.images_dir, out_dir, render_type="spherical", matcher="exhaustive")
-    out = {"wall_time_s": round(result["wall_time_s"], 2),
-           "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
-    rec = result["reconstruction"]
-    poses = poses_by_panorama(rec, ds.image_names) if rec is not None else None
-    out["registered"] = int(poses["registered"].sum()) if poses else 0
-    out["points"] = int(rec.num_points3D()) if rec is not None else 0
-    if poses and ds.has_ground_truth():
-        gt = ds.ground_truth_poses()
-        R_gt = np.stack([gt[n].R_world_from_cam.T for n in ds.image_names])
-        c_gt = np.stack([gt[n].center for n in ds.image_names])
-        out["metrics"] = pose_metrics(poses["R_cam_from_world"], poses["centers"], R_gt, c_gt, poses["registered"])
+    model_dir, manifest = colmap_reference(ds, Workspace(work, ds.name), render_type="spherical", force=True)
+    out = {"wall_time_s": round(manifest["wall_time_s"], 2),
+           "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+           "registered": 0, "points": 0}
+    if model_dir is not None:
+        rec = load_reconstruction(model_dir)
+        model = model_arrays(rec, ds.image_names)
+        out.update(registered=int(model["registered"].sum()), points=int(rec.num_points3D()))
+        if ds.has_ground_truth():
+            gt = ds.ground_truth_poses()
+            R_gt = np.stack([gt[n].R_world_from_cam.T for n in ds.image_names])
+            c_gt = np.stack([gt[n].center for n in ds.image_names])
+            out["metrics"] = pose_metrics(model["R_cam_from_world"], model["centers"], R_gt, c_gt,
+                                          model["registered"])
     print(json.dumps(out))
 
 

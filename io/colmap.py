@@ -1,4 +1,4 @@
-"""COLMAP interop: write our model as a COLMAP text model, run pycolmap's panorama pipeline, read its poses."""
+"""COLMAP interop: write our model as a COLMAP text model, run pycolmap's panorama pipeline, read its models."""
 
 from __future__ import annotations
 
@@ -57,52 +57,6 @@ def write_text_model(out_dir: Path, *, width: int, height: int, image_names: lis
 def _write(path: Path, lines: list[str]) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
-
-
-def run_panorama_reconstruct(images_dir: Path, out_dir: Path, *, render_type: str = "spherical",
-                             matcher: str = "exhaustive", seed: int = 0) -> dict:
-    """pycolmap.panorama.reconstruct (CPU) on a folder of panoramas; poses of the largest model and wall time."""
-    import pycolmap
-    from pycolmap import panorama
-
-    out_dir = Path(out_dir)
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    out_dir.mkdir(parents=True)
-    options = panorama.PanoramaReconstructionOptions(
-        matcher=panorama.Matcher(matcher), render_type=panorama.PanoRenderType(render_type),
-        random_seed=seed, use_gpu=False, show_progress=False)
-    t0 = time.perf_counter()
-    recs = panorama.reconstruct(Path(images_dir), out_dir, options)
-    wall = time.perf_counter() - t0
-    if not recs:
-        return {"wall_time_s": wall, "reconstruction": None}
-    best = max(recs.values(), key=lambda r: r.num_reg_images())
-    return {"wall_time_s": wall, "reconstruction": best}
-
-
-def poses_by_panorama(rec, image_names: list[str]) -> dict[str, np.ndarray]:
-    """R_cam_from_world, centres and registered mask per panorama name from a pycolmap Reconstruction.
-
-    For rendered perspective rigs the panorama pose is that of the rig frame; image names of virtual cameras are
-    '<subfolder>/<panorama name>', so a panorama is matched by its file name.
-    """
-    n = len(image_names)
-    R = np.tile(np.eye(3), (n, 1, 1))
-    c = np.full((n, 3), np.nan)
-    registered = np.zeros(n, bool)
-    index = {name: k for k, name in enumerate(image_names)}
-    for image in rec.images.values():
-        if not image.has_pose:
-            continue
-        k = index.get(Path(image.name).name)
-        if k is None or registered[k]:
-            continue
-        pose = image.frame.rig_from_world if hasattr(image, "frame") and image.frame is not None else image.cam_from_world()
-        M = pose.matrix()
-        R[k], registered[k] = M[:, :3], True
-        c[k] = -M[:, :3].T @ M[:, 3]
-    return {"R_cam_from_world": R, "centers": c, "registered": registered}
 
 
 # ------------------------------------------------------------------------------------------------------------------

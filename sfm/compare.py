@@ -17,7 +17,8 @@ from itertools import combinations
 
 import numpy as np
 
-from fullview.sfm.metrics import Similarity, angle_between_deg, rotation_angle_deg, umeyama
+from fullview.sfm.metrics import Similarity, pairwise_pose_differences, umeyama
+from fullview.sfm.rotations import rotation_angle_deg
 
 COLLINEAR_RATIO = 1e-3  # second/first singular value of the centred centres below this: treated as collinear
 MAX_PLANE_TILT_DEG = 45.0  # top view: a PCA plane of the centres tilted more than this from `up` is not used
@@ -49,14 +50,8 @@ def relative_agreement(R_a: np.ndarray, c_a: np.ndarray, registered_a: np.ndarra
         raise ValueError(f"models differ in image count: {len(R_a)}, {len(c_a)}, {len(R_b)}, {len(c_b)}")
     both = np.asarray(registered_a, bool) & np.asarray(registered_b, bool)
     pairs = np.array([(i, j) for i, j in combinations(range(n), 2) if both[i] and both[j]], np.int64).reshape(-1, 2)
-    i, j = pairs[:, 0], pairs[:, 1]
-    rel_a = R_a[j] @ np.swapaxes(R_a[i], -1, -2)
-    rel_b = R_b[j] @ np.swapaxes(R_b[i], -1, -2)
-    rot = rotation_angle_deg(rel_a @ np.swapaxes(rel_b, -1, -2))
-    dir_a = np.einsum("nab,nb->na", R_a[j], c_a[i] - c_a[j])
-    dir_b = np.einsum("nab,nb->na", R_b[j], c_b[i] - c_b[j])
-    return Agreement(pairs=pairs, rotation_deg=rot, translation_deg=angle_between_deg(dir_a, dir_b),
-                     pairs_total=n * (n - 1) // 2)
+    rot, trans = pairwise_pose_differences(R_a, c_a, R_b, c_b, pairs)
+    return Agreement(pairs=pairs, rotation_deg=rot, translation_deg=trans, pairs_total=n * (n - 1) // 2)
 
 
 # --------------------------------------------------------------------------------------------- alignment

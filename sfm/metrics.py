@@ -7,18 +7,18 @@ from itertools import combinations
 
 import numpy as np
 
-
-def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
-    """Rotation angle (degrees) of (…, 3, 3) rotation matrices."""
-    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
 
 
-def angle_between_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle (degrees) between vectors along the last axis."""
-    na, nb = np.linalg.norm(a, axis=-1), np.linalg.norm(b, axis=-1)
-    cos = np.einsum("...i,...i->...", a, b) / np.maximum(na * nb, 1e-300)
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+def pairwise_pose_differences(R_a, c_a, R_b, c_b, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For image pairs (P, 2) of two models (R_cam_from_world, centres): the angle between their relative rotations
+    and between their translation directions t_j_from_i = R_j (c_i − c_j), in degrees."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    rel_a = R_a[j] @ np.swapaxes(R_a[i], -1, -2)
+    rel_b = R_b[j] @ np.swapaxes(R_b[i], -1, -2)
+    dir_a = np.einsum("nab,nb->na", R_a[j], c_a[i] - c_a[j])
+    dir_b = np.einsum("nab,nb->na", R_b[j], c_b[i] - c_b[j])
+    return rotation_angle_deg(rel_a, rel_b), angle_between_deg(dir_a, dir_b)
 
 
 def relative_pose_errors(R_est, c_est, R_gt, c_gt, registered) -> tuple[np.ndarray, np.ndarray]:
@@ -30,12 +30,7 @@ def relative_pose_errors(R_est, c_est, R_gt, c_gt, registered) -> tuple[np.ndarr
     """
     pairs = np.array(list(combinations(range(len(R_gt)), 2)))
     i, j = pairs[:, 0], pairs[:, 1]
-    rel_est = R_est[j] @ np.swapaxes(R_est[i], -1, -2)
-    rel_gt = R_gt[j] @ np.swapaxes(R_gt[i], -1, -2)
-    rot_err = rotation_angle_deg(rel_est @ np.swapaxes(rel_gt, -1, -2))
-    dir_est = np.einsum("nab,nb->na", R_est[j], c_est[i] - c_est[j])
-    dir_gt = np.einsum("nab,nb->na", R_gt[j], c_gt[i] - c_gt[j])
-    trans_err = angle_between_deg(dir_est, dir_gt)
+    rot_err, trans_err = pairwise_pose_differences(R_est, c_est, R_gt, c_gt, pairs)
     ok = registered[i] & registered[j]
     rot_err = np.where(ok, rot_err, np.inf)
     trans_err = np.where(ok, trans_err, np.inf)

@@ -60,6 +60,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components, mini
 from scipy.sparse.linalg import ArpackNoConvergence, eigsh, splu, spsolve
 from scipy.spatial.transform import Rotation
 
+from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
 from fullview.sfm.camera import normalize
 
 log = logging.getLogger(__name__)
@@ -92,22 +93,6 @@ class Registration:
 # ----------------------------------------------------------------------------------------------
 
 
-def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
-    """Angle (degrees) of ``R_a @ R_bᵀ``, batched over leading axes; accurate near 0 and 180°."""
-    M = np.asarray(R_a, dtype=np.float64) @ np.swapaxes(np.asarray(R_b, dtype=np.float64), -1, -2)
-    vee = np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
-    sin2 = np.linalg.norm(vee, axis=-1)  # 2 sin(angle)
-    cos2 = np.trace(M, axis1=-2, axis2=-1) - 1.0  # 2 cos(angle)
-    return np.degrees(np.arctan2(sin2, cos2))
-
-
-def angle_between_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle (degrees) between vectors (any norm > 0), batched over leading axes; accurate near 0."""
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
-
-
 def relative_from_absolute(
     R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, i, j
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -132,23 +117,6 @@ def rotation_yaw(R: np.ndarray) -> np.ndarray:
     """Angle of the rotation about y closest to ``R`` (exact for ``yaw_rotation`` output), batched."""
     R = np.asarray(R, dtype=np.float64)
     return np.arctan2(R[..., 0, 2] - R[..., 2, 0], R[..., 0, 0] + R[..., 2, 2])
-
-
-def similarity_alignment(src: np.ndarray, dst: np.ndarray, *, with_scale: bool = True):
-    """Umeyama (1991): ``(s, R, t)`` minimising ``Σ‖dst_k − (s R src_k + t)‖²`` for (K, 3) point sets."""
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    if src.shape != dst.shape or src.ndim != 2:
-        raise ValueError(f"src {src.shape} and dst {dst.shape} must both be (K, d)")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))
-    D = np.ones(len(S))
-    D[-1] = np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0
-    R = (U * D) @ Vt
-    var_s = (xs**2).sum() / len(src)
-    s = float((S * D).sum() / var_s) if with_scale and var_s > 0 else 1.0
-    return s, R, mu_d - s * R @ mu_s
 
 
 # ----------------------------------------------------------------------------------------------

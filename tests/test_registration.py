@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from fullview.sfm.metrics import umeyama
+from fullview.sfm.rotations import rotation_angle_deg
 from fullview.sfm.registration import (
     consensus_sweeps,
     flexible_modes,
@@ -13,9 +15,7 @@ from fullview.sfm.registration import (
     planar_epipole_cost_derivatives,
     register,
     relative_from_absolute,
-    rotation_angle_deg,
     rotation_yaw,
-    similarity_alignment,
     spanning_tree_rotations,
     triangle_support,
     yaw_rotation,
@@ -98,8 +98,7 @@ def pose_errors(reg, R_true, c_true, idx=None):
     U, _, Vt = np.linalg.svd(M)
     G = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
     rot_err = rotation_angle_deg(R_est, R_true[idx] @ G)
-    s, Q, t = similarity_alignment(reg.centers[idx], c_true[idx])
-    aligned = s * reg.centers[idx] @ Q.T + t
+    aligned = umeyama(reg.centers[idx], c_true[idx]).apply(reg.centers[idx])
     size = np.linalg.norm(c_true[idx, None] - c_true[None, idx], axis=-1).max()
     return rot_err.max(), np.linalg.norm(aligned - c_true[idx], axis=1).max() / size
 
@@ -139,17 +138,6 @@ def test_relative_from_absolute_follows_convention():
     np.testing.assert_allclose(x_j, R_rel @ x_i + scale * t_rel, atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(t_rel), 1.0)
     np.testing.assert_allclose(-R[1].T @ t_rel, (c[1] - c[0]) / scale, atol=1e-12)  # world baseline
-
-
-def test_similarity_alignment_recovers_transform():
-    rng = np.random.default_rng(2)
-    src = rng.normal(size=(20, 3))
-    Q = Rotation.random(random_state=3).as_matrix()
-    dst = 2.5 * src @ Q.T + [1, -2, 3]
-    s, R, t = similarity_alignment(src, dst)
-    assert s == pytest.approx(2.5)
-    np.testing.assert_allclose(R, Q, atol=1e-12)
-    np.testing.assert_allclose(t, [1, -2, 3], atol=1e-12)
 
 
 def test_yaw_round_trip():
