@@ -14,7 +14,7 @@ STAGE_ORDER = ("features", "matches", "filter", "epipoles", "registration", "tri
 DEFAULTS: dict[str, dict[str, Any]] = {
     "features": {
         "working_width": 2048,  # panoramas are resized to this width before detection (0 = native)
-        "face_size": 0,  # cube face side in pixels (0 = match the working resolution)
+        "face_size": 0,  # cube face side in pixels (0 = as many pixels per degree as the working panorama)
         "margin_deg": 5.0,  # extra field of view per face side, keeps features at seams
         "max_features_per_face": 1500,  # SIFT nfeatures per face
         "contrast_threshold": 0.02,  # SIFT contrast threshold

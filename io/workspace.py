@@ -10,7 +10,10 @@ Layout::
         epipoles/epipoles.npz      relative poses of every pair
         registration/registration.npz, registration.json
         triangulation/sparse.npz, sparse.ply, colmap/{cameras,images,points3D}.txt
-        densify/dense.ply, depth/<stem>.npz, depth/<stem>.png
+        densify/dense.ply, dense_preview.png, summary.json, depth/<stem>.npz, depth/<stem>.png
+        colmap_check/check.json, check.md, faces/   (fullview colmap-check)
+        colmap_spherical/model/                       (fullview compare: cached COLMAP reference)
+        compare/colmap.json, colmap.md, top_view.png  (fullview compare)
         eval/metrics.json
 
 A stage runs inside a temporary folder beside its final one; only a finished run replaces the previous folder, so an

@@ -28,14 +28,14 @@ def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int):
     """One pass over the distance matrix, in row blocks.
 
     Returns for each row of a its nearest row of b and the squared distances to the two nearest, and for each row
-    of b its nearest row of a (for the mutual check).
+    of b its smallest squared distance to a (for the mutual check: a's row r and its nearest c are mutual iff
+    d(r, c) is column c's minimum; column minima reduce fast, column argmins do not).
     """
     a_sq = np.einsum("ij,ij->i", a, a)
     b_sq = np.einsum("ij,ij->i", b, b)
     nn = np.empty(len(a), np.int64)
     d2 = np.empty((len(a), 2), np.float32)
-    col_best = np.full(len(b), np.inf, np.float32)
-    col_arg = np.zeros(len(b), np.int64)
+    col_min = np.full(len(b), np.inf, np.float32)
     for s in range(0, len(a), block):
         dist = (a[s:s + block] @ b.T) * np.float32(-2.0)
         dist += b_sq[None, :]
@@ -43,16 +43,11 @@ def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int):
         rows = np.arange(len(dist))
         first = dist.argmin(axis=1)
         d_first = dist[rows, first]
+        np.minimum(col_min, dist.min(axis=0), out=col_min)
         dist[rows, first] = np.inf
-        d_second = dist.min(axis=1)
-        dist[rows, first] = d_first
         nn[s:s + block] = first
-        d2[s:s + block, 0], d2[s:s + block, 1] = d_first, d_second
-        arg = dist.argmin(axis=0)
-        val = dist[arg, np.arange(len(b))]
-        better = val < col_best
-        col_best[better], col_arg[better] = val[better], arg[better] + s
-    return nn, np.maximum(d2, 0.0), col_arg
+        d2[s:s + block, 0], d2[s:s + block, 1] = d_first, dist.min(axis=1)
+    return nn, np.maximum(d2, 0.0), col_min
 
 
 def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchOptions) -> np.ndarray:
@@ -62,10 +57,10 @@ def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchOpti
         return np.zeros((0, 2), np.int64)
     desc_i = np.ascontiguousarray(desc_i, np.float32)
     desc_j = np.ascontiguousarray(desc_j, np.float32)
-    nn_ij, d_ij, nn_ji = _nearest_both_ways(desc_i, desc_j, options.block_size)
+    nn_ij, d_ij, col_min = _nearest_both_ways(desc_i, desc_j, options.block_size)
     keep = d_ij[:, 0] < (options.ratio**2) * d_ij[:, 1]
     if options.mutual:
-        keep &= nn_ji[nn_ij] == np.arange(len(desc_i))
+        keep &= d_ij[:, 0] <= col_min[nn_ij]
     rows = np.flatnonzero(keep)
     # Most distinctive first (smallest distance ratio): robust estimation samples the head more often.
     rows = rows[np.argsort(d_ij[rows, 0] / np.maximum(d_ij[rows, 1], 1e-30), kind="stable")]
