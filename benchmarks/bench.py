@@ -157,7 +157,7 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    synth = [r for r in rows if r.get("views") and r["scene"].endswith("hand")]
+    synth = [r for r in rows if r.get("views") and r["scene"].endswith("-hand")]
     if not synth:
         return
     v = [r["views"] for r in synth]
