@@ -105,3 +105,14 @@ def test_unrelated_image_is_reported_not_fatal(dataset_copy, tmp_path, capsys, t
     assert summary["registered"] == 3 and summary["unregistered"] == ["zz_unrelated.png"]
     rec = pycolmap.Reconstruction(str(ws / "tiny" / "triangulation" / "colmap"))
     assert rec.num_reg_images() == 3
+
+
+def test_sequential_chain_registers_every_image(tiny_dataset, tmp_path, capsys, tiny_set_args):
+    """Pairs (0,1), (1,2) only: averaging cannot scale the chain; attaching by points does."""
+    ws = tmp_path / "ws"
+    assert main(["run", str(tiny_dataset), "-w", str(ws), "--until", SPARSE_UNTIL, *tiny_set_args,
+                 "--set", "matches.pairs=sequential", "--set", "matches.window=1"]) == 0
+    capsys.readouterr()
+    main(["eval", str(tiny_dataset), "-w", str(ws)])
+    metrics = json.loads(capsys.readouterr().out)
+    assert metrics["registered"] == 3 and metrics["auc@5"] > 95

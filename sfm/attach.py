@@ -1,0 +1,140 @@
+"""Attach cameras that translation averaging cannot place: a relative pose plus points fix their position.
+
+Translation averaging only knows baseline *directions*, so a camera tied to the model by a single pair (a chain
+0-1-2 with no pair 0-2, e.g. sequential matching) has an unknown distance along that baseline, and a model with
+fewer than three cameras around a cycle has no scale link at all. Such a camera is attached as in incremental SfM:
+its rotation from the relative pose, its centre on the baseline ray at the distance where the rays to the points
+already triangulated by the model meet them (the median over the points, a robust 1-D resection).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from fullview.sfm.camera import normalize
+from fullview.sfm.tracks import Tracks
+from fullview.sfm.triangulation import filter_tracks, gather_bearings, triangulate_multiview
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class Attachment:
+    R_cam_from_world: np.ndarray  # (N, 3, 3) rotations, attached cameras filled in
+    centers: np.ndarray  # (N, 3) centres, attached cameras filled in
+    registered: np.ndarray  # (N,) bool, attached cameras included
+    attached: list[int]  # cameras attached here, in order
+    seeded: bool  # the model was empty and started from its strongest pair (unit baseline)
+
+
+def attach_cameras(*, R_cam_from_world: np.ndarray, centers: np.ndarray, registered: np.ndarray, pairs: np.ndarray,
+                   R_j_from_i: np.ndarray, t_j_from_i: np.ndarray, weights: np.ndarray, tracks: Tracks,
+                   bearings_per_image: Sequence[np.ndarray], max_error_rad: float, min_angle_rad: float,
+                   min_points: int = 10) -> Attachment:
+    """Grow the registered set one camera at a time over pairs with weight > 0 until nothing more attaches."""
+    R, C, reg = R_cam_from_world.copy(), centers.copy(), registered.astype(bool).copy()
+    seeded = False
+    if not reg.any():
+        if not (weights > 0).any():
+            return Attachment(R_cam_from_world=R, centers=C, registered=reg, attached=[], seeded=False)
+        k = int(np.argmax(weights))
+        i, j = pairs[k]
+        R[i], C[i] = np.eye(3), np.zeros(3)
+        R[j], C[j] = R_j_from_i[k], -R_j_from_i[k].T @ t_j_from_i[k]  # unit baseline
+        reg[[i, j]] = True
+        seeded = True
+    attached = []
+    while True:
+        X, point_of_track = _model_points(tracks, bearings_per_image, R, C, reg, max_error_rad, min_angle_rad)
+        placed = False
+        for b in _candidates(pairs, weights, reg):
+            pose = _attach_one(b, R, C, reg, pairs, R_j_from_i, t_j_from_i, weights, tracks, bearings_per_image,
+                               X, point_of_track, max_error_rad, min_points)
+            if pose is not None:
+                R[b], C[b] = pose
+                reg[b] = True
+                attached.append(int(b))
+                placed = True
+                break  # re-triangulate with the new camera before placing the next
+        if not placed:
+            break
+    if attached or seeded:
+        log.info("attached %d camera(s) by baseline and points: %s%s", len(attached), attached,
+                 " (model seeded from its strongest pair)" if seeded else "")
+    return Attachment(R_cam_from_world=R, centers=C, registered=reg, attached=attached, seeded=seeded)
+
+
+def _candidates(pairs, weights, reg) -> list[int]:
+    """Unregistered cameras with a usable pair to a registered one, strongest link first."""
+    strength: dict[int, float] = {}
+    for (i, j), w in zip(pairs.tolist(), weights.tolist()):
+        if w > 0 and reg[i] != reg[j]:
+            b = j if reg[i] else i
+            strength[b] = max(strength.get(b, 0.0), w)
+    return sorted(strength, key=lambda b: (-strength[b], b))
+
+
+def _model_points(tracks: Tracks, bearings, R, C, reg, max_error_rad, min_angle_rad):
+    """Points of the tracks seen by >= 2 registered cameras, and each track's row in them (-1: none)."""
+    point_of_track = np.full(tracks.num_tracks, -1)
+    in_model = reg[tracks.image_ids]
+    counts = np.bincount(tracks.track_ids[in_model], minlength=tracks.num_tracks)
+    usable = counts >= 2
+    if not usable.any():
+        return np.zeros((0, 3)), point_of_track
+    keep_obs = in_model & usable[tracks.track_ids]
+    ids = np.flatnonzero(usable)
+    sub = Tracks(track_ids=np.searchsorted(ids, tracks.track_ids[keep_obs]), image_ids=tracks.image_ids[keep_obs],
+                 feature_ids=tracks.feature_ids[keep_obs],
+                 offsets=np.concatenate([[0], np.cumsum(counts[ids])]), num_images=tracks.num_images)
+    t = -np.einsum("nab,nb->na", R, np.nan_to_num(C))
+    tri = triangulate_multiview(sub, bearings, R, t)
+    good = filter_tracks(tri, max_error_rad=max_error_rad, min_angle_rad=min_angle_rad)
+    point_of_track[ids[good]] = np.arange(good.sum())
+    return tri.points[good], point_of_track
+
+
+def _attach_one(b, R, C, reg, pairs, R_j_from_i, t_j_from_i, weights, tracks: Tracks, bearings, X, point_of_track,
+                max_error_rad, min_points):
+    """(R_b, c_b) from b's strongest pair to the model and the model points b sees; None if too few agree."""
+    best = max((k for k, (i, j) in enumerate(pairs.tolist()) if weights[k] > 0 and b in (i, j)
+                and reg[j if i == b else i]), key=lambda k: weights[k])
+    i, j = pairs[best]
+    a = j if i == b else i
+    R_rel, t_rel = R_j_from_i[best], t_j_from_i[best]
+    # R_j = R_rel R_i and c_j − c_i ∝ −R_jᵀ t_rel; the direction below points from a to b in the world
+    if b == j:
+        R_b = R_rel @ R[a]
+        direction = normalize(-R_b.T @ t_rel)
+    else:
+        R_b = R_rel.T @ R[a]
+        direction = normalize(R[a].T @ t_rel)
+    sel = (tracks.image_ids == b) & (point_of_track[tracks.track_ids] >= 0)
+    if sel.sum() < min_points:
+        return None
+    P = X[point_of_track[tracks.track_ids[sel]]] - C[a]
+    u = gather_bearings(bearings, tracks.image_ids[sel], tracks.feature_ids[sel]) @ R_b  # R_bᵀ z, world rays
+    s, lam = _ray_distances(direction, u, P)
+    ok = (s > 0) & (lam > 0)
+    if ok.sum() < min_points:
+        return None
+    c_b = C[a] + np.median(s[ok]) * direction
+    err = np.arccos(np.clip(np.einsum("ka,ka->k", normalize(X[point_of_track[tracks.track_ids[sel]]] - c_b), u),
+                            -1.0, 1.0))
+    if (err < 4 * max_error_rad).sum() < min_points:
+        return None
+    return R_b, c_b
+
+
+def _ray_distances(direction: np.ndarray, u: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: least-squares (s, λ) with s·direction + λ·u_k ≈ P_k (2x2 normal equations, vectorised)."""
+    du = u @ direction
+    dp = P @ direction
+    up = np.einsum("ka,ka->k", u, P)
+    det = 1.0 - du * du  # |direction| = |u| = 1
+    det = np.where(np.abs(det) < 1e-9, np.nan, det)
+    return (dp - du * up) / det, (up - du * dp) / det
