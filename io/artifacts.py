@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import zipfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -27,6 +28,8 @@ def atomic_path(path: Path) -> Iterator[Path]:
     os.close(fd)
     try:
         yield Path(tmp)
+        with open(tmp, "rb+") as f:  # flush to disk before the rename makes it visible
+            os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -46,14 +49,17 @@ def load_npz(path: Path, version: int, keys: tuple[str, ...] = ()) -> dict[str, 
     path = Path(path)
     if not path.exists():
         raise ArtifactError(f"missing artifact {path}")
-    with np.load(path, allow_pickle=False) as data:
-        found = int(data[FORMAT_KEY]) if FORMAT_KEY in data else None
-        if found != version:
-            raise ArtifactError(f"{path}: format version {found}, expected {version}; rerun its stage")
-        missing = [k for k in keys if k not in data]
-        if missing:
-            raise ArtifactError(f"{path}: missing keys {missing}")
-        return {k: data[k] for k in data.files if k != FORMAT_KEY}
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            found = int(data[FORMAT_KEY]) if FORMAT_KEY in data else None
+            if found != version:
+                raise ArtifactError(f"{path}: format version {found}, expected {version}; rerun its stage")
+            missing = [k for k in keys if k not in data]
+            if missing:
+                raise ArtifactError(f"{path}: missing keys {missing}")
+            return {k: data[k] for k in data.files if k != FORMAT_KEY}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+        raise ArtifactError(f"{path}: corrupt artifact ({type(e).__name__}: {e}); rerun its stage with --from") from None
 
 
 def save_json(path: Path, obj) -> Path:

@@ -16,18 +16,21 @@ from fullview.io.artifacts import atomic_path
 log = logging.getLogger(__name__)
 
 
-def write_text_model(out_dir: Path, *, width: int, height: int, image_names: list[str], registered: np.ndarray,
+def write_text_model(out_dir: Path, *, image_sizes: list[tuple[int, int]], image_names: list[str], registered: np.ndarray,
                      R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, points: np.ndarray,
                      colors: np.ndarray, errors_rad: np.ndarray, track_image: np.ndarray,
                      track_point2d: np.ndarray, track_point3d: np.ndarray, pixels: list[np.ndarray]) -> Path:
-    """cameras.txt (one EQUIRECTANGULAR camera), images.txt, points3D.txt, readable by pycolmap.Reconstruction.
+    """cameras.txt (one EQUIRECTANGULAR camera per image size), images.txt, points3D.txt, readable by
+    pycolmap.Reconstruction.
 
     Observations are given flat: image index, index of the 2-D point within that image's `pixels`, 3-D point index.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    _write(out_dir / "cameras.txt", ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
-                                     f"1 EQUIRECTANGULAR {width} {height} {width} {height}"])
+    sizes = sorted(set(map(tuple, image_sizes)))
+    camera_of = {size: k + 1 for k, size in enumerate(sizes)}
+    _write(out_dir / "cameras.txt", ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
+           + [f"{camera_of[(w, h)]} EQUIRECTANGULAR {w} {h} {w} {h}" for w, h in sizes])
     point2d_of = {}  # (image, 2-D index) -> 3-D point id (1-based)
     for img, p2, p3 in zip(track_image.tolist(), track_point2d.tolist(), track_point3d.tolist()):
         point2d_of[(img, p2)] = p3 + 1
@@ -37,7 +40,8 @@ def write_text_model(out_dir: Path, *, width: int, height: int, image_names: lis
             continue
         qx, qy, qz, qw = Rotation.from_matrix(R_cam_from_world[k]).as_quat()
         t = t_cam_from_world[k]
-        lines.append(f"{k + 1} {qw:.17g} {qx:.17g} {qy:.17g} {qz:.17g} {t[0]:.17g} {t[1]:.17g} {t[2]:.17g} 1 {name}")
+        lines.append(f"{k + 1} {qw:.17g} {qx:.17g} {qy:.17g} {qz:.17g} {t[0]:.17g} {t[1]:.17g} {t[2]:.17g} "
+                     f"{camera_of[tuple(image_sizes[k])]} {name}")
         lines.append(" ".join(f"{x:.3f} {y:.3f} {point2d_of.get((k, n), -1)}"
                               for n, (x, y) in enumerate(pixels[k])))
     _write(out_dir / "images.txt", lines)

@@ -82,6 +82,34 @@ DEFAULTS: dict[str, dict[str, Any]] = {
 }
 
 
+# Allowed values beyond the type: a set of choices, or (min, max) bounds (None = unbounded).
+CONSTRAINTS: dict[str, object] = {
+    "features.working_width": (0, None),
+    "features.face_size": (0, None),
+    "features.margin_deg": (0.0, 30.0),
+    "features.max_features_per_face": (0, None),
+    "features.min_latitude_deg": (-90.0, 90.0),
+    "features.max_latitude_deg": (-90.0, 90.0),
+    "matches.pairs": {"exhaustive", "sequential"},
+    "matches.window": (1, None),
+    "matches.ratio": (0.0, 1.0),
+    "filter.min_hand_points": (8, None),  # the 8-point algorithm needs 8
+    "filter.threshold_deg": (0.0, 90.0),
+    "filter.max_iterations": (1, None),
+    "filter.confidence": (0.0, 0.999999999),
+    "filter.min_inliers": (8, None),
+    "epipoles.min_cheiral_ratio": (0.0, 1.0),
+    "registration.model": {"general", "planar"},
+    "registration.min_inliers": (8, None),
+    "registration.max_rotation_residual_deg": (0.0, 180.0),
+    "registration.max_direction_residual_deg": (0.0, 180.0),
+    "triangulation.max_reprojection_error_deg": (0.0, 90.0),
+    "triangulation.min_triangulation_angle_deg": (0.0, 90.0),
+    "triangulation.ba_loss_scale_deg": (0.0, 90.0),
+    "triangulation.ba_max_iterations": (1, None),
+}
+
+
 class ConfigError(ValueError):
     """pipeline.yaml or a --set override is invalid."""
 
@@ -121,6 +149,19 @@ def _merge(config: dict, section: str, values: Any, where: str) -> None:
         if key not in DEFAULTS[section]:
             raise ConfigError(f"{where}: unknown key {section}.{key} (known: {', '.join(DEFAULTS[section])})")
         config[section][key] = _checked(value, DEFAULTS[section][key], f"{where}: {section}.{key}")
+        _within(config[section][key], CONSTRAINTS.get(f"{section}.{key}"), f"{where}: {section}.{key}")
+
+
+def _within(value: Any, constraint, name: str) -> None:
+    if constraint is None:
+        return
+    if isinstance(constraint, set):
+        if value not in constraint:
+            raise ConfigError(f"{name} must be one of {sorted(constraint)}, got {value!r}")
+        return
+    low, high = constraint
+    if (low is not None and value < low) or (high is not None and value > high):
+        raise ConfigError(f"{name} must lie in [{low}, {'∞' if high is None else high}], got {value!r}")
 
 
 def _checked(value: Any, default: Any, name: str) -> Any:

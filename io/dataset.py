@@ -50,6 +50,11 @@ class Dataset:
             raise DatasetError(f"{self.root}: no images/ folder")
         if len(self.image_names) < 2:
             raise DatasetError(f"{self.images_dir}: need at least two images, found {len(self.image_names)}")
+        stems: dict[str, str] = {}
+        for name in self.image_names:
+            other = stems.setdefault(Path(name).stem.lower(), name)
+            if other != name:  # artifacts are named by stem: two such images would overwrite each other's
+                raise DatasetError(f"{self.images_dir}: images {other!r} and {name!r} share a file stem; rename one")
 
     @property
     def name(self) -> str:
@@ -88,9 +93,11 @@ class Dataset:
 
     def load_image(self, name: str, width: int = 0) -> np.ndarray:
         """BGR uint8 image, resized to `width` (keeping 2:1) when width > 0."""
-        native = self.image_sizes[name][0]
-        # JPEG can decode at 1/2, 1/4, 1/8 size directly, much faster than a full decode and resize.
-        reduction = max((r for r in (1, 2, 4, 8) if width and native // r >= width), default=1)
+        native_w, native_h = self.image_sizes[name]
+        # JPEG can decode at 1/2, 1/4, 1/8 size directly, much faster than a full decode and resize; only
+        # reductions that divide the size exactly keep the 2:1 shape.
+        reduction = max((r for r in (1, 2, 4, 8) if width and native_w // r >= width
+                         and native_w % r == 0 and native_h % r == 0), default=1)
         image = read_image(self.image_path(name), reduction)
         if width and image.shape[1] != width:
             interp = cv2.INTER_AREA if width < image.shape[1] else cv2.INTER_LINEAR
@@ -142,16 +149,30 @@ class Dataset:
         return (self.ground_truth_dir / "poses.yaml").exists()
 
     def ground_truth_poses(self) -> dict[str, GroundTruthPose]:
+        """Ground-truth poses by image name, validated (known images, each once, proper rotations)."""
         path = self.ground_truth_dir / "poses.yaml"
-        data = yaml.safe_load(path.read_text())
+        try:
+            data = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as e:
+            raise DatasetError(f"{path}: not valid YAML: {e}") from None
+        cameras = data.get("cameras") if isinstance(data, dict) else None
+        if not isinstance(cameras, list):
+            raise DatasetError(f"{path}: expected a top-level 'cameras:' list")
         out = {}
-        for k, cam in enumerate(data.get("cameras", [])):
+        for k, cam in enumerate(cameras):
             try:
+                image = str(cam["image"])
                 R = np.array(cam["R_world_from_cam"], dtype=np.float64).reshape(3, 3)
                 c = np.array(cam["center"], dtype=np.float64).reshape(3)
-                out[str(cam["image"])] = GroundTruthPose(R_world_from_cam=R, center=c)
             except (KeyError, ValueError, TypeError) as e:
-                raise DatasetError(f"{path}: cameras[{k}] is invalid ({e})") from None
+                raise DatasetError(f"{path}: cameras[{k}] is invalid ({type(e).__name__}: {e})") from None
+            if image not in self.image_sizes:
+                raise DatasetError(f"{path}: cameras[{k}] names unknown image {image!r}")
+            if image in out:
+                raise DatasetError(f"{path}: image {image!r} appears twice")
+            if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+                raise DatasetError(f"{path}: R_world_from_cam of {image!r} is not a rotation matrix")
+            out[image] = GroundTruthPose(R_world_from_cam=R, center=c)
         return out
 
     def ground_truth_depth(self, name: str) -> np.ndarray | None:

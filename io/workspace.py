@@ -50,8 +50,8 @@ class Workspace:
             return None
         try:
             return json.loads(path.read_text())
-        except json.JSONDecodeError:
-            return None
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            return None  # unreadable manifest: the stage counts as missing
 
     # ---- artifact paths (the stage folder is passed explicitly while a stage runs in its temp folder)
     def features_path(self, image_name: str, stage_dir: Path | None = None) -> Path:
@@ -96,10 +96,15 @@ class Workspace:
             raise
         final = self.stage_dir(stage)
         old = None
-        if final.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{stage}.old.", dir=self.root))
-            final.rename(old / stage)
-        tmp.rename(final)
+        try:
+            if final.exists():
+                old = Path(tempfile.mkdtemp(prefix=f".{stage}.old.", dir=self.root))
+                final.rename(old / stage)
+            tmp.rename(final)
+        except BaseException:
+            if old is not None and not final.exists():
+                (old / stage).rename(final)  # put the previous good folder back
+            raise
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
 
@@ -111,9 +116,14 @@ class Workspace:
         self.manifest_path(stage).unlink(missing_ok=True)
 
     def clean_leftovers(self) -> None:
-        """Remove temp folders of runs that were killed before they could clean up."""
-        if self.root.exists():
-            for p in self.root.glob(".*.running.*"):
-                shutil.rmtree(p, ignore_errors=True)
-            for p in self.root.glob(".*.old.*"):
-                shutil.rmtree(p, ignore_errors=True)
+        """Remove temp folders of runs killed before they could clean up; restore a previous folder whose swap
+        was cut short (its final folder is missing)."""
+        if not self.root.exists():
+            return
+        for p in self.root.glob(".*.old.*"):
+            for saved in p.iterdir():
+                if not self.stage_dir(saved.name).exists():
+                    saved.rename(self.stage_dir(saved.name))
+            shutil.rmtree(p, ignore_errors=True)
+        for p in self.root.glob(".*.running.*"):
+            shutil.rmtree(p, ignore_errors=True)

@@ -47,7 +47,7 @@ def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int):
         dist[rows, first] = np.inf
         nn[s:s + block] = first
         d2[s:s + block, 0], d2[s:s + block, 1] = d_first, dist.min(axis=1)
-    return nn, np.maximum(d2, 0.0), col_min
+    return nn, np.maximum(d2, 0.0), np.maximum(col_min, 0.0)  # float32 rounding can dip below 0
 
 
 def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchOptions) -> np.ndarray:

@@ -6,7 +6,7 @@ import logging
 
 import numpy as np
 
-from fullview.io.artifacts import save_json
+from fullview.io.artifacts import ArtifactError, save_json
 from fullview.io.dataset import Dataset, DatasetError
 from fullview.io.store import load_poses
 from fullview.io.workspace import Workspace
@@ -24,11 +24,18 @@ def evaluate(dataset: Dataset, ws: Workspace) -> dict:
     if missing:
         raise DatasetError(f"{dataset.ground_truth_dir / 'poses.yaml'}: no pose for {missing}")
     est, source = load_poses(ws)
+    stored = [str(n) for n in est["image_names"]]
+    if stored != dataset.image_names:
+        raise ArtifactError(f"{ws.root}: the reconstruction is of images {stored}, the dataset now has "
+                            f"{dataset.image_names}; rerun the pipeline")
     R_gt = np.stack([gt[n].R_world_from_cam.T for n in dataset.image_names])
     c_gt = np.stack([gt[n].center for n in dataset.image_names])
     metrics = {"dataset": dataset.name, "poses_from": source}
     metrics.update(pose_metrics(est["R_cam_from_world"], est["centers"], R_gt, c_gt, est["registered"]))
-    if ws.stage_dir("densify").exists() and dataset.ground_truth_depth(dataset.image_names[0]) is not None:
+    densify, triangulation = ws.read_manifest("densify"), ws.read_manifest("triangulation")
+    dense_current = (densify is not None and triangulation is not None and source == "triangulation"
+                     and densify["upstream"].get("triangulation") == triangulation["fingerprint"])
+    if dense_current and dataset.ground_truth_depth(dataset.image_names[0]) is not None:
         from fullview.stages.densify import evaluate_dense
         dense = evaluate_dense(dataset, ws, est, R_gt, c_gt)
         if dense is not None:

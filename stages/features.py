@@ -42,7 +42,7 @@ def _extract(dataset: Dataset, name: str, working_width: int, options: FeatureOp
     image = dataset.load_image(name, width=min(working_width or full_w, full_w))
     feats = detect_features(image, options)
     scale = full_w / image.shape[1]
-    colors = sample_colors(image, feats.pixels / scale)
+    colors = sample_colors(image, feats.pixels)  # detection pixels are working-image pixels
     save_features(ws.features_path(name, out_dir), pixels=feats.pixels * scale, bearings=feats.bearings,
                   descriptors=feats.descriptors, scales=feats.scales * scale, colors=colors,
                   image_size=np.array([full_w, full_h]))

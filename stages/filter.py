@@ -54,12 +54,12 @@ def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict
 def _verify_pair(bear_i, bear_j, matches, hand, threshold, config, seed):
     """F and the inlier mask over `matches` (hand correspondences, when given, seed the estimate)."""
     b_i, b_j = bear_i[matches[:, 0]], bear_j[matches[:, 1]]
+    opts = two_view.RansacOptions(threshold_rad=threshold, max_iterations=config["max_iterations"],
+                                  confidence=config["confidence"], seed=seed)
     try:
         if hand is not None:
             res = two_view.fit_f_seeded(bear_i[hand[:, 0]], bear_j[hand[:, 1]], b_i, b_j, threshold)
         else:
-            opts = two_view.RansacOptions(threshold_rad=threshold, max_iterations=config["max_iterations"],
-                                          confidence=config["confidence"], seed=seed)
             res = two_view.ransac_f(b_i, b_j, opts)
     except ValueError as e:  # too few correspondences: the pair is simply not verified
         log.debug("pair not verified: %s", e)

@@ -41,6 +41,17 @@ def stage_module(name: str):
     return importlib.import_module(f"fullview.stages.{name}")
 
 
+def _library_versions() -> dict[str, str]:
+    import cv2
+    import numpy
+    import scipy
+
+    return {"numpy": numpy.__version__, "scipy": scipy.__version__, "opencv": cv2.__version__}
+
+
+LIBRARY_VERSIONS = _library_versions()  # an upgrade of these changes results, so it reruns the stages
+
+
 def code_hashes(module) -> dict[str, str]:
     """sha256 (short) of the source of `module` and of every fullview module it reaches through its globals."""
     seen: dict[str, str] = {}
@@ -90,6 +101,7 @@ class Pipeline:
             "upstream": {u: self.fingerprint(u) for u in module.UPSTREAM},
             "inputs": self.inputs_of(stage),
             "code": code_hashes(module),
+            "libraries": LIBRARY_VERSIONS,
         }
 
     def fingerprint(self, stage: str) -> str:
@@ -102,7 +114,14 @@ class Pipeline:
         if manifest is None:
             return StageStatus(name=stage, state="missing", reasons=["never run"])
         if manifest.get("fingerprint") == self.fingerprint(stage):
-            return StageStatus(name=stage, state="fresh", reasons=[])
+            # Also the artifacts it was built from must still be the ones on disk (an upstream stage may have been
+            # rerun alone with other settings since).
+            rebuilt = [u for u in stage_module(stage).UPSTREAM
+                       if (self.ws.read_manifest(u) or {}).get("fingerprint") != manifest["upstream"].get(u)]
+            if not rebuilt:
+                return StageStatus(name=stage, state="fresh", reasons=[])
+            return StageStatus(name=stage, state="stale",
+                               reasons=[f"upstream {u} on disk is not the one it was built from" for u in rebuilt])
         return StageStatus(name=stage, state="stale", reasons=self._stale_reasons(stage, manifest))
 
     def _stale_reasons(self, stage: str, manifest: dict) -> list[str]:
@@ -117,6 +136,8 @@ class Pipeline:
         for up, fp in now["upstream"].items():
             if manifest.get("upstream", {}).get(up) != fp:
                 reasons.append(f"upstream {up} changed")
+        if manifest.get("libraries") != now["libraries"]:
+            reasons.append(f"libraries changed: {manifest.get('libraries')} -> {now['libraries']}")
         old_code = manifest.get("code", {})
         changed = sorted(k for k in set(old_code) | set(now["code"]) if old_code.get(k) != now["code"].get(k))
         if changed:
@@ -134,8 +155,7 @@ class Pipeline:
         """Run stale/missing stages in order; returns the names of the stages that ran."""
         self.ws.clean_leftovers()
         if only is not None:
-            stage_module(only)
-            for up in stage_module(only).UPSTREAM:
+            for up in self._upstream_chain(only):
                 if self.status(up).state != "fresh":
                     raise RunnerError(f"--only {only}: upstream stage {up} is {self.status(up).state}; run it first")
             self.run_stage(only)
@@ -152,17 +172,29 @@ class Pipeline:
                 log.info("%-13s fresh, skipped", stage)
         return ran
 
+    def _upstream_chain(self, stage: str) -> list[str]:
+        """Every stage `stage` depends on, directly or not, in pipeline order."""
+        todo, seen = list(stage_module(stage).UPSTREAM), set()
+        while todo:
+            up = todo.pop()
+            if up not in seen:
+                seen.add(up)
+                todo.extend(stage_module(up).UPSTREAM)
+        return [s for s in PIPELINE_STAGES if s in seen]
+
     def run_stage(self, stage: str) -> dict:
         module = stage_module(stage)
         log.info("%-13s running", stage)
+        record = self.fingerprint_record(stage)  # what the run is built from, taken before it reads anything
+        fingerprint = self.fingerprint(stage)
         t0 = time.perf_counter()
         # Single-threaded BLAS: our solvers make many small calls, which OpenBLAS threads only slow down (4-10x on
         # a loaded 2-core machine); stages parallelise over pairs or images themselves where it pays.
         with self.ws.stage_transaction(stage) as out_dir, threadpool_limits(limits=1, user_api="blas"):
             summary = module.run(config=self.config[stage], dataset=self.dataset, ws=self.ws, out_dir=out_dir)
             manifest = {
-                **self.fingerprint_record(stage),
-                "fingerprint": self.fingerprint(stage),
+                **record,
+                "fingerprint": fingerprint,
                 "outputs": sorted(str(p.relative_to(out_dir)) for p in out_dir.rglob("*") if p.is_file()),
                 "wall_time_s": round(time.perf_counter() - t0, 3),
                 "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),

@@ -95,8 +95,8 @@ def _write(out_dir, ws, dataset, obs, registered, R, t, tracks: Tracks, points, 
                track_ids=tracks.track_ids, image_ids=tracks.image_ids, feature_ids=tracks.feature_ids,
                obs_error_rad=errors)
     save_ply(out_dir / "sparse.ply", points, colors)
-    w, h = (int(v) for v in obs[0]["image_size"])
-    write_text_model(ws.colmap_dir(out_dir), width=w, height=h, image_names=names, registered=registered,
+    sizes = [tuple(int(v) for v in o["image_size"]) for o in obs]
+    write_text_model(ws.colmap_dir(out_dir), image_sizes=sizes, image_names=names, registered=registered,
                      R_cam_from_world=R, t_cam_from_world=t, points=points, colors=colors,
                      errors_rad=point_error, track_image=tracks.image_ids, track_point2d=tracks.feature_ids,
                      track_point3d=tracks.track_ids, pixels=[o["pixels"] for o in obs])

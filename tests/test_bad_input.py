@@ -97,3 +97,49 @@ def test_int_accepted_for_float():
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="config file not found"):
         load_config(tmp_path / "absent.yaml")
+
+
+@pytest.mark.parametrize("item,message", [
+    ("matches.pairs=seq", "matches.pairs must be one of"),
+    ("registration.model=Planar", "registration.model must be one of"),
+    ("features.working_width=-5", r"features.working_width must lie in \[0"),
+    ("matches.window=0", r"matches.window must lie in \[1"),
+    ("filter.min_hand_points=5", r"filter.min_hand_points must lie in \[8"),
+])
+def test_config_values_are_checked(item, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [item])
+
+
+def test_images_sharing_a_stem(dataset_copy):
+    src = sorted((dataset_copy / "images").iterdir())[0]
+    shutil.copy(src, src.with_suffix(".jpg"))
+    with pytest.raises(DatasetError, match="share a file stem"):
+        Dataset(dataset_copy)
+
+
+@pytest.mark.parametrize("text,message", [
+    ("cameras: [\n", "not valid YAML"),
+    ("", "top-level 'cameras:' list"),
+    ("cameras: 5\n", "top-level 'cameras:' list"),
+    ("cameras:\n  - {image: ghost.png, R_world_from_cam: [[1,0,0],[0,1,0],[0,0,1]], center: [0,0,0]}\n",
+     "unknown image 'ghost.png'"),
+    ("cameras:\n  - {image: pano_000.png, R_world_from_cam: [[2,0,0],[0,1,0],[0,0,1]], center: [0,0,0]}\n",
+     "not a rotation matrix"),
+    ("cameras:\n  - {image: pano_000.png, center: [0,0,0]}\n", r"cameras\[0\] is invalid"),
+])
+def test_bad_ground_truth_poses(dataset_copy, text, message):
+    (dataset_copy / "ground_truth" / "poses.yaml").write_text(text)
+    with pytest.raises(DatasetError, match=message):
+        Dataset(dataset_copy).ground_truth_poses()
+
+
+def test_corrupt_artifact_is_a_clear_error(tiny_dataset, tmp_path, capsys, tiny_set_args):
+    ws = tmp_path / "ws"
+    assert main(["run", str(tiny_dataset), "-w", str(ws), "--until", "features", *tiny_set_args]) == 0
+    path = ws / "tiny" / "features" / "pano_001.npz"
+    path.write_bytes(path.read_bytes()[:100])
+    capsys.readouterr()
+    code, err = _run_cli(capsys, "run", tiny_dataset, "-w", ws, "--from", "matches", "--until", "matches",
+                         *tiny_set_args)
+    assert code == 2 and "pano_001.npz: corrupt artifact" in err

@@ -258,7 +258,7 @@ def test_colmap_model_reader_matches_known_poses(tmp_path):
     obs_image = np.repeat(np.arange(3), 5)
     obs_point = np.tile(np.arange(5), 3)
     names = ["a.jpg", "b.jpg", "c.jpg"]
-    write_text_model(tmp_path, width=w, height=h, image_names=names, registered=reg, R_cam_from_world=R,
+    write_text_model(tmp_path, image_sizes=[(w, h)] * len(names), image_names=names, registered=reg, R_cam_from_world=R,
                      t_cam_from_world=t, points=points, colors=np.zeros((5, 3), np.uint8), errors_rad=np.zeros(5),
                      track_image=obs_image, track_point2d=obs_point, track_point3d=obs_point, pixels=pixels)
     m = model_arrays(load_reconstruction(tmp_path), ["c.jpg", "a.jpg", "b.jpg", "missing.jpg"])

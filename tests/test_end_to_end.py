@@ -116,3 +116,24 @@ def test_sequential_chain_registers_every_image(tiny_dataset, tmp_path, capsys, 
     main(["eval", str(tiny_dataset), "-w", str(ws)])
     metrics = json.loads(capsys.readouterr().out)
     assert metrics["registered"] == 3 and metrics["auc@5"] > 95
+
+
+def test_colours_at_reduced_working_width(tiny_dataset, tmp_path):
+    """Features found at half the native width keep the colour of their own pixel."""
+    import cv2
+
+    from fullview.io.dataset import Dataset
+    from fullview.io.store import load_features
+    from fullview.io.workspace import Workspace
+
+    ws = tmp_path / "ws"
+    assert main(["run", str(tiny_dataset), "-w", str(ws), "--until", "features",
+                 "--set", "features.working_width=256"]) == 0
+    ds = Dataset(tiny_dataset)
+    name = ds.image_names[0]
+    feats = load_features(Workspace(ws, ds.name), name)
+    image = cv2.imread(str(ds.image_path(name)))  # native 512 px: stored pixels are native coordinates
+    cols = np.clip(feats["pixels"][:, 0].astype(int), 0, 511)
+    rows = np.clip(feats["pixels"][:, 1].astype(int), 0, 255)
+    native = image[rows, cols][:, ::-1].astype(float)
+    assert np.abs(native - feats["colors"]).mean() < 20  # blurred by the downscale, but the same place

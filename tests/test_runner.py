@@ -106,3 +106,15 @@ def test_runs_are_deterministic(tiny_dataset, make_pipeline, tmp_path):
             assert a.files == b.files
             for key in a.files:
                 assert np.array_equal(a[key], b[key]), f"{stage}/{path.name}:{key} differs between runs"
+
+
+def test_stage_built_on_replaced_upstream_is_stale(tiny_dataset, make_pipeline):
+    """features rerun alone with other settings: matches was built on the old features, so it is stale."""
+    make_pipeline(tiny_dataset).run(until="filter")
+    make_pipeline(tiny_dataset, ["features.max_features_per_face=200"]).run(only="features")
+    p = make_pipeline(tiny_dataset)
+    assert p.status("features").state == "stale"
+    status = p.status("matches")
+    assert status.state == "stale" and "upstream features on disk" in status.reasons[0]
+    with pytest.raises(RunnerError, match="upstream stage"):
+        p.run(only="filter")
