@@ -111,10 +111,6 @@ class Workspace:
     def write_manifest(self, stage_dir: Path, manifest: dict) -> None:
         save_json(stage_dir / "manifest.json", manifest)
 
-    def invalidate(self, stage: str) -> None:
-        """Drop a stage's manifest so it counts as missing (its artifacts no longer match upstream)."""
-        self.manifest_path(stage).unlink(missing_ok=True)
-
     def clean_leftovers(self) -> None:
         """Remove temp folders of runs killed before they could clean up; restore a previous folder whose swap
         was cut short (its final folder is missing)."""

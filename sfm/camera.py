@@ -51,11 +51,6 @@ def pixel_grid_bearings(width: int, height: int) -> np.ndarray:
     return pixels_to_bearings(grid, width, height)
 
 
-def angular_pixel_size(width: int) -> float:
-    """Radians spanned by one pixel at the equator."""
-    return 2.0 * np.pi / width
-
-
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrix [v]x, for (3,) or (N, 3) input."""
     v = np.asarray(v, dtype=np.float64)

@@ -11,7 +11,6 @@ A stored baseline (benchmarks/baseline.json) gates the result: see `check_agains
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -26,7 +25,7 @@ from fullview.io.store import SPARSE_VERSION, load_observations, load_poses
 from fullview.io.workspace import Workspace
 from fullview.sfm import compare as cmp
 from fullview.sfm.metrics import pose_metrics
-from fullview.stages.runner import Pipeline
+from fullview.stages.runner import Pipeline, record_fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +38,7 @@ DEFAULT_BASELINE = Path(__file__).resolve().parents[1] / "benchmarks" / "baselin
 # --------------------------------------------------------------------------------------------- COLMAP, cached
 def images_fingerprint(dataset: Dataset) -> str:
     """sha256 (short) over the dataset's image names and contents: which scene a baseline entry belongs to."""
-    record = {n: dataset.image_hash(n) for n in dataset.image_names}
-    return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
+    return record_fingerprint({n: dataset.image_hash(n) for n in dataset.image_names})
 
 
 def colmap_record(dataset: Dataset, render_type: str, matcher: str = "exhaustive", seed: int = 0) -> dict:
@@ -51,17 +49,13 @@ def colmap_record(dataset: Dataset, render_type: str, matcher: str = "exhaustive
             "pycolmap": pycolmap_version()}
 
 
-def _fingerprint(record: dict) -> str:
-    return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
-
-
 def colmap_reference(dataset: Dataset, ws: Workspace, *, render_type: str = "spherical", matcher: str = "exhaustive",
                      seed: int = 0, force: bool = False) -> tuple[Path | None, dict]:
     """COLMAP's model folder (None when it reconstructed nothing) and its manifest; reruns only when stale."""
     if render_type not in RENDER_TYPES:
         raise ValueError(f"unknown render type {render_type!r} (expected one of {', '.join(RENDER_TYPES)})")
     record = colmap_record(dataset, render_type, matcher, seed)
-    name, fingerprint = record["stage"], _fingerprint(record)
+    name, fingerprint = record["stage"], record_fingerprint(record)
     manifest = ws.read_manifest(name)
     if not force and manifest is not None and manifest.get("fingerprint") == fingerprint:
         log.info("%s fresh, reusing %s", name, ws.stage_dir(name))

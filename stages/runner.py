@@ -41,6 +41,11 @@ def stage_module(name: str):
     return importlib.import_module(f"fullview.stages.{name}")
 
 
+def record_fingerprint(record: dict) -> str:
+    """Short sha256 of a JSON-able record (key order does not matter)."""
+    return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
+
+
 def _library_versions() -> dict[str, str]:
     import cv2
     import numpy
@@ -80,6 +85,7 @@ class Pipeline:
 
     def __init__(self, dataset: Dataset, workspace: Workspace, config: dict):
         self.dataset, self.ws, self.config = dataset, workspace, config
+        self._fingerprints: dict[str, str] = {}
 
     # ---------------------------------------------------------------- fingerprints
     @cached_property
@@ -105,8 +111,10 @@ class Pipeline:
         }
 
     def fingerprint(self, stage: str) -> str:
-        record = self.fingerprint_record(stage)
-        return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
+        # Memoised: the chain asks for every upstream fingerprint again, and the inputs cannot change meanwhile.
+        if stage not in self._fingerprints:
+            self._fingerprints[stage] = record_fingerprint(self.fingerprint_record(stage))
+        return self._fingerprints[stage]
 
     # ---------------------------------------------------------------- status
     def status(self, stage: str) -> StageStatus:
