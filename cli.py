@@ -1,21 +1,29 @@
-"""Command line: a thin layer over fullview's library code."""
+"""Command line: a thin layer over fullview's library code, with one error boundary.
+
+Every fullview error and every OSError becomes one line naming the path and the problem (exit code 2); anything
+else is an internal error (exit code 1). `--debug` shows the traceback.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import logging
+import os
 import sys
+import traceback
 from pathlib import Path
 
-from fullview.io.artifacts import ArtifactError
 from fullview.io.config import ConfigError, load_config
-from fullview.io.dataset import Dataset, DatasetError
+from fullview.io.dataset import Dataset
+from fullview.io.errors import FullviewError
 from fullview.io.workspace import Workspace
-from fullview.stages.runner import PIPELINE_STAGES, Pipeline, RunnerError
+from fullview.stages import PIPELINE
+from fullview.stages.runner import Pipeline
 
 log = logging.getLogger("fullview")
 DEFAULT_CONFIG = Path("pipeline.yaml")
+BASELINE = Path(__file__).resolve().parent / "benchmarks" / "baseline.json"
 
 
 def _pipeline(args) -> Pipeline:
@@ -27,52 +35,52 @@ def _pipeline(args) -> Pipeline:
 
 def cmd_run(args) -> int:
     pipeline = _pipeline(args)
-    ran = pipeline.run(start=args.from_stage, until=args.until, only=args.only, force=args.force)
+    ran = pipeline.run(start=args.from_stage, until=args.until, only=args.only, force=args.force, wait=args.wait)
     log.info("ran: %s", ", ".join(ran) or "nothing (all fresh)")
     return 0
 
 
 def cmd_status(args) -> int:
     pipeline = _pipeline(args)
-    for stage in PIPELINE_STAGES:
-        st = pipeline.status(stage)
-        why = f" ({'; '.join(st.reasons)})" if st.state != "fresh" else ""
-        print(f"{stage:<14}{st.state}{why}")
+    with pipeline.ws.reading():
+        for stage in PIPELINE:
+            st = pipeline.status(stage, deep=args.verify)
+            why = f" ({'; '.join(st.reasons)})" if st.state != "fresh" else ""
+            print(f"{stage:<14}{st.state}{why}")
     return 0
 
 
 def cmd_synth(args) -> int:
-    from fullview.io.synth_io import write_synthetic_dataset
-    path = write_synthetic_dataset(args.out, views=args.views, width=args.width, seed=args.seed)
-    print(path)
+    from fullview.synth import write_synthetic_dataset
+    if args.views < 2 or args.width < 64 or args.width % 2:
+        raise ConfigError("synth needs --views >= 2 and an even --width >= 64")
+    print(write_synthetic_dataset(args.out, views=args.views, width=args.width, seed=args.seed))
     return 0
 
 
 def cmd_eval(args) -> int:
-    from fullview.stages.evaluate import evaluate
-    dataset = Dataset(args.dataset)
-    metrics = evaluate(dataset, Workspace(args.workspace, dataset.name))
-    json.dump(metrics, sys.stdout, indent=2)
+    from fullview.commands.evaluate import evaluate
+    json.dump(evaluate(_pipeline(args)), sys.stdout, indent=2)
     print()
     return 0
 
 
 def cmd_colmap_check(args) -> int:
-    from fullview.stages.colmap_check import colmap_check
+    from fullview.commands.colmap_check import colmap_check
     pipeline = _pipeline(args)
     report = colmap_check(pipeline.dataset, pipeline.ws, pipeline, max_features=args.colmap_max_features)
     print(report["markdown"])
-    print(f"written: {pipeline.ws.root / 'colmap_check' / 'check.json'}, check.md")
+    print(f"written: {pipeline.ws.path('check_report')}, check.md")
     return 0
 
 
 def cmd_compare(args) -> int:
-    from fullview.stages.compare import compare
+    from fullview.commands.compare import compare
     pipeline = _pipeline(args)
     result = compare(pipeline.dataset, pipeline.ws, pipeline, render_type=args.render_type,
                      force_colmap=args.force_colmap, baseline_path=None if args.no_gate else args.baseline)
     print(result["markdown"])
-    print(f"written: {pipeline.ws.root / 'compare'}/")
+    print(f"written: {pipeline.ws.path('compare_report', render_type=args.render_type).parent}/")
     if result["gate"]["status"] == "fail":
         print("fullview: regression against the baseline: " + "; ".join(result["gate"]["failures"]),
               file=sys.stderr)
@@ -80,27 +88,35 @@ def cmd_compare(args) -> int:
     return 0
 
 
-def _common(p: argparse.ArgumentParser, config: bool = True) -> None:
+def cmd_export(args) -> int:
+    from fullview.commands.export import export
+    print(export(_pipeline(args), args.format, args.out))
+    return 0
+
+
+def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder (images/, optional hand_points.yaml, ground_truth/)")
     p.add_argument("-w", "--workspace", type=Path, default=Path("workspace"), help="workspace root")
-    if config:
-        p.add_argument("-c", "--config", type=Path, default=None, help="pipeline.yaml (default: ./pipeline.yaml)")
-        p.add_argument("--set", action="append", metavar="STAGE.KEY=VALUE", help="override a config value")
+    p.add_argument("-c", "--config", type=Path, default=None, help="pipeline.yaml (default: ./pipeline.yaml)")
+    p.add_argument("--set", action="append", metavar="STAGE.KEY=VALUE", help="override a config value")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fullview", description="3-D reconstruction from 360° panoramas")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="run stale stages of the pipeline")
     _common(p)
-    p.add_argument("--from", dest="from_stage", choices=PIPELINE_STAGES, help="rerun from this stage on")
-    p.add_argument("--until", choices=PIPELINE_STAGES, help="stop after this stage")
-    p.add_argument("--only", choices=PIPELINE_STAGES, help="run just this stage (upstream must be fresh)")
+    p.add_argument("--from", dest="from_stage", choices=PIPELINE, help="rerun from this stage on")
+    p.add_argument("--until", choices=PIPELINE, help="stop after this stage")
+    p.add_argument("--only", choices=PIPELINE, help="run just this stage (upstream must be fresh)")
     p.add_argument("--force", action="store_true", help="rerun every stage")
+    p.add_argument("--wait", action="store_true", help="wait for another run on this workspace instead of failing")
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("status", help="fresh / stale / missing per stage")
     _common(p)
+    p.add_argument("--verify", action="store_true", help="also check every output's sha256, not only its size")
     p.set_defaults(func=cmd_status)
     p = sub.add_parser("synth", help="render a synthetic scene with exact ground truth")
     p.add_argument("out", type=Path)
@@ -108,8 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=2048)
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_synth)
-    p = sub.add_parser("eval", help="metrics against ground_truth/")
-    _common(p, config=False)
+    p = sub.add_parser("eval", help="metrics of the current reconstruction against ground_truth/")
+    _common(p)
     p.set_defaults(func=cmd_eval)
     p = sub.add_parser("colmap-check", help="our SIFT stage against COLMAP's SIFT on the same cube faces")
     _common(p)
@@ -121,10 +137,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--render-type", default="spherical",
                    choices=("spherical", "perspective_overlapping", "perspective_non_overlapping"))
     p.add_argument("--force-colmap", action="store_true", help="rerun COLMAP even when its cached run is fresh")
-    p.add_argument("--baseline", type=Path, default=Path(__file__).resolve().parent / "benchmarks" / "baseline.json",
-                   help="stored baseline (default: benchmarks/baseline.json)")
+    p.add_argument("--baseline", type=Path, default=BASELINE, help="stored baseline (default: benchmarks/baseline.json)")
     p.add_argument("--no-gate", action="store_true", help="compare without checking the baseline")
     p.set_defaults(func=cmd_compare)
+    p = sub.add_parser("export", help="the reconstruction as COLMAP, nerfstudio or PLY files")
+    _common(p)
+    p.add_argument("--format", required=True, help="colmap | colmap-bin | nerfstudio | ply")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: WORKSPACE/DATASET/export_FORMAT)")
+    p.set_defaults(func=cmd_export)
     return parser
 
 
@@ -134,9 +154,24 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     try:
         return args.func(args)
-    except (ConfigError, DatasetError, RunnerError, ArtifactError) as e:
-        print(f"fullview: error: {e}", file=sys.stderr)
-        return 2
+    except FullviewError as e:
+        return _fail(args, str(e), 2)
+    except BrokenPipeError:
+        # The reader of our output went away (`status | head -1`): not an error; silence the final flush.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except OSError as e:
+        where = f"{e.filename}: " if e.filename else ""
+        return _fail(args, f"{where}{e.strerror or e}", 2)
     except KeyboardInterrupt:
         print("fullview: interrupted; previous artifacts are intact", file=sys.stderr)
         return 130
+    except Exception as e:  # noqa: BLE001 — the boundary: anything else is our bug, reported in one line
+        return _fail(args, f"internal error: {type(e).__name__}: {e} (rerun with --debug for the traceback)", 1)
+
+
+def _fail(args, message: str, code: int) -> int:
+    if args.debug:
+        traceback.print_exc()
+    print(f"fullview: error: {' '.join(message.split())}", file=sys.stderr)
+    return code

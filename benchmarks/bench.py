@@ -92,7 +92,7 @@ def colmap_worker(dataset: Path, work: Path) -> None:
     from fullview.io.dataset import Dataset
     from fullview.io.workspace import Workspace
     from fullview.sfm.metrics import pose_metrics
-    from fullview.stages.compare import colmap_reference
+    from fullview.commands.compare import colmap_reference
 
     ds = Dataset(dataset)
     model_dir, manifest = colmap_reference(ds, Workspace(work, ds.name), render_type="spherical", force=True)

@@ -1,10 +1,10 @@
 """The stored COLMAP-comparison baseline (benchmarks/baseline.json): record it from real runs, or gate results.
 
-`fullview compare` gates itself (non-zero exit on a regression); this script works on the `compare/colmap.json`
+`fullview compare` gates itself (non-zero exit on a regression); this script works on the `compare_spherical/colmap.json`
 files it leaves in the workspace:
 
-    python benchmarks/check_baseline.py record WS/360_Flat/compare/colmap.json ... [--as NAME=KEY ...]
-    python benchmarks/check_baseline.py check  WS/360_Flat/compare/colmap.json ...
+    python benchmarks/check_baseline.py record WS/360_Flat/compare_spherical/colmap.json ... [--as NAME=KEY ...]
+    python benchmarks/check_baseline.py check  WS/360_Flat/compare_spherical/colmap.json ...
 
 `record` writes each result's gated metrics (sfm.compare.GATES) under its dataset key (the dataset folder's name;
 `--as cmp_synth6=synth6` also stores the entry under a second key, for the same scene rendered elsewhere); the
@@ -56,7 +56,7 @@ def record(paths: list[Path], baseline_path: Path, aliases: dict[str, str]) -> i
 
 
 def check(paths: list[Path], baseline_path: Path) -> int:
-    from fullview.stages.compare import check_against_baseline
+    from fullview.commands.compare import check_against_baseline
 
     failed = False
     for path in paths:
@@ -72,7 +72,7 @@ def check(paths: list[Path], baseline_path: Path) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("mode", choices=("record", "check"))
-    parser.add_argument("results", nargs="+", type=Path, help="compare/colmap.json files")
+    parser.add_argument("results", nargs="+", type=Path, help="compare_spherical/colmap.json files")
     parser.add_argument("--baseline", type=Path, default=DEFAULT)
     parser.add_argument("--as", dest="aliases", action="append", default=[], metavar="DATASET=KEY",
                         help="record: also store DATASET's entry under KEY")

@@ -12,11 +12,27 @@ from typing import Iterator
 
 import numpy as np
 
+from fullview.io.errors import FullviewError
+
 FORMAT_KEY = "format_version"
 
 
-class ArtifactError(RuntimeError):
+def _read_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+UMASK = _read_umask()  # read once: os.umask can only be read by setting it, which is not thread-safe
+
+
+class ArtifactError(FullviewError, RuntimeError):
     """An artifact on disk is missing, of another version, or lacks a key."""
+
+
+def apply_umask(path: Path, *, directory: bool = False) -> None:
+    """Give a file or folder made by tempfile (0600 / 0700) the permissions open() and mkdir() would give it."""
+    os.chmod(path, (0o777 if directory else 0o666) & ~UMASK)
 
 
 @contextmanager
@@ -27,6 +43,7 @@ def atomic_path(path: Path) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
+        apply_umask(Path(tmp))
         yield Path(tmp)
         with open(tmp, "rb+") as f:  # flush to disk before the rename makes it visible
             os.fsync(f.fileno())
@@ -68,6 +85,18 @@ def save_json(path: Path, obj) -> Path:
     return Path(path)
 
 
+def save_text(path: Path, text: str) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return Path(path)
+
+
+def save_bytes(path: Path, data: bytes) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
 def _json_default(o):
     if isinstance(o, np.generic):
         return o.item()
@@ -105,12 +134,18 @@ def save_ply(path: Path, points: np.ndarray, colors: np.ndarray | None = None,
 
 def load_ply(path: Path) -> dict[str, np.ndarray]:
     """Read a binary PLY written by `save_ply` into named columns."""
-    with open(path, "rb") as f:
-        lines = []
-        while not lines or lines[-1] != "end_header":
-            lines.append(f.readline().decode("ascii").strip())
-        count = int(next(l for l in lines if l.startswith("element vertex")).split()[-1])
-        props = [l.split() for l in lines if l.startswith("property")]
-        dtype = [(p[2], {"float": "<f4", "uchar": "u1"}[p[1]]) for p in props]
-        rec = np.frombuffer(f.read(), dtype=dtype, count=count)
+    try:
+        with open(path, "rb") as f:
+            lines = []
+            while not lines or lines[-1] != "end_header":
+                line = f.readline()
+                if not line or len(lines) > 64:
+                    raise ValueError("no end_header")
+                lines.append(line.decode("ascii").strip())
+            count = int(next(l for l in lines if l.startswith("element vertex")).split()[-1])
+            props = [l.split() for l in lines if l.startswith("property")]
+            dtype = [(p[2], {"float": "<f4", "uchar": "u1"}[p[1]]) for p in props]
+            rec = np.frombuffer(f.read(), dtype=dtype, count=count)
+    except (ValueError, KeyError, IndexError, StopIteration, UnicodeDecodeError) as e:
+        raise ArtifactError(f"{path}: corrupt PLY ({type(e).__name__}); rerun its stage") from None
     return {name: rec[name] for name, _ in dtype}

@@ -3,15 +3,12 @@
 from __future__ import annotations
 
 import logging
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from fullview.io.artifacts import atomic_path
+from fullview.io.exports import SparseModel, write_colmap_model
 
 log = logging.getLogger(__name__)
 
@@ -20,47 +17,17 @@ def write_text_model(out_dir: Path, *, image_sizes: list[tuple[int, int]], image
                      R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, points: np.ndarray,
                      colors: np.ndarray, errors_rad: np.ndarray, track_image: np.ndarray,
                      track_point2d: np.ndarray, track_point3d: np.ndarray, pixels: list[np.ndarray]) -> Path:
-    """cameras.txt (one EQUIRECTANGULAR camera per image size), images.txt, points3D.txt, readable by
-    pycolmap.Reconstruction.
+    """COLMAP text model in `out_dir` (cameras/images/points3D/rigs/frames.txt), written by pycolmap through
+    `exports.write_colmap_model`: one EQUIRECTANGULAR camera per image size, image id = index + 1, point id =
+    index + 1, point errors in degrees.
 
     Observations are given flat: image index, index of the 2-D point within that image's `pixels`, 3-D point index.
     """
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    sizes = sorted(set(map(tuple, image_sizes)))
-    camera_of = {size: k + 1 for k, size in enumerate(sizes)}
-    _write(out_dir / "cameras.txt", ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
-           + [f"{camera_of[(w, h)]} EQUIRECTANGULAR {w} {h} {w} {h}" for w, h in sizes])
-    point2d_of = {}  # (image, 2-D index) -> 3-D point id (1-based)
-    for img, p2, p3 in zip(track_image.tolist(), track_point2d.tolist(), track_point3d.tolist()):
-        point2d_of[(img, p2)] = p3 + 1
-    lines = ["# Image list: IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME / POINTS2D[] as (X, Y, POINT3D_ID)"]
-    for k, name in enumerate(image_names):
-        if not registered[k]:
-            continue
-        qx, qy, qz, qw = Rotation.from_matrix(R_cam_from_world[k]).as_quat()
-        t = t_cam_from_world[k]
-        lines.append(f"{k + 1} {qw:.17g} {qx:.17g} {qy:.17g} {qz:.17g} {t[0]:.17g} {t[1]:.17g} {t[2]:.17g} "
-                     f"{camera_of[tuple(image_sizes[k])]} {name}")
-        lines.append(" ".join(f"{x:.3f} {y:.3f} {point2d_of.get((k, n), -1)}"
-                              for n, (x, y) in enumerate(pixels[k])))
-    _write(out_dir / "images.txt", lines)
-    order = np.argsort(track_point3d, kind="stable")
-    starts = np.searchsorted(track_point3d[order], np.arange(len(points) + 1))
-    lines = ["# 3D point list: POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)"]
-    for p in range(len(points)):
-        obs = order[starts[p]:starts[p + 1]]
-        track = " ".join(f"{track_image[o] + 1} {track_point2d[o]}" for o in obs)
-        x, y, z = points[p]
-        r, g, b = (int(c) for c in colors[p])
-        lines.append(f"{p + 1} {x:.9g} {y:.9g} {z:.9g} {r} {g} {b} {np.degrees(errors_rad[p]):.6g} {track}")
-    _write(out_dir / "points3D.txt", lines)
-    return out_dir
-
-
-def _write(path: Path, lines: list[str]) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
+    model = SparseModel(image_names=list(image_names), image_sizes=list(image_sizes), registered=registered,
+                        R_cam_from_world=R_cam_from_world, t_cam_from_world=t_cam_from_world, points=points,
+                        colors=colors, point_errors_rad=errors_rad, track_point3d=track_point3d,
+                        track_image=track_image, track_point2d=track_point2d, pixels=pixels)
+    return write_colmap_model(model, out_dir, binary=False)
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -71,10 +38,10 @@ def pycolmap_version() -> str:
     return str(pycolmap.__version__)
 
 
-def reconstruct_equirectangular(images_dir: Path, out_dir: Path, *, render_type: str = "spherical",
+def reconstruct_equirectangular(images_dir: Path, out_dir: Path, model_dir: Path, *, render_type: str = "spherical",
                                 matcher: str = "exhaustive", seed: int = 0) -> dict:
     """pycolmap.panorama.reconstruct (CPU); the largest model, as one EQUIRECTANGULAR image per panorama, is
-    written to `out_dir/model` (binary). Returns wall time, number of models and the model's path (None if empty).
+    written to `model_dir` (binary). Returns wall time, number of models and the model's path (None if empty).
 
     With a perspective render type, panorama.reconstruct returns the rig models, whose frame pose is that of
     virtual camera 0 (pitched by 35° for PERSPECTIVE_OVERLAPPING), not of the panorama; the converted models it
@@ -99,7 +66,7 @@ def reconstruct_equirectangular(images_dir: Path, out_dir: Path, *, render_type:
         best = recs[best_idx]
     else:
         best = pycolmap.Reconstruction(out_dir / "sparse_equirectangular" / str(best_idx))
-    model_dir = out_dir / "model"
+    model_dir = Path(model_dir)
     model_dir.mkdir(parents=True, exist_ok=True)
     best.write(model_dir)
     out["model_dir"] = model_dir

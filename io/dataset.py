@@ -6,11 +6,39 @@ Layout::
     <dataset>/hand_points.yaml            optional hand-picked tracks
     <dataset>/ground_truth/poses.yaml     optional: cameras: [{image, R_world_from_cam, center}]
     <dataset>/ground_truth/depth/<stem>.npy  optional: range in metres per pixel
+
+Validation policy: every bad input is a `DatasetError` whose message is one line naming the file and the problem;
+nothing bad is accepted silently.
+
+- Entries of images/ named like an image must be regular files (or symlinks to one): a folder named `x.jpg`, a
+  FIFO or a broken symlink is an error rather than skipped, because skipping would silently change the image set
+  (and with it every fingerprint) without the user noticing.
+- Images must be complete JPEG or PNG files. libjpeg decodes a truncated JPEG "successfully", filling the missing
+  part with grey, and only prints a warning to stderr, which OpenCV does not let us catch (and redirecting the
+  process's stderr is not thread-safe). So `image_size`, which every image passes before it is decoded, reads the
+  file once and checks its structure: a JPEG's marker segments are walked from SOI to the EOI ending its entropy-
+  coded data (bytes after that EOI, such as zero padding or a camera's trailer, are allowed); a PNG's chunks are
+  checked with PIL's `verify()` (CRC of every chunk up to IEND). This costs a read and a byte scan (a few ms for a
+  5376x2688 JPEG) and keeps OpenCV's fast reduced-size decode. Corruption that keeps the structure intact (bit
+  flips inside JPEG entropy-coded data) is not detectable without a full decode and is accepted, as libjpeg does.
+- EXIF orientation is ignored everywhere: PIL's header size ignores it and OpenCV is told to
+  (`IMREAD_IGNORE_ORIENTATION`). Equirectangular geometry is defined on the stored pixel grid, which is what the
+  camera's stitcher wrote (a 90°-rotated panorama is 1:2, not an equirectangular image), and hand points are
+  picked in stored pixels. A tag other than 1 is logged.
+- hand_points.yaml and ground_truth/poses.yaml are read with `fullview.io.yamlio.load_yaml` (duplicate keys are
+  errors) and validated completely: numbers are int or float (never bool), finite, of the expected shape.
 """
 
 from __future__ import annotations
 
 import hashlib
+import io
+import logging
+import math
+import os
+import re
+import reprlib
+import threading
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -18,12 +46,25 @@ from pathlib import Path
 import cv2
 import numpy as np
 import PIL.Image
-import yaml
+from scipy.spatial import cKDTree
+
+from fullview.io.errors import FullviewError
+from fullview.io.yamlio import YamlError, load_yaml
+
+log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+_JPEG_FORMATS = ("JPEG", "MPO")  # PIL calls a JPEG with a multi-picture (MPF) trailer "MPO"
+_HAND_POINT_KEYS = {"name", "observations"}
+_CAMERA_KEYS = ("image", "R_world_from_cam", "center")
+_COINCIDENT = 1e-9  # centres closer than this fraction of the scene extent count as one position
+
+# Values quoted in messages are abbreviated: a hostile file may nest aliases into an enormous structure.
+_REPR = reprlib.Repr()
+_REPR.maxstring = _REPR.maxother = 60
 
 
-class DatasetError(ValueError):
+class DatasetError(FullviewError, ValueError):
     """The dataset folder or one of its files is invalid."""
 
 
@@ -44,6 +85,8 @@ class Dataset:
 
     def __init__(self, root: Path):
         self.root = Path(root)
+        self._sizes: dict[str, tuple[int, int]] | None = None
+        self._sizes_lock = threading.Lock()  # the features stage asks for sizes from several threads at once
         if not self.root.is_dir():
             raise DatasetError(f"dataset folder not found: {self.root}")
         if not self.images_dir.is_dir():
@@ -74,26 +117,36 @@ class Dataset:
 
     @cached_property
     def image_names(self) -> list[str]:
-        return sorted(p.name for p in self.images_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        try:
+            paths = [p for p in self.images_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
+            for p in paths:
+                _check_regular_file(p)
+        except OSError as e:
+            raise DatasetError(f"{self.images_dir}: cannot list ({_reason(e)})") from None
+        return sorted(p.name for p in paths)
 
     def image_path(self, name: str) -> Path:
         return self.images_dir / name
 
     def image_hash(self, name: str) -> str:
-        return hashlib.sha256(self.image_path(name).read_bytes()).hexdigest()
+        return hashlib.sha256(_read_bytes(self.image_path(name), "image")).hexdigest()
 
     def hand_points_hash(self) -> str:
         p = self.hand_points_path
-        return hashlib.sha256(p.read_bytes()).hexdigest() if p.exists() else "none"
+        return hashlib.sha256(_read_bytes(p, "file")).hexdigest() if p.exists() else "none"
 
-    @cached_property
+    @property
     def image_sizes(self) -> dict[str, tuple[int, int]]:
-        """(width, height) of every image, from the file headers (validated 2:1)."""
-        return {name: image_size(self.image_path(name)) for name in self.image_names}
+        """(width, height) of every image as stored (EXIF orientation ignored), from the file headers; reading it
+        validates every image (complete JPEG or PNG file, 2:1)."""
+        with self._sizes_lock:
+            if self._sizes is None:
+                self._sizes = {name: image_size(self.image_path(name)) for name in self.image_names}
+        return self._sizes
 
     def load_image(self, name: str, width: int = 0) -> np.ndarray:
         """BGR uint8 image, resized to `width` (keeping 2:1) when width > 0."""
-        native_w, native_h = self.image_sizes[name]
+        native_w, native_h = self.image_sizes[name]  # also validates the file before it is decoded
         # JPEG can decode at 1/2, 1/4, 1/8 size directly, much faster than a full decode and resize; only
         # reductions that divide the size exactly keep the 2:1 shape.
         reduction = max((r for r in (1, 2, 4, 8) if width and native_w // r >= width
@@ -104,36 +157,44 @@ class Dataset:
             image = cv2.resize(image, (width, width // 2), interpolation=interp)
         return image
 
+    # ------------------------------------------------------------------------------------------- hand points
     def hand_tracks(self) -> list[HandTrack]:
         """Hand-picked tracks, validated against the image list and sizes; [] when the file is absent."""
         path = self.hand_points_path
         if not path.exists():
             return []
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise DatasetError(f"{path}: not valid YAML: {e}") from None
+        data = _load_yaml(path)
         points = data.get("points") if isinstance(data, dict) else None
         if not isinstance(points, list):
             raise DatasetError(f"{path}: expected a top-level 'points:' list")
-        return [self._hand_track(path, k, p) for k, p in enumerate(points)]
+        tracks = [self._hand_track(path, k, p) for k, p in enumerate(points)]
+        _check_unique_names(path, tracks)
+        return tracks
 
     def _hand_track(self, path: Path, k: int, point) -> HandTrack:
         if not isinstance(point, dict) or not isinstance(point.get("observations"), dict):
             raise DatasetError(f"{path}: points[{k}] needs an 'observations' mapping")
-        name = str(point.get("name", f"point_{k}"))
-        obs = {}
-        for image, xy in point["observations"].items():
-            if image not in self.image_sizes:
-                raise DatasetError(f"{path}: point {name!r} names unknown image {image!r}")
-            if not (isinstance(xy, (list, tuple)) and len(xy) == 2 and all(_is_number(v) for v in xy)):
-                raise DatasetError(f"{path}: point {name!r} in {image}: expected [x, y], got {xy!r}")
-            w, h = self.image_sizes[image]
-            x, y = float(xy[0]), float(xy[1])
-            if not (0 <= x <= w and 0 <= y <= h):
-                raise DatasetError(f"{path}: point {name!r} at ({x}, {y}) lies outside {image} ({w}x{h})")
-            obs[image] = (x, y)
+        unknown = sorted(map(str, set(point) - _HAND_POINT_KEYS))
+        if unknown:  # most likely a misspelt 'name', which would otherwise be ignored
+            raise DatasetError(f"{path}: points[{k}] has unknown key(s) {unknown}; allowed: name, observations")
+        name = _track_name(path, k, point)
+        obs = {image: self._hand_pixel(path, name, image, xy) for image, xy in point["observations"].items()}
+        if len(obs) < 2:  # one observation constrains nothing
+            raise DatasetError(f"{path}: point {name!r} has {len(obs)} observation(s); a track needs at least 2")
         return HandTrack(name=name, observations=obs)
+
+    def _hand_pixel(self, path: Path, name: str, image, xy) -> tuple[float, float]:
+        if not isinstance(image, str) or image not in self.image_names:
+            raise DatasetError(f"{path}: point {name!r} names unknown image {image!r}")
+        pixel = _number_array(xy, (2,))
+        if pixel is None or not np.isfinite(pixel).all():
+            raise DatasetError(f"{path}: point {name!r} in {image}: expected [x, y] of two finite numbers, "
+                               f"got {_REPR.repr(xy)}")
+        w, h = self.image_sizes[image]
+        x, y = float(pixel[0]), float(pixel[1])
+        if not (0 <= x <= w and 0 <= y <= h):
+            raise DatasetError(f"{path}: point {name!r} at ({x}, {y}) lies outside {image} ({w}x{h})")
+        return x, y
 
     @cached_property
     def hand_observations(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -145,67 +206,285 @@ class Dataset:
                 out[image][1].append(xy)
         return {n: (np.array(t, np.int64), np.array(p, np.float64).reshape(-1, 2)) for n, (t, p) in out.items()}
 
+    # ------------------------------------------------------------------------------------------ ground truth
     def has_ground_truth(self) -> bool:
         return (self.ground_truth_dir / "poses.yaml").exists()
 
     def ground_truth_poses(self) -> dict[str, GroundTruthPose]:
-        """Ground-truth poses by image name, validated (known images, each once, proper rotations)."""
+        """Ground-truth poses by image name, validated (known images, each once, proper finite rotations, finite
+        and distinct centres)."""
         path = self.ground_truth_dir / "poses.yaml"
-        try:
-            data = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as e:
-            raise DatasetError(f"{path}: not valid YAML: {e}") from None
+        data = _load_yaml(path)
         cameras = data.get("cameras") if isinstance(data, dict) else None
         if not isinstance(cameras, list):
             raise DatasetError(f"{path}: expected a top-level 'cameras:' list")
         out = {}
         for k, cam in enumerate(cameras):
-            try:
-                image = str(cam["image"])
-                R = np.array(cam["R_world_from_cam"], dtype=np.float64).reshape(3, 3)
-                c = np.array(cam["center"], dtype=np.float64).reshape(3)
-            except (KeyError, ValueError, TypeError) as e:
-                raise DatasetError(f"{path}: cameras[{k}] is invalid ({type(e).__name__}: {e})") from None
-            if image not in self.image_sizes:
-                raise DatasetError(f"{path}: cameras[{k}] names unknown image {image!r}")
+            image, pose = self._ground_truth_pose(path, k, cam)
             if image in out:
                 raise DatasetError(f"{path}: image {image!r} appears twice")
-            if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
-                raise DatasetError(f"{path}: R_world_from_cam of {image!r} is not a rotation matrix")
-            out[image] = GroundTruthPose(R_world_from_cam=R, center=c)
+            out[image] = pose
+        _check_distinct_centers(path, out)
         return out
 
+    def _ground_truth_pose(self, path: Path, k: int, cam) -> tuple[str, GroundTruthPose]:
+        if not isinstance(cam, dict):
+            raise DatasetError(f"{path}: cameras[{k}] is invalid: expected a mapping, got {_REPR.repr(cam)}")
+        missing = [key for key in _CAMERA_KEYS if key not in cam]
+        if missing:
+            raise DatasetError(f"{path}: cameras[{k}] is invalid: missing key {missing[0]!r}")
+        image = cam["image"]
+        if not isinstance(image, str) or image not in self.image_names:
+            raise DatasetError(f"{path}: cameras[{k}] names unknown image {image!r}")
+        # A flat list of 9 is accepted for R, as it always was (it used to be reshaped).
+        R = _pose_array(path, k, image, cam, "R_world_from_cam", (3, 3), (9,))
+        c = _pose_array(path, k, image, cam, "center", (3,))
+        if not _is_rotation(R):
+            raise DatasetError(f"{path}: R_world_from_cam of {image!r} is not a rotation matrix")
+        return image, GroundTruthPose(R_world_from_cam=R, center=c)
+
     def ground_truth_depth(self, name: str) -> np.ndarray | None:
+        """Ground-truth range map of image `name` (NaN = no depth), None when the dataset has none for it."""
         path = self.ground_truth_dir / "depth" / f"{Path(name).stem}.npy"
-        return np.load(path, allow_pickle=False) if path.exists() else None
+        if not path.exists():
+            return None
+        depth = _load_npy(path)
+        _check_depth(path, depth)
+        return depth
+
+    def ground_truth_scene_size(self, centers: np.ndarray) -> float:
+        """``scene_size`` from ground_truth/scene.npz (synthetic scenes), else the extent of the true camera
+        centres (the length dense metrics' tolerance τ is relative to)."""
+        path = self.ground_truth_dir / "scene.npz"
+        if path.exists():
+            try:
+                with np.load(path, allow_pickle=False) as data:
+                    if "scene_size" in data and np.isfinite(data["scene_size"]) and float(data["scene_size"]) > 0:
+                        return float(data["scene_size"])
+            except (OSError, ValueError, EOFError) as e:
+                raise DatasetError(f"{path}: cannot read ({_reason(e)})") from None
+            raise DatasetError(f"{path}: no positive finite 'scene_size'")
+        return float(np.linalg.norm(centers.max(0) - centers.min(0)))
 
 
-def _is_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
+# ---------------------------------------------------------------------------------------------- file access
+def _reason(e: Exception) -> str:
+    """One line saying what went wrong: an OSError's strerror ('Permission denied'), else the message."""
+    text = (e.strerror if isinstance(e, OSError) else None) or str(e) or type(e).__name__
+    return " ".join(text.split())
 
 
+def _read_bytes(path: Path, what: str) -> bytes:
+    _check_regular_file(path)
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise DatasetError(f"cannot read {what} {path}: {_reason(e)}") from None
+
+
+def _check_regular_file(p: Path) -> None:
+    """A file about to be read must be a regular file (or a symlink to one) when it exists: reading a folder fails
+    obscurely and opening a FIFO blocks forever. A missing file is left to the read to report."""
+    if p.is_symlink() and not p.exists():
+        raise DatasetError(f"{p}: broken symbolic link (to {os.readlink(p)!r})")
+    if p.exists() and not p.is_file():
+        raise DatasetError(f"{p}: not a regular file (a folder, FIFO or device named like a data file)")
+
+
+def _load_yaml(path: Path):
+    _check_regular_file(path)
+    try:
+        return load_yaml(path, where=str(path))
+    except YamlError as e:
+        raise DatasetError(str(e)) from None
+
+
+def _load_npy(path: Path) -> np.ndarray:
+    _check_regular_file(path)
+    try:
+        # Memory-mapped first: a header claiming more data than the file holds fails here instead of allocating it.
+        loaded = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise DatasetError(f"{path}: cannot read depth map ({_reason(e)})") from None
+    if not isinstance(loaded, np.ndarray):  # an .npz archive named .npy
+        loaded.close()
+        raise DatasetError(f"{path}: not a .npy array (an .npz archive?)")
+    return np.array(loaded)
+
+
+def _check_depth(path: Path, depth: np.ndarray) -> None:
+    # Depth maps may have any resolution (they are resampled to the estimate's), but must be 2:1 like the images.
+    if depth.dtype.kind != "f" or depth.ndim != 2 or depth.shape[0] == 0 or depth.shape[1] != 2 * depth.shape[0]:
+        raise DatasetError(f"{path}: depth map must be a 2-D float array twice as wide as high, "
+                           f"got {depth.dtype} {depth.shape}")
+    if np.isinf(depth).any() or (depth < 0).any():
+        raise DatasetError(f"{path}: depth map has infinite or negative values (use NaN where there is no depth)")
+
+
+# --------------------------------------------------------------------------------------------------- values
+def _number_array(value, shape: tuple[int, ...]) -> np.ndarray | None:
+    """Nested lists of real numbers (int or float, not bool) of exactly `shape` as float64 (possibly non-finite),
+    None for anything else."""
+    if not shape:
+        return _real(value)
+    if not isinstance(value, list) or len(value) != shape[0]:
+        return None
+    items = [_number_array(v, shape[1:]) for v in value]
+    return None if any(item is None for item in items) else np.array(items, np.float64)
+
+
+def _real(v) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    try:
+        return float(v)
+    except OverflowError:  # an integer beyond float range
+        return math.inf
+
+
+def _pose_array(path: Path, k: int, image: str, cam: dict, key: str, *shapes: tuple[int, ...]) -> np.ndarray:
+    value = cam[key]
+    array = next((a for a in (_number_array(value, s) for s in shapes) if a is not None), None)
+    if array is None:
+        raise DatasetError(f"{path}: cameras[{k}] is invalid: {key} of {image!r} must be a "
+                           f"{'x'.join(map(str, shapes[0]))} (nested) list of numbers, got {_REPR.repr(value)}")
+    if not np.isfinite(array).all():
+        raise DatasetError(f"{path}: {key} of {image!r} has a non-finite entry (NaN or inf)")
+    return array.reshape(shapes[0])
+
+
+def _is_rotation(R: np.ndarray) -> bool:
+    # Entries of a rotation lie in [-1, 1]: checking that first keeps R.T @ R from overflowing.
+    return (np.abs(R).max() <= 1 + 1e-6 and np.abs(R.T @ R - np.eye(3)).max() <= 1e-6
+            and np.linalg.det(R) > 0)
+
+
+def _check_distinct_centers(path: Path, poses: dict[str, GroundTruthPose]) -> None:
+    """Two cameras at one position make the baselines the metrics divide by zero."""
+    if len(poses) < 2:
+        return
+    names = list(poses)
+    c = np.stack([poses[n].center for n in names])
+    c = c / (np.abs(c).max() or 1.0)  # scale-free test, and no overflow for huge coordinates
+    extent = float(np.linalg.norm(c.max(0) - c.min(0)))
+    pairs = cKDTree(c).query_pairs(_COINCIDENT * extent, output_type="ndarray")
+    if len(pairs):
+        a, b = sorted(pairs.tolist())[0]
+        raise DatasetError(f"{path}: cameras {names[a]!r} and {names[b]!r} have coincident centres "
+                           f"{poses[names[a]].center.tolist()}")
+
+
+def _track_name(path: Path, k: int, point: dict) -> str:
+    if "name" not in point:
+        return f"point_{k}"
+    name = point["name"]
+    if not isinstance(name, str) or not name.strip():
+        raise DatasetError(f"{path}: points[{k}] name must be a non-empty string, got {_REPR.repr(name)}")
+    return name
+
+
+def _check_unique_names(path: Path, tracks: list[HandTrack]) -> None:
+    seen = set()
+    for track in tracks:
+        if track.name in seen:
+            raise DatasetError(f"{path}: point name {track.name!r} is used twice")
+        seen.add(track.name)
+
+
+# --------------------------------------------------------------------------------------------------- images
 _REDUCED_FLAGS = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
                   8: cv2.IMREAD_REDUCED_COLOR_8}
 
 
 def read_image(path: Path, reduction: int = 1) -> np.ndarray:
-    """BGR uint8 image (decoded at 1/reduction size); a clear error when unreadable or not 2:1 equirectangular."""
-    image = cv2.imread(str(path), _REDUCED_FLAGS[reduction])
+    """BGR uint8 image (decoded at 1/reduction size, EXIF orientation ignored); a clear error when unreadable or not
+    2:1 equirectangular. Does not detect truncation: `image_size` (which `Dataset.load_image` runs first) does."""
+    image = cv2.imread(str(path), _REDUCED_FLAGS[reduction] | cv2.IMREAD_IGNORE_ORIENTATION)
     if image is None:
         raise DatasetError(f"cannot read image {path} (missing, corrupt or not an image)")
-    h, w = image.shape[:2]
-    if w != 2 * h:
-        raise DatasetError(f"image {path} is {w}x{h}; an equirectangular panorama must be twice as wide as high")
+    _check_two_to_one(path, image.shape[1], image.shape[0])
     return image
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header (no full decode), validated as 2:1."""
+    """(width, height) from the file header, validated as a complete JPEG or PNG file and 2:1."""
+    data = _read_bytes(path, "image")
     try:
-        with PIL.Image.open(path) as im:
+        with PIL.Image.open(io.BytesIO(data)) as im:
             w, h = im.size
-    except (OSError, PIL.UnidentifiedImageError):
-        raise DatasetError(f"cannot read image {path} (missing, corrupt or not an image)") from None
+            _check_complete(path, im, data)  # first: PNG's verify() must come directly after open
+            if im.format in _JPEG_FORMATS:  # (verify() leaves a PNG unusable, but its orientation is moot too)
+                _log_orientation(path, im)
+    except (OSError, PIL.Image.DecompressionBombError):  # UnidentifiedImageError is an OSError
+        raise DatasetError(f"cannot read image {path}: not a JPEG or PNG image, or its header is corrupt") from None
+    _check_two_to_one(path, w, h)
+    return w, h
+
+
+def _check_complete(path: Path, im: PIL.Image.Image, data: bytes) -> None:
+    if im.format in _JPEG_FORMATS:
+        if _jpeg_end(data) is None:
+            raise DatasetError(f"cannot read image {path}: truncated or corrupt JPEG (its data ends before the "
+                               f"end-of-image marker)")
+    elif im.format == "PNG":
+        try:
+            im.verify()  # CRC of every chunk up to IEND, without decompressing
+        except (OSError, SyntaxError, ValueError, EOFError) as e:
+            raise DatasetError(f"cannot read image {path}: truncated or corrupt PNG ({_reason(e)})") from None
+    else:
+        raise DatasetError(f"cannot read image {path}: a {im.format} file; expected JPEG or PNG")
+
+
+def _check_two_to_one(path: Path, w: int, h: int) -> None:
     if w != 2 * h:
         raise DatasetError(f"image {path} is {w}x{h}; an equirectangular panorama must be twice as wide as high")
-    return w, h
+
+
+def _log_orientation(path: Path, im: PIL.Image.Image) -> None:
+    try:
+        orientation = im.getexif().get(0x0112)
+    except Exception:  # noqa: BLE001 — a malformed EXIF block only loses this note; the pixels are read without it
+        return
+    if orientation not in (None, 1):
+        log.warning("%s: EXIF orientation %s ignored; the stored pixels are used as the panorama", path, orientation)
+
+
+# A marker ending entropy-coded data: 0xFF followed by anything but a stuffed 0x00, a restart marker or fill 0xFF.
+_SCAN_END = re.compile(rb"\xff[^\x00\xd0-\xd7\xff]")
+_STANDALONE_MARKERS = {0x01, *range(0xD0, 0xD8)}  # TEM and RSTn carry no length
+
+
+def _jpeg_end(data: bytes) -> int | None:
+    """Offset just past the EOI marker ending the primary image of a JPEG file, None when the marker structure
+    breaks off before it (truncated or corrupt file). Bytes after it (padding, trailers) are not looked at."""
+    if data[:2] != b"\xff\xd8":
+        return None
+    pos = 2
+    while pos + 1 < len(data):
+        if data[pos] != 0xFF:
+            return None
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte before a marker
+            pos += 1
+        elif marker == 0xD9:
+            return pos + 2
+        elif marker in _STANDALONE_MARKERS:
+            pos += 2
+        else:
+            pos = _skip_segment(data, pos, marker)
+            if pos is None:
+                return None
+    return None
+
+
+def _skip_segment(data: bytes, pos: int, marker: int) -> int | None:
+    """Offset after the segment at `pos` (and after the entropy-coded data following a start of scan)."""
+    if pos + 4 > len(data):
+        return None
+    end = pos + 2 + int.from_bytes(data[pos + 2:pos + 4], "big")
+    if end < pos + 4 or end > len(data):
+        return None
+    if marker != 0xDA:
+        return end
+    scan_end = _SCAN_END.search(data, end)
+    return scan_end.start() if scan_end else None

@@ -1,125 +1,504 @@
-"""The workspace of one dataset: every output path, stage manifests and atomic stage commits.
+"""The workspace of one dataset: the one owner of every file fullview reads or writes there.
 
-Layout::
+Layout (``FILES`` is the single table of names; nothing else in fullview spells a workspace path)::
 
     <workspace>/<dataset name>/
-        <stage>/manifest.json      fingerprint, params, inputs, outputs, summary (written last)
-        features/<image stem>.npz  per-image features
-        matches/matches.npz        raw matches of every pair
-        filter/inliers.npz         F and epipolar inliers of every pair
-        epipoles/epipoles.npz      relative poses of every pair
+        .lock, .commit.lock                  run lock and commit lock (see Guarantees in the README)
+        <folder>/manifest.json               fingerprint, params, inputs, outputs (size + sha256), summary; last
+        features/<stem>.npz                  per-image features
+        matches/matches.npz                  raw matches of every pair
+        filter/inliers.npz                   F and epipolar inliers of every pair
+        epipoles/epipoles.npz                relative poses of every pair
         registration/registration.npz, registration.json
-        triangulation/sparse.npz, sparse.ply, colmap/{cameras,images,points3D}.txt
+        triangulation/sparse.npz, sparse.ply, summary.json, colmap/{cameras,images,points3D,...}.txt
         densify/dense.ply, dense_preview.png, summary.json, depth/<stem>.npz, depth/<stem>.png
-        colmap_check/check.json, check.md, faces/   (fullview colmap-check)
-        colmap_spherical/model/                       (fullview compare: cached COLMAP reference)
-        compare/colmap.json, colmap.md, top_view.png  (fullview compare)
-        eval/metrics.json
+        eval/metrics.json                                    (fullview eval)
+        colmap_<render type>/model/                          (fullview compare: cached COLMAP reference)
+        compare_<render type>/colmap.json, colmap.md, top_view.png   (fullview compare)
+        colmap_check/check.json, check.md, database.db, faces/       (fullview colmap-check)
+        export_<format>/...                                  (fullview export)
 
-A stage runs inside a temporary folder beside its final one; only a finished run replaces the previous folder, so an
-interrupted run leaves the last good artifacts (and their manifest) in place.
+Reading goes through `Workspace` (``load_*``); writing only through a `StageWriter` (``save_*``), which exists only
+inside `Workspace.transaction` and is bound to that run's temporary folder: no code path can write into a live
+folder. A transaction commits by swapping its folder in, under the commit lock, once its manifest is written.
 """
 
 from __future__ import annotations
 
+import errno
+import fcntl
+import hashlib
 import json
+import logging
+import os
 import shutil
 import tempfile
+import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
-from fullview.io.artifacts import save_json
+import numpy as np
+
+from fullview.io.render import save_png
+from fullview.io.artifacts import (ArtifactError, apply_umask, load_npz, load_ply, save_bytes, save_json, save_npz,
+                                   save_ply, save_text)
+from fullview.sfm.camera import pixels_to_bearings
+
+log = logging.getLogger(__name__)
+
+# Every file of a workspace: artifact -> (folder, name pattern). Patterns take `stem`, `render_type`, `format`, ...
+FILES: dict[str, tuple[str, str]] = {
+    "manifest": ("{folder}", "manifest.json"),
+    "features": ("features", "{stem}.npz"),
+    "matches": ("matches", "matches.npz"),
+    "inliers": ("filter", "inliers.npz"),
+    "epipoles": ("epipoles", "epipoles.npz"),
+    "registration": ("registration", "registration.npz"),
+    "registration_report": ("registration", "registration.json"),
+    "sparse": ("triangulation", "sparse.npz"),
+    "sparse_cloud": ("triangulation", "sparse.ply"),
+    "sparse_summary": ("triangulation", "summary.json"),
+    "sparse_colmap": ("triangulation", "colmap"),
+    "depth": ("densify", "depth/{stem}.npz"),
+    "depth_image": ("densify", "depth/{stem}.png"),
+    "dense_cloud": ("densify", "dense.ply"),
+    "dense_preview": ("densify", "dense_preview.png"),
+    "dense_summary": ("densify", "summary.json"),
+    "eval_metrics": ("eval", "metrics.json"),
+    "colmap_reference": ("colmap_{render_type}", "model"),
+    "colmap_reference_images": ("colmap_{render_type}", "panoramas"),
+    "compare_report": ("compare_{render_type}", "colmap.json"),
+    "compare_markdown": ("compare_{render_type}", "colmap.md"),
+    "compare_top_view": ("compare_{render_type}", "top_view.png"),
+    "check_report": ("colmap_check", "check.json"),
+    "check_markdown": ("colmap_check", "check.md"),
+    "check_database": ("colmap_check", "database.db"),
+    "check_face": ("colmap_check", "faces/{face}.png"),
+    "export_dir": ("export_{format}", ""),
+}
+
+FEATURES_VERSION = 1
+PAIRS_VERSION = 1
+EPIPOLES_VERSION = 1
+REGISTRATION_VERSION = 1
+SPARSE_VERSION = 1
+DEPTH_VERSION = 1  # range (H, W) float32 (NaN invalid), valid (H, W) bool
+FEATURE_KEYS = ("pixels", "bearings", "descriptors", "scales", "colors", "image_size")
+POSE_KEYS = ("image_names", "registered", "R_cam_from_world", "t_cam_from_world", "centers")
+HAND_COLOR = (255, 0, 0)  # hand points are drawn red in the sparse cloud
+MANIFEST_KEYS = {"fingerprint": str, "upstream": dict, "outputs": dict}
 
 
+class WorkspaceBusy(ArtifactError):
+    """Another process holds the workspace's run lock."""
+
+
+@dataclass(kw_only=True)
+class PairData:
+    pairs: list[tuple[int, int]]  # image index pairs (i < j)
+    matches: list[np.ndarray]  # per pair (M, 2) feature indices (extended index space, see load_observations)
+    extra: dict[str, np.ndarray]  # further per-pair arrays (P, ...)
+
+
+def folder_of(artifact: str, **fields) -> str:
+    return FILES[artifact][0].format(**fields)
+
+
+def _relative(artifact: str, **fields) -> str:
+    return FILES[artifact][1].format(**fields)
+
+
+def _stem(name: str) -> str:
+    return Path(name).stem
+
+
+# ---------------------------------------------------------------------------------------------------- reading
 class Workspace:
-    """All paths of one dataset's outputs."""
+    """Read access to one dataset's artifacts, the locks, and the transactions that write them."""
 
     def __init__(self, root: Path, dataset_name: str):
         self.root = Path(root) / dataset_name
+        self._lock_depth = 0
+        self._lock_fd: int | None = None
 
-    def stage_dir(self, stage: str) -> Path:
-        return self.root / stage
+    def folder(self, name: str) -> Path:
+        return self.root / name
 
-    def manifest_path(self, stage: str) -> Path:
-        return self.stage_dir(stage) / "manifest.json"
+    def path(self, artifact: str, **fields) -> Path:
+        """The live path of an artifact (for reading; writers get theirs from a StageWriter)."""
+        return self.root / folder_of(artifact, **fields) / _relative(artifact, **fields)
 
-    def read_manifest(self, stage: str) -> dict | None:
-        path = self.manifest_path(stage)
+    # ---- manifests and verification
+    def manifest(self, folder: str) -> tuple[dict | None, str | None]:
+        """(manifest, problem): (None, None) when never run; (None, reason) when unreadable or malformed."""
+        path = self.path("manifest", folder=folder)
+        if not path.exists():
+            return None, None
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            return None, f"{path}: unreadable manifest ({type(e).__name__})"
+        if not isinstance(data, dict):
+            return None, f"{path}: malformed manifest (not a mapping)"
+        for key, kind in MANIFEST_KEYS.items():
+            if not isinstance(data.get(key), kind):
+                return None, f"{path}: malformed manifest (no valid {key!r})"
+        if not all(isinstance(v, dict) and isinstance(v.get("size"), int) and isinstance(v.get("sha256"), str)
+                   for v in data["outputs"].values()):
+            return None, f"{path}: malformed manifest (bad 'outputs' entry)"
+        return data, None
+
+    def read_manifest(self, folder: str) -> dict | None:
+        """The folder's manifest, or None when it is missing or malformed."""
+        return self.manifest(folder)[0]
+
+    def verify(self, folder: str, manifest: dict, *, deep: bool) -> str | None:
+        """None when every output the manifest lists is on disk with its size (and, if `deep`, its sha256);
+        otherwise the first problem, naming the file."""
+        base = self.folder(folder)
+        for rel, expected in manifest["outputs"].items():
+            path = base / rel
+            try:
+                size = path.stat().st_size
+            except OSError:
+                return f"{path} is missing"
+            if size != expected["size"]:
+                return f"{path} has {size} bytes, its stage wrote {expected['size']}"
+            if deep and file_sha256(path) != expected["sha256"]:
+                return f"{path} was modified after its stage wrote it"
+        return None
+
+    # ---- typed readers, one per artifact
+    def load_features(self, image_name: str) -> dict[str, np.ndarray]:
+        return load_npz(self.path("features", stem=_stem(image_name)), FEATURES_VERSION, FEATURE_KEYS)
+
+    def load_matches(self) -> PairData:
+        return _load_pair_data(self.path("matches"))
+
+    def load_inliers(self) -> PairData:
+        return _load_pair_data(self.path("inliers"))
+
+    def load_epipoles(self) -> dict[str, np.ndarray]:
+        return load_npz(self.path("epipoles"), EPIPOLES_VERSION,
+                        ("pairs", "R_j_from_i", "t_j_from_i", "e_i", "e_j", "num_inliers", "valid"))
+
+    def load_registration(self) -> dict[str, np.ndarray]:
+        return load_npz(self.path("registration"), REGISTRATION_VERSION, POSE_KEYS + ("pair_inlier_mask",))
+
+    def load_sparse(self) -> dict[str, np.ndarray]:
+        return load_npz(self.path("sparse"), SPARSE_VERSION,
+                        POSE_KEYS + ("points", "colors", "track_ids", "image_ids", "feature_ids", "obs_error_rad"))
+
+    def load_depth(self, image_name: str) -> dict[str, np.ndarray] | None:
+        """A panorama's range map (``range``, ``valid``), or None if densify gave it none."""
+        path = self.path("depth", stem=_stem(image_name))
+        return load_npz(path, DEPTH_VERSION, ("range", "valid")) if path.exists() else None
+
+    def load_dense_cloud(self) -> dict[str, np.ndarray] | None:
+        """Columns of the fused cloud (x, y, z, nx, ny, nz, red, green, blue), or None when there is none."""
+        path = self.path("dense_cloud")
+        return load_ply(path) if path.exists() else None
+
+    def load_json(self, artifact: str, **fields) -> dict | None:
+        path = self.path(artifact, **fields)
         if not path.exists():
             return None
         try:
             return json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            return None  # unreadable manifest: the stage counts as missing
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise ArtifactError(f"{path}: corrupt ({type(e).__name__}); rerun its stage") from None
 
-    # ---- artifact paths (the stage folder is passed explicitly while a stage runs in its temp folder)
-    def features_path(self, image_name: str, stage_dir: Path | None = None) -> Path:
-        return (stage_dir or self.stage_dir("features")) / f"{Path(image_name).stem}.npz"
+    def load_observations(self, dataset) -> list[dict[str, np.ndarray]]:
+        """Per image: SIFT features followed by the image's hand observations (the extended feature index space).
 
-    def matches_path(self, stage_dir: Path | None = None) -> Path:
-        return (stage_dir or self.stage_dir("matches")) / "matches.npz"
+        Feature index k < num_sift refers to SIFT feature k; k >= num_sift to hand observation k - num_sift.
+        """
+        hand = dataset.hand_observations
+        out = []
+        for name in dataset.image_names:
+            feats = self.load_features(name)
+            w, h = (int(v) for v in feats["image_size"])
+            _, hand_px = hand[name]
+            out.append({
+                "pixels": np.concatenate([feats["pixels"], hand_px]),
+                "bearings": np.concatenate([feats["bearings"], pixels_to_bearings(hand_px, w, h).reshape(-1, 3)]),
+                "colors": np.concatenate([feats["colors"], np.tile(np.uint8(HAND_COLOR), (len(hand_px), 1))]),
+                "num_sift": np.int64(len(feats["pixels"])),
+                "image_size": feats["image_size"],
+            })
+        return out
 
-    def inliers_path(self, stage_dir: Path | None = None) -> Path:
-        return (stage_dir or self.stage_dir("filter")) / "inliers.npz"
+    def load_poses(self) -> tuple[dict[str, np.ndarray], str]:
+        """The most refined poses: bundle-adjusted if triangulation ran on the current registration."""
+        tri, reg = self.read_manifest("triangulation"), self.read_manifest("registration")
+        if tri and reg and tri["upstream"].get("registration") == reg["fingerprint"]:
+            return load_npz(self.path("sparse"), SPARSE_VERSION, POSE_KEYS), "triangulation"
+        if reg:
+            return load_npz(self.path("registration"), REGISTRATION_VERSION, POSE_KEYS), "registration"
+        raise ArtifactError(f"{self.root}: no registration or triangulation results; run the pipeline first")
 
-    def epipoles_path(self, stage_dir: Path | None = None) -> Path:
-        return (stage_dir or self.stage_dir("epipoles")) / "epipoles.npz"
+    # ---- locks
+    @contextmanager
+    def locked(self, *, wait: bool = False, command: str = "fullview") -> Iterator[None]:
+        """The run lock (an OS file lock, released when the process dies); re-entrant within one process.
 
-    def registration_path(self, stage_dir: Path | None = None) -> Path:
-        return (stage_dir or self.stage_dir("registration")) / "registration.npz"
+        Raises WorkspaceBusy naming the holder unless `wait`."""
+        if self._lock_depth:
+            self._lock_depth += 1
+            try:
+                yield
+            finally:
+                self._lock_depth -= 1
+            return
+        make_dirs(self.root)
+        fd = os.open(self.root / ".lock", os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            _acquire(fd, self.root, wait)
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, json.dumps({"pid": os.getpid(), "command": command,
+                                      "since": time.strftime("%Y-%m-%d %H:%M:%S")}).encode(), 0)
+            self._lock_fd, self._lock_depth = fd, 1
+            self._clean_leftovers()
+            yield
+        finally:
+            self._lock_depth, self._lock_fd = 0, None
+            os.close(fd)  # closing releases the lock
 
-    def sparse_path(self, stage_dir: Path | None = None) -> Path:
-        return (stage_dir or self.stage_dir("triangulation")) / "sparse.npz"
-
-    def colmap_dir(self, stage_dir: Path | None = None) -> Path:
-        return (stage_dir or self.stage_dir("triangulation")) / "colmap"
-
-    def dense_ply_path(self, stage_dir: Path | None = None) -> Path:
-        return (stage_dir or self.stage_dir("densify")) / "dense.ply"
-
-    def depth_dir(self, stage_dir: Path | None = None) -> Path:
-        return (stage_dir or self.stage_dir("densify")) / "depth"
-
-    def eval_path(self) -> Path:
-        return self.root / "eval" / "metrics.json"
+    @property
+    def is_locked(self) -> bool:
+        return self._lock_depth > 0
 
     @contextmanager
-    def stage_transaction(self, stage: str) -> Iterator[Path]:
-        """A fresh temporary folder for a stage run; swapped in for the old folder only on success."""
-        self.root.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{stage}.running.", dir=self.root))
-        try:
-            yield tmp
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        final = self.stage_dir(stage)
-        old = None
-        try:
-            if final.exists():
-                old = Path(tempfile.mkdtemp(prefix=f".{stage}.old.", dir=self.root))
-                final.rename(old / stage)
-            tmp.rename(final)
-        except BaseException:
-            if old is not None and not final.exists():
-                (old / stage).rename(final)  # put the previous good folder back
-            raise
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-
-    def write_manifest(self, stage_dir: Path, manifest: dict) -> None:
-        save_json(stage_dir / "manifest.json", manifest)
-
-    def clean_leftovers(self) -> None:
-        """Remove temp folders of runs killed before they could clean up; restore a previous folder whose swap
-        was cut short (its final folder is missing)."""
-        if not self.root.exists():
+    def reading(self) -> Iterator[None]:
+        """Shared commit lock: no stage is swapped in while a read-only command reads the workspace."""
+        fd = _open_for_shared_lock(self.root / ".commit.lock")
+        if fd is None:
+            yield
             return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH)
+            yield
+        finally:
+            os.close(fd)
+
+    # ---- writing
+    @contextmanager
+    def transaction(self, folder: str) -> Iterator["StageWriter"]:
+        """A writer bound to a fresh temporary folder; swapped in for `folder` only when the body finishes and the
+        writer's manifest is written. Requires the run lock."""
+        if not self.is_locked:
+            raise RuntimeError(f"{self.root}: writing {folder} needs the workspace lock")
+        with folder_transaction(self.folder(folder), commit_lock=self._commit_lock) as writer:
+            yield writer
+
+    @contextmanager
+    def _commit_lock(self) -> Iterator[None]:
+        fd = os.open(self.root / ".commit.lock", os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            yield
+        finally:
+            os.close(fd)
+
+    def _clean_leftovers(self) -> None:
+        """Under the lock only: remove temp folders of killed runs; restore a folder whose swap was cut short."""
         for p in self.root.glob(".*.old.*"):
             for saved in p.iterdir():
-                if not self.stage_dir(saved.name).exists():
-                    saved.rename(self.stage_dir(saved.name))
+                if not self.folder(saved.name).exists():
+                    saved.rename(self.folder(saved.name))
             shutil.rmtree(p, ignore_errors=True)
         for p in self.root.glob(".*.running.*"):
             shutil.rmtree(p, ignore_errors=True)
+
+
+# ---------------------------------------------------------------------------------------------------- writing
+class StageWriter:
+    """Writes the artifacts of one folder (stage or command output) into its transaction's temporary folder."""
+
+    def __init__(self, folder: str, directory: Path):
+        self.folder, self.dir, self.committed = folder, Path(directory), False
+
+    def path(self, artifact: str, **fields) -> Path:
+        """Where `artifact` goes in this transaction; an artifact of another folder is refused."""
+        owner = folder_of(artifact, **fields)
+        if owner != self.folder:
+            raise RuntimeError(f"a {self.folder} transaction cannot write {artifact} (it belongs to {owner})")
+        return self.dir / _relative(artifact, **fields)
+
+    def save_features(self, image_name: str, **arrays: np.ndarray) -> Path:
+        missing = [k for k in FEATURE_KEYS if k not in arrays]
+        if missing:
+            raise ValueError(f"features of {image_name} lack {missing}")
+        return save_npz(self.path("features", stem=_stem(image_name)), FEATURES_VERSION, **arrays)
+
+    def save_matches(self, pairs, matches) -> Path:
+        return _save_pair_data(self.path("matches"), pairs, matches)
+
+    def save_inliers(self, pairs, matches, **per_pair: np.ndarray) -> Path:
+        return _save_pair_data(self.path("inliers"), pairs, matches, **per_pair)
+
+    def save_epipoles(self, **arrays: np.ndarray) -> Path:
+        return save_npz(self.path("epipoles"), EPIPOLES_VERSION, **arrays)
+
+    def save_registration(self, *, report: dict, **poses) -> None:
+        _save_poses(self.path("registration"), REGISTRATION_VERSION, **poses)
+        save_json(self.path("registration_report"), report)
+
+    def save_sparse(self, *, points, colors, summary: dict, **poses_and_tracks) -> None:
+        _save_poses(self.path("sparse"), SPARSE_VERSION, points=points, colors=colors, **poses_and_tracks)
+        save_ply(self.path("sparse_cloud"), points, colors)
+        save_json(self.path("sparse_summary"), summary)
+
+    def sparse_colmap_dir(self) -> Path:
+        """Folder for the COLMAP text model of the sparse reconstruction (written by io.colmap)."""
+        return self.path("sparse_colmap")
+
+    def save_depth(self, image_name: str, rng: np.ndarray, valid: np.ndarray, picture: np.ndarray) -> None:
+        """A panorama's range map and its colour-mapped picture (BGR uint8)."""
+        save_npz(self.path("depth", stem=_stem(image_name)), DEPTH_VERSION, range=rng, valid=valid)
+        save_png(self.path("depth_image", stem=_stem(image_name)), picture)
+
+    def save_dense(self, *, points, colors, normals, summary: dict) -> None:
+        save_ply(self.path("dense_cloud"), points, colors, normals)
+        save_json(self.path("dense_summary"), summary)
+
+    def save_json(self, artifact: str, obj, **fields) -> Path:
+        return save_json(self.path(artifact, **fields), obj)
+
+    def save_text(self, artifact: str, text: str, **fields) -> Path:
+        return save_text(self.path(artifact, **fields), text)
+
+    def save_bytes(self, artifact: str, data: bytes, **fields) -> Path:
+        return save_bytes(self.path(artifact, **fields), data)
+
+    def commit_manifest(self, record: dict) -> dict:
+        """Write manifest.json (the record plus size and sha256 of every output); the transaction may commit."""
+        outputs = {}
+        for p in sorted(self.dir.rglob("*")):
+            if p.is_file() and not p.is_symlink() and p.name != "manifest.json":
+                outputs[str(p.relative_to(self.dir))] = {"size": p.stat().st_size, "sha256": file_sha256(p)}
+        manifest = {**record, "outputs": outputs}
+        save_json(self.dir / "manifest.json", manifest)
+        self.committed = True
+        return manifest
+
+
+# ---------------------------------------------------------------------------------------------------- helpers
+@contextmanager
+def folder_transaction(final: Path, commit_lock=None) -> Iterator[StageWriter]:
+    """Write a folder's new content beside it and swap it in only when complete (manifest written); used for
+    workspace folders (under the run lock) and for export folders outside any workspace."""
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.running.", dir=final.parent))
+    apply_umask(tmp, directory=True)
+    writer = StageWriter(final.name, tmp)
+    try:
+        yield writer
+        if not writer.committed:
+            raise RuntimeError(f"{final}: the transaction ended without a manifest")
+        if commit_lock is None:
+            swap_in(tmp, final)
+        else:
+            with commit_lock():
+                swap_in(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def make_dirs(path: Path) -> None:
+    """mkdir -p honouring the umask; a clear error when a part of the path is a file."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ArtifactError(f"{path}: exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise ArtifactError(f"{path}: a part of this path is a file, not a folder") from None
+
+
+def swap_in(tmp: Path, final: Path) -> None:
+    """Replace `final` by `tmp` (both folders on one filesystem); an interruption leaves the old folder in place
+    or in a `.<name>.old.*` folder that the next locked run restores."""
+    old = None
+    try:
+        if final.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{final.name}.old.", dir=final.parent))
+            final.rename(old / final.name)
+        tmp.rename(final)
+    except BaseException:
+        if old is not None and not final.exists():
+            (old / final.name).rename(final)  # put the previous good folder back
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _acquire(fd: int, root: Path, wait: bool) -> None:
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return
+    except OSError as e:
+        if e.errno not in (errno.EAGAIN, errno.EACCES):
+            raise
+    holder = _lock_holder(root)
+    if not wait:
+        raise WorkspaceBusy(f"{root} is in use by {holder}; wait for it to finish or pass --wait")
+    log.info("waiting for %s to release %s", holder, root)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+
+
+def _lock_holder(root: Path) -> str:
+    try:
+        info = json.loads((root / ".lock").read_text())
+        return f"pid {info['pid']} ({info['command']}, since {info['since']})"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "another process"
+
+
+def _open_for_shared_lock(path: Path) -> int | None:
+    """A descriptor to take a shared lock on; None when the workspace does not exist or cannot hold the file
+    (a read-only workspace has no writer to wait for)."""
+    if not path.parent.is_dir():
+        return None
+    try:
+        return os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError:
+        try:
+            return os.open(path, os.O_RDONLY)
+        except OSError:
+            return None
+
+
+def _save_pair_data(path: Path, pairs, matches, **per_pair: np.ndarray) -> Path:
+    """Per-pair match lists stored flat (CSR): `pairs` (P,2), `offsets` (P+1,), `matches` (M,2), plus (P,...) arrays."""
+    offsets = np.concatenate([[0], np.cumsum([len(m) for m in matches])]).astype(np.int64)
+    flat = np.concatenate(matches).astype(np.int64) if len(matches) else np.zeros((0, 2), np.int64)
+    return save_npz(path, PAIRS_VERSION, pairs=np.asarray(pairs, np.int64).reshape(-1, 2), offsets=offsets,
+                    matches=flat.reshape(-1, 2), **per_pair)
+
+
+def _load_pair_data(path: Path) -> PairData:
+    data = load_npz(path, PAIRS_VERSION, ("pairs", "offsets", "matches"))
+    pairs = [tuple(int(v) for v in p) for p in data.pop("pairs")]
+    offsets, flat = data.pop("offsets"), data.pop("matches")
+    if len(offsets) != len(pairs) + 1 or (len(offsets) and offsets[-1] != len(flat)):
+        raise ArtifactError(f"{path}: inconsistent pair offsets; rerun its stage")
+    return PairData(pairs=pairs, matches=[flat[offsets[k]:offsets[k + 1]] for k in range(len(pairs))], extra=data)
+
+
+def _save_poses(path: Path, version: int, *, image_names: list[str], registered: np.ndarray,
+                R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, **extra: np.ndarray) -> Path:
+    """Camera poses with centres for convenience."""
+    centers = -np.einsum("nba,nb->na", R_cam_from_world, t_cam_from_world)
+    return save_npz(path, version, image_names=np.array(image_names), registered=registered,
+                    R_cam_from_world=R_cam_from_world, t_cam_from_world=t_cam_from_world, centers=centers, **extra)

@@ -17,7 +17,7 @@ import numpy as np
 
 from fullview.sfm.camera import normalize
 from fullview.sfm.tracks import Tracks
-from fullview.sfm.triangulation import filter_tracks, gather_bearings, triangulate_multiview
+from fullview.sfm.triangulation import angular_errors, filter_tracks, gather_bearings, triangulate_multiview
 
 log = logging.getLogger(__name__)
 
@@ -123,8 +123,7 @@ def _attach_one(b, R, C, reg, pairs, R_j_from_i, t_j_from_i, weights, tracks: Tr
     if ok.sum() < min_points:
         return None
     c_b = C[a] + np.median(s[ok]) * direction
-    err = np.arccos(np.clip(np.einsum("ka,ka->k", normalize(X[point_of_track[tracks.track_ids[sel]]] - c_b), u),
-                            -1.0, 1.0))
+    err = angular_errors(u, X[point_of_track[tracks.track_ids[sel]]] - c_b)
     if (err < 4 * max_error_rad).sum() < min_points:
         return None
     return R_b, c_b

@@ -38,7 +38,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
-from fullview.sfm.camera import normalize, skew
+from fullview.sfm.camera import normalize, skew, tangent_basis
 
 log = logging.getLogger(__name__)
 
@@ -100,13 +100,6 @@ class _Problem:
     bearings: np.ndarray  # (K, 3) observed unit bearings
     basis: np.ndarray  # (K, 2, 3) orthonormal tangent basis of each observed bearing
     layout: _Layout  # parameter layout
-
-
-def tangent_basis(z: np.ndarray) -> np.ndarray:
-    """(K, 2, 3) orthonormal rows spanning the plane orthogonal to each unit vector z (K, 3)."""
-    helper = np.where((np.abs(z[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-    e1 = normalize(np.cross(z, helper))
-    return np.stack([e1, np.cross(z, e1)], axis=1)
 
 
 def _so3_coefficients(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

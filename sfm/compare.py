@@ -17,8 +17,11 @@ from itertools import combinations
 
 import numpy as np
 
+from fullview.sfm.camera import camera_up  # re-exported: the `up` of the top view
 from fullview.sfm.metrics import Similarity, pairwise_pose_differences, umeyama
 from fullview.sfm.rotations import rotation_angle_deg
+# re-exported for the model statistics; the one implementation of angular reprojection errors is the triangulation's
+from fullview.sfm.triangulation import reprojection_errors as angular_reprojection_errors
 
 COLLINEAR_RATIO = 1e-3  # second/first singular value of the centred centres below this: treated as collinear
 MAX_PLANE_TILT_DEG = 45.0  # top view: a PCA plane of the centres tilted more than this from `up` is not used
@@ -120,15 +123,6 @@ def aligned_differences(sim: Similarity, R_src, c_src, R_dst, c_dst, mask) -> di
 
 
 # --------------------------------------------------------------------------------------------- model statistics
-def angular_reprojection_errors(R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, points: np.ndarray,
-                                obs_image: np.ndarray, obs_point: np.ndarray, obs_bearings: np.ndarray) -> np.ndarray:
-    """(O,) angle (radians) between each observed bearing and the direction of its 3-D point in that camera."""
-    x = np.einsum("nab,nb->na", R_cam_from_world[obs_image], points[obs_point]) + t_cam_from_world[obs_image]
-    cos = np.einsum("na,na->n", x, obs_bearings) / np.maximum(
-        np.linalg.norm(x, axis=1) * np.linalg.norm(obs_bearings, axis=1), 1e-300)
-    return np.arccos(np.clip(cos, -1.0, 1.0))
-
-
 def model_statistics(*, registered: np.ndarray, points: np.ndarray, obs_image: np.ndarray, obs_point: np.ndarray,
                      errors_rad: np.ndarray) -> dict:
     """Registered images, 3-D points, mean track length and the median angular reprojection error (deg)."""
@@ -139,13 +133,6 @@ def model_statistics(*, registered: np.ndarray, points: np.ndarray, obs_image: n
 
 
 # --------------------------------------------------------------------------------------------- top view
-def camera_up(R_cam_from_world: np.ndarray) -> np.ndarray:
-    """Mean world direction of the cameras' up axis (−y in the camera frame), unit length (zero if undefined)."""
-    up = -R_cam_from_world[:, 1, :].sum(0)
-    n = np.linalg.norm(up)
-    return up / n if n > 1e-9 else np.zeros(3)
-
-
 def top_view_basis(centers: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
     """(2, 3) in-plane axes (e1, e2) of the centres' PCA plane, oriented so that e1 × e2 points along `up`.
 

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from fullview.sfm.camera import bearings_to_lonlat, bearings_to_pixels, normalize
+from fullview.sfm.options import FeaturesOptions
 
 log = logging.getLogger(__name__)
 
@@ -40,17 +41,6 @@ OPENCV_SIFT_TO_CONTINUOUS = 0.5 - 0.25
 def face_rotations() -> np.ndarray:
     """(6, 3, 3) R_cam_from_face for the faces in FACE_NAMES order."""
     return np.stack([np.array(_FACE_AXES[n], dtype=np.float64).T for n in FACE_NAMES])
-
-
-@dataclass(kw_only=True)
-class FeatureOptions:
-    face_size: int = 0  # cube face side in pixels; 0 = the panorama's pixels per degree (native_face_size)
-    margin_deg: float = 5.0  # extra field of view on each side of a face's 90°
-    max_features_per_face: int = 1500  # SIFT nfeatures per face (0 = unlimited)
-    contrast_threshold: float = 0.02  # SIFT contrast threshold (OpenCV default 0.04)
-    min_latitude_deg: float = -90.0  # mask: drop features below this latitude (tripod, hand)
-    max_latitude_deg: float = 90.0  # mask: drop features above this latitude
-    root_sift: bool = True  # Hellinger-normalised descriptors (RootSIFT)
 
 
 @dataclass(kw_only=True)
@@ -97,18 +87,18 @@ def render_faces(image: np.ndarray, face_size: int, margin_deg: float) -> tuple[
     return faces, focal
 
 
-def _face_keypoints_to_bearings(points: np.ndarray, face: int, face_size: int, focal: float) -> np.ndarray:
+def face_keypoints_to_bearings(points: np.ndarray, face: int, face_size: int, focal: float) -> np.ndarray:
     rays = np.column_stack([(points - 0.5 * face_size) / focal, np.ones(len(points))])
     return normalize(rays @ face_rotations()[face].T)
 
 
-def _owned_by_face(bearings: np.ndarray, face: int) -> np.ndarray:
+def owned_by_face(bearings: np.ndarray, face: int) -> np.ndarray:
     """True where the face's own 90° square contains the bearing (its axis dominates)."""
     local = bearings @ face_rotations()[face]
     return (local[:, 2] > 0) & (np.abs(local[:, 0]) <= local[:, 2]) & (np.abs(local[:, 1]) <= local[:, 2])
 
 
-def detect_features(image: np.ndarray, options: FeatureOptions) -> Features:
+def detect_features(image: np.ndarray, options: FeaturesOptions) -> Features:
     """SIFT on the cube faces of an equirectangular image (grey or BGR uint8)."""
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     height, width = grey.shape
@@ -121,8 +111,8 @@ def detect_features(image: np.ndarray, options: FeatureOptions) -> Features:
         if not keypoints:
             continue
         pts = np.array([k.pt for k in keypoints], dtype=np.float64)
-        bearings = _face_keypoints_to_bearings(pts + OPENCV_SIFT_TO_CONTINUOUS, f, face_size, focal)
-        keep = _owned_by_face(bearings, f)
+        bearings = face_keypoints_to_bearings(pts + OPENCV_SIFT_TO_CONTINUOUS, f, face_size, focal)
+        keep = owned_by_face(bearings, f)
         sizes = np.array([k.size for k in keypoints], dtype=np.float32)
         parts.append((bearings[keep], desc[keep], sizes[keep], np.full(keep.sum(), f, np.uint8)))
     bearings = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 3))

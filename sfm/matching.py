@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
 
+from fullview.sfm.options import MatchesOptions
 
-@dataclass(kw_only=True)
-class MatchOptions:
-    ratio: float = 0.8  # Lowe's ratio test on descriptor distances
-    mutual: bool = True  # keep only mutual nearest neighbours
-    block_size: int = 4096  # rows per matrix-product block (bounds memory)
+
+BLOCK_ROWS = 4096  # rows per matrix-product block (bounds memory)
 
 
 def pair_list(num_images: int, mode: str = "exhaustive", window: int = 3) -> list[tuple[int, int]]:
@@ -50,14 +47,15 @@ def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int):
     return nn, np.maximum(d2, 0.0), np.maximum(col_min, 0.0)  # float32 rounding can dip below 0
 
 
-def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchOptions) -> np.ndarray:
+def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchesOptions, *,
+                      block_rows: int = BLOCK_ROWS) -> np.ndarray:
     """(M, 2) int array of (feature in i, feature in j) passing the ratio test (and the mutual check), ordered from
     the most distinctive match (smallest ratio) to the least."""
     if len(desc_i) < 2 or len(desc_j) < 2:
         return np.zeros((0, 2), np.int64)
     desc_i = np.ascontiguousarray(desc_i, np.float32)
     desc_j = np.ascontiguousarray(desc_j, np.float32)
-    nn_ij, d_ij, col_min = _nearest_both_ways(desc_i, desc_j, options.block_size)
+    nn_ij, d_ij, col_min = _nearest_both_ways(desc_i, desc_j, block_rows)
     keep = d_ij[:, 0] < (options.ratio**2) * d_ij[:, 1]
     if options.mutual:
         keep &= d_ij[:, 0] <= col_min[nn_ij]

@@ -11,10 +11,12 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+
+from fullview.sfm.options import FilterOptions
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from fullview.sfm.camera import normalize, skew
+from fullview.sfm.camera import normalize, skew, tangent_basis
 
 log = logging.getLogger(__name__)
 
@@ -69,14 +71,14 @@ def _msac_scores(errors: np.ndarray, threshold: float) -> np.ndarray:
 @dataclass(kw_only=True)
 class RansacOptions:
     threshold_rad: float  # inlier threshold on the angular epipolar error
-    max_iterations: int = 5000  # hard cap on hypotheses
+    max_iterations: int = FilterOptions.max_iterations  # hard cap on hypotheses (default from the settings)
     min_iterations: int = 100  # never stop earlier than this
-    confidence: float = 0.9999  # adaptive stopping confidence
+    confidence: float = FilterOptions.confidence  # adaptive stopping confidence (default from the settings)
     batch_size: int = 256  # hypotheses evaluated together (vectorised)
     head_share: float = 0.25  # guided samples draw from this leading share of the (quality-ordered) matches
     local_optimization_steps: int = 4  # iterative re-fits on inliers of each new best model
     refine: bool = True  # final non-linear refinement of R, t on the inliers
-    seed: int = 0  # random seed for sampling
+    seed: int = FilterOptions.seed  # random seed for sampling (default from the settings)
 
 
 @dataclass(kw_only=True)
@@ -183,15 +185,9 @@ def _finish(b_i, b_j, F, threshold, refine, iterations) -> FResult:
 def _f_from_params(R0: np.ndarray, t0: np.ndarray, x: np.ndarray) -> np.ndarray:
     """F = [T]× Rᵀ with R = exp(ω) R0 and T on the sphere around t0 (2 tangent parameters)."""
     R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
-    u, v = _tangent_basis(t0)
+    u, v = tangent_basis(t0[None])[0]
     T = normalize(t0 + x[3] * u + x[4] * v)
     return skew(T) @ R.T
-
-
-def _tangent_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    a = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = normalize(np.cross(d, a))
-    return u, np.cross(d, u)
 
 
 def refine_f(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: float) -> np.ndarray:
@@ -221,7 +217,7 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if s2 < 1e-20:
         if c > 0:
             return np.eye(3)
-        axis, _ = _tangent_basis(a)  # a half turn about any axis orthogonal to a
+        axis = tangent_basis(a[None])[0, 0]  # a half turn about any axis orthogonal to a
         return 2.0 * np.outer(axis, axis) - np.eye(3)
     V = skew(v)
     return np.eye(3) + V + V @ V * (1.0 - c) / s2

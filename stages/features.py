@@ -1,19 +1,17 @@
-"""Stage 1 — SIFT features on cube-map faces of every panorama (pixels, bearings, descriptors, colours)."""
+"""Stage 1 — features: cube-map SIFT per panorama (`fullview.sfm.features`), one npz per image."""
 
 from __future__ import annotations
 
 import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from fullview.io.store import FEATURES_VERSION, save_features
-from fullview.io.dataset import Dataset
-from fullview.io.workspace import Workspace
-from fullview.sfm.features import FeatureOptions, detect_features
+from fullview.io.workspace import FEATURES_VERSION
+from fullview.sfm.features import detect_features
+from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
 
@@ -22,30 +20,27 @@ UPSTREAM: tuple[str, ...] = ()
 INPUTS = ("images",)
 
 
-def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict:
-    options = FeatureOptions(**{k: v for k, v in config.items() if k != "working_width"})
+def run(ctx: StageContext) -> dict:
+    names = ctx.dataset.image_names
     # OpenCV releases the GIL inside SIFT, so two images at a time use both cores.
     with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
-        jobs = pool.map(lambda name: _extract(dataset, name, config["working_width"], options, ws, out_dir),
-                        dataset.image_names)
-        counts = dict(tqdm(jobs, total=len(dataset.image_names), desc="features", unit="image"))
+        counts = dict(tqdm(pool.map(lambda name: _extract(ctx, name), names), total=len(names), desc="features",
+                           unit="image"))
     log.info("features per image: min %d, median %d, max %d", min(counts.values()),
              int(np.median(list(counts.values()))), max(counts.values()))
     return {"images": len(counts), "min_features": min(counts.values()), "per_image": counts}
 
 
-def _extract(dataset: Dataset, name: str, working_width: int, options: FeatureOptions, ws: Workspace,
-             out_dir: Path) -> tuple[str, int]:
+def _extract(ctx: StageContext, name: str) -> tuple[str, int]:
     """Detect and save one image's features; returns (name, count)."""
-    full_w, full_h = dataset.image_sizes[name]
+    full_w, full_h = ctx.dataset.image_sizes[name]
     # Never upsample: a working width above the native width means "native".
-    image = dataset.load_image(name, width=min(working_width or full_w, full_w))
-    feats = detect_features(image, options)
+    image = ctx.dataset.load_image(name, width=min(ctx.options.working_width or full_w, full_w))
+    feats = detect_features(image, ctx.options)
     scale = full_w / image.shape[1]
     colors = sample_colors(image, feats.pixels)  # detection pixels are working-image pixels
-    save_features(ws.features_path(name, out_dir), pixels=feats.pixels * scale, bearings=feats.bearings,
-                  descriptors=feats.descriptors, scales=feats.scales * scale, colors=colors,
-                  image_size=np.array([full_w, full_h]))
+    ctx.out.save_features(name, pixels=feats.pixels * scale, bearings=feats.bearings, descriptors=feats.descriptors,
+                          scales=feats.scales * scale, colors=colors, image_size=np.array([full_w, full_h]))
     return name, len(feats.bearings)
 
 

@@ -1,22 +1,23 @@
 """Stage 3 — geometric verification: F on the sphere, seeded by hand points where a pair has enough of them.
 
 Pairs with hand points follow the report: F from the hand points, SIFT matches near its epipolar circles kept, F
-re-estimated on all inliers. Other pairs use LO-MSAC with angular errors and a non-linear refinement. The stored
-inlier matches live in the extended feature index space (SIFT features, then hand observations; see io.store).
+re-estimated on all inliers. Other pairs use LO-MSAC with angular errors and a non-linear refinement. A pair whose
+inliers a pure rotation explains has no baseline and is dropped. The stored inlier matches live in the extended
+feature index space (SIFT features, then hand observations; see `Workspace.load_observations`).
 """
 
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from fullview.io.dataset import Dataset
-from fullview.io.store import hand_pair_matches, load_observations, load_pair_data, save_pair_data
-from fullview.io.workspace import Workspace
 from fullview.sfm import two_view
+from fullview.sfm.baseline import has_no_baseline
+from fullview.sfm.options import FilterOptions
+from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
 
@@ -25,37 +26,55 @@ UPSTREAM = ("matches",)
 INPUTS = ("hand_points",)
 
 
-def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict:
-    obs = load_observations(ws, dataset)
+def run(ctx: StageContext) -> dict:
+    options: FilterOptions = ctx.options
+    obs = ctx.ws.load_observations(ctx.dataset)
     num_sift = [int(o["num_sift"]) for o in obs]
-    pairs, raw, _ = load_pair_data(ws.matches_path())
-    threshold = np.radians(config["threshold_deg"])
-    inliers, Fs, seeded, num_hand = [], [], [], []
-    for k, (i, j) in enumerate(tqdm(pairs, desc="filter", unit="pair")):
-        hand = hand_pair_matches(dataset, num_sift, i, j) if config["use_hand_points"] else np.zeros((0, 2), int)
-        use_seed = len(hand) >= config["min_hand_points"]
-        F, keep = _verify_pair(obs[i]["bearings"], obs[j]["bearings"], raw[k], hand if use_seed else None,
-                               threshold, config, seed=config["seed"] + k)
-        good = np.concatenate([raw[k][keep], hand]) if len(hand) else raw[k][keep]
-        if len(good) < config["min_inliers"]:
+    raw = ctx.ws.load_matches()
+    threshold = np.radians(options.threshold_deg)
+    inliers, Fs, seeded, num_hand, no_baseline = [], [], [], [], []
+    for k, (i, j) in enumerate(tqdm(raw.pairs, desc="filter", unit="pair")):
+        hand = hand_pair_matches(ctx.dataset, num_sift, i, j) if options.use_hand_points else np.zeros((0, 2), int)
+        use_seed = len(hand) >= options.min_hand_points
+        F, keep = _verify_pair(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], hand if use_seed else None,
+                               threshold, options, seed=options.seed + k)
+        good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
+        flat = len(good) >= options.min_inliers and has_no_baseline(
+            obs[i]["bearings"][good[:, 0]], obs[j]["bearings"][good[:, 1]], threshold)
+        if flat:
+            log.warning("pair %s-%s has no baseline (a rotation explains its matches); skipped",
+                        ctx.dataset.image_names[i], ctx.dataset.image_names[j])
+        if len(good) < options.min_inliers or flat:
             good = good[:0]
         inliers.append(good)
         Fs.append(F)
         seeded.append(use_seed)
         num_hand.append(len(hand))
-    save_pair_data(ws.inliers_path(out_dir), pairs, inliers, F=np.array(Fs).reshape(-1, 3, 3),
-                   num_raw=np.array([len(m) for m in raw]), seeded=np.array(seeded, bool),
-                   num_hand=np.array(num_hand))
+        no_baseline.append(flat)
+    ctx.out.save_inliers(raw.pairs, inliers, F=np.array(Fs).reshape(-1, 3, 3),
+                         num_raw=np.array([len(m) for m in raw.matches]), seeded=np.array(seeded, bool),
+                         num_hand=np.array(num_hand), no_baseline=np.array(no_baseline, bool))
     counts = np.array([len(m) for m in inliers])
-    return {"pairs": len(pairs), "verified_pairs": int((counts > 0).sum()), "seeded_pairs": int(sum(seeded)),
-            "median_inliers": int(np.median(counts)) if len(counts) else 0}
+    names = ctx.dataset.image_names
+    return {"pairs": len(raw.pairs), "verified_pairs": int((counts > 0).sum()), "seeded_pairs": int(sum(seeded)),
+            "median_inliers": int(np.median(counts)) if len(counts) else 0,
+            "no_baseline_pairs": [[names[i], names[j]] for (i, j), f in zip(raw.pairs, no_baseline) if f]}
 
 
-def _verify_pair(bear_i, bear_j, matches, hand, threshold, config, seed):
+def hand_pair_matches(dataset: Dataset, num_sift: list[int], i: int, j: int) -> np.ndarray:
+    """(K, 2) hand correspondences of images i, j in the extended feature index space."""
+    hand = dataset.hand_observations
+    tracks_i, _ = hand[dataset.image_names[i]]
+    tracks_j, _ = hand[dataset.image_names[j]]
+    _, ki, kj = np.intersect1d(tracks_i, tracks_j, assume_unique=True, return_indices=True)
+    return np.column_stack([ki + num_sift[i], kj + num_sift[j]]).astype(np.int64)
+
+
+def _verify_pair(bear_i, bear_j, matches, hand, threshold, options: FilterOptions, seed):
     """F and the inlier mask over `matches` (hand correspondences, when given, seed the estimate)."""
     b_i, b_j = bear_i[matches[:, 0]], bear_j[matches[:, 1]]
-    opts = two_view.RansacOptions(threshold_rad=threshold, max_iterations=config["max_iterations"],
-                                  confidence=config["confidence"], seed=seed)
+    opts = two_view.RansacOptions(threshold_rad=threshold, max_iterations=options.max_iterations,
+                                  confidence=options.confidence, seed=seed)
     try:
         if hand is not None:
             res = two_view.fit_f_seeded(bear_i[hand[:, 0]], bear_j[hand[:, 1]], b_i, b_j, threshold)

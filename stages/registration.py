@@ -3,19 +3,16 @@
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import numpy as np
 
-from fullview.io.artifacts import load_npz, save_json
-from fullview.io.dataset import Dataset
-from fullview.io.store import EPIPOLES_VERSION, REGISTRATION_VERSION, save_poses
-from fullview.io.workspace import Workspace
-from fullview.io.store import load_observations, load_pair_data
+from fullview.io.errors import FullviewError
 from fullview.sfm.attach import attach_cameras
+from fullview.sfm.options import RegistrationOptions
 from fullview.sfm.registration import register, relative_from_absolute
 from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
 from fullview.sfm.tracks import build_tracks
+from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
 
@@ -25,23 +22,30 @@ INPUTS: tuple[str, ...] = ()
 ATTACH_MAX_ERROR_DEG = 1.0  # points used to attach cameras: angular error bound before bundle adjustment
 
 
-def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict:
-    if config["model"] not in ("general", "planar"):
-        raise ValueError(f"registration.model must be 'general' or 'planar', got {config['model']!r}")
-    epi = load_npz(ws.epipoles_path(), EPIPOLES_VERSION, ("pairs", "R_j_from_i", "t_j_from_i", "valid"))
-    usable = epi["valid"] & (epi["num_inliers"] >= config["min_inliers"])
+class NothingToRegister(FullviewError):
+    """No pair of images survived verification, so there is no model to build."""
+
+
+def run(ctx: StageContext) -> dict:
+    options: RegistrationOptions = ctx.options
+    epi = ctx.ws.load_epipoles()
+    usable = epi["valid"] & (epi["num_inliers"] >= options.min_inliers)
+    if not usable.any():
+        raise NothingToRegister(f"{ctx.dataset.root}: no image pair has a usable relative pose (verified pairs with "
+                                f"a baseline and >= registration.min_inliers={options.min_inliers} inliers); "
+                                "nothing to register")
     weights = np.where(usable, epi["num_inliers"], 0).astype(np.float64)
-    names = dataset.image_names
+    names = ctx.dataset.image_names
     reg = register(num_images=len(names), pairs=epi["pairs"], R_j_from_i=epi["R_j_from_i"],
-                   t_j_from_i=epi["t_j_from_i"], weights=weights, model=config["model"], seed=config["seed"],
-                   e_ij=epi["e_i"], e_ji=epi["e_j"], min_weight=config["min_inliers"],
-                   max_rotation_residual_deg=config["max_rotation_residual_deg"],
-                   max_direction_residual_deg=config["max_direction_residual_deg"])
+                   t_j_from_i=epi["t_j_from_i"], weights=weights, model=options.model,
+                   e_ij=epi["e_i"], e_ji=epi["e_j"], min_weight=options.min_inliers,
+                   max_rotation_residual_deg=options.max_rotation_residual_deg,
+                   max_direction_residual_deg=options.max_direction_residual_deg)
     R = np.where(reg.registered[:, None, None], reg.R_cam_from_world, np.eye(3))
     C = np.where(reg.registered[:, None], reg.centers, 0.0)
     registered, attached = reg.registered, []
-    if not registered.all() and (weights > 0).any():
-        result = _attach(dataset, ws, epi, weights, R, C, registered)
+    if not registered.all():
+        result = _attach(ctx, epi, weights, R, C, registered)
         R, C, registered, attached = result.R_cam_from_world, result.centers, result.registered, result.attached
     t = -np.einsum("nab,nb->na", R, C)
     rot_res, dir_res = _pair_residuals(epi, R, t)
@@ -49,26 +53,25 @@ def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict
     pair_ok = reg.pair_inlier_mask.copy()
     touched = (registered & ~reg.registered)[epi["pairs"]].any(axis=1)
     pair_ok[touched] = ((weights > 0) & registered[epi["pairs"][:, 0]] & registered[epi["pairs"][:, 1]]
-                        & (rot_res <= config["max_rotation_residual_deg"])
-                        & (dir_res <= config["max_direction_residual_deg"]))[touched]
-    save_poses(ws.registration_path(out_dir), REGISTRATION_VERSION, image_names=names, registered=registered,
-               R_cam_from_world=R, t_cam_from_world=t, pair_inlier_mask=pair_ok,
-               rotation_residual_deg=rot_res, direction_residual_deg=dir_res)
+                        & (rot_res <= options.max_rotation_residual_deg)
+                        & (dir_res <= options.max_direction_residual_deg))[touched]
     unregistered = [n for n, ok in zip(names, registered) if not ok]
     if unregistered:
         log.warning("could not register %d image(s): %s", len(unregistered), ", ".join(unregistered))
     summary = {"registered": int(registered.sum()), "images": len(names), "unregistered": unregistered,
-               "attached_by_points": [names[k] for k in attached], "model": config["model"],
+               "attached_by_points": [names[k] for k in attached], "model": options.model,
                "inlier_pairs": int(pair_ok.sum()), "epipole_cost": float(reg.epipole_cost)}
-    save_json(out_dir / "registration.json", summary)
+    ctx.out.save_registration(report=summary, image_names=names, registered=registered, R_cam_from_world=R,
+                              t_cam_from_world=t, pair_inlier_mask=pair_ok, rotation_residual_deg=rot_res,
+                              direction_residual_deg=dir_res)
     return summary
 
 
-def _attach(dataset, ws, epi, weights, R, C, registered):
+def _attach(ctx: StageContext, epi, weights, R, C, registered):
     """Place the cameras averaging left out (single-pair links) from their pair and the model's points."""
-    obs = load_observations(ws, dataset)
-    pairs, inliers, _ = load_pair_data(ws.inliers_path())
-    tracks, _ = build_tracks({p: m for p, m, w in zip(pairs, inliers, weights) if w > 0 and len(m)},
+    obs = ctx.ws.load_observations(ctx.dataset)
+    verified = ctx.ws.load_inliers()
+    tracks, _ = build_tracks({p: m for p, m, w in zip(verified.pairs, verified.matches, weights) if w > 0 and len(m)},
                              [len(o["bearings"]) for o in obs])
     return attach_cameras(R_cam_from_world=R, centers=C, registered=registered, pairs=epi["pairs"],
                           R_j_from_i=epi["R_j_from_i"], t_j_from_i=epi["t_j_from_i"], weights=weights,

@@ -1,10 +1,12 @@
 """The cached stage runner: fingerprints decide what reruns, like DVC.
 
-A stage's fingerprint hashes its format version, its config section, the fingerprints its upstream stages *should*
-have now, the dataset inputs it reads (image contents, hand points) and the source of the fullview modules its code
-reaches (so a fix in `sfm/` reruns the stages that use it, and only those). A stage is fresh when its manifest carries
-that fingerprint; otherwise it is stale (with the reason) or missing. Running a stage makes everything downstream of
-it stale through the chained fingerprints, while editing one stage's config never touches the stages before it.
+A stage's fingerprint hashes its format version, its options, the fingerprints its upstream stages *should* have now,
+the dataset inputs it reads (image contents, hand points), the source of the fullview modules its code reaches and
+the versions of the numerical libraries. A stage is fresh when its manifest carries that fingerprint, the upstream
+artifacts on disk are the ones it was built from, and every output it recorded is on disk unchanged (size on every
+check; sha256 before a run consumes it). Anything else is stale, with the reason, or missing.
+
+`run_cached` gives commands (the COLMAP reference run of `fullview compare`) the same cache and transactions.
 """
 
 from __future__ import annotations
@@ -19,25 +21,27 @@ import time
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import Callable
 
 from threadpoolctl import threadpool_limits
 
-from fullview.io.config import STAGE_ORDER
+from fullview.io.config import Config, params_of
 from fullview.io.dataset import Dataset
-from fullview.io.workspace import Workspace
+from fullview.io.errors import FullviewError
+from fullview.io.workspace import StageWriter, Workspace
+from fullview.stages import PIPELINE
+from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
 
-PIPELINE_STAGES = STAGE_ORDER
 
-
-class RunnerError(RuntimeError):
+class RunnerError(FullviewError, RuntimeError):
     """The requested run cannot proceed (unknown stage, stale upstream with --only, ...)."""
 
 
 def stage_module(name: str):
-    if name not in PIPELINE_STAGES:
-        raise RunnerError(f"unknown stage {name!r} (stages: {', '.join(PIPELINE_STAGES)})")
+    if name not in PIPELINE:
+        raise RunnerError(f"unknown stage {name!r} (stages: {', '.join(PIPELINE)})")
     return importlib.import_module(f"fullview.stages.{name}")
 
 
@@ -80,10 +84,43 @@ class StageStatus:
     reasons: list[str]  # why it is stale or missing
 
 
+def cached_state(ws: Workspace, folder: str, fingerprint: str, *, deep: bool) -> tuple[str, list[str], dict | None]:
+    """(state, reasons, manifest) of a cached folder against the fingerprint it should have."""
+    manifest, problem = ws.manifest(folder)
+    if problem:
+        return "stale", [problem], None
+    if manifest is None:
+        return "missing", ["never run"], None
+    if manifest["fingerprint"] != fingerprint:
+        return "stale", ["fingerprint differs"], manifest
+    damaged = ws.verify(folder, manifest, deep=deep)
+    if damaged:
+        return "stale", [damaged], manifest
+    return "fresh", [], manifest
+
+
+def run_cached(ws: Workspace, folder: str, record: dict, produce: Callable[[StageWriter], dict], *,
+               force: bool = False) -> dict:
+    """The manifest of `folder`, produced by `produce(writer) -> summary` unless a verified run of the same record
+    is on disk. Needs the run lock."""
+    fingerprint = record_fingerprint(record)
+    state, reasons, manifest = cached_state(ws, folder, fingerprint, deep=True)
+    if state == "fresh" and not force:
+        log.info("%s fresh, reusing %s", folder, ws.folder(folder))
+        return manifest
+    log.info("%s %s (%s): running", folder, state, "; ".join(reasons) or "forced")
+    t0 = time.perf_counter()
+    with ws.transaction(folder) as out:
+        summary = produce(out)
+        manifest = out.commit_manifest({**record, "fingerprint": fingerprint, "upstream": record.get("upstream", {}),
+                                        "wall_time_s": round(time.perf_counter() - t0, 3), "summary": summary})
+    return manifest
+
+
 class Pipeline:
     """Fingerprints, status and execution of the stages for one dataset and config."""
 
-    def __init__(self, dataset: Dataset, workspace: Workspace, config: dict):
+    def __init__(self, dataset: Dataset, workspace: Workspace, config: Config):
         self.dataset, self.ws, self.config = dataset, workspace, config
         self._fingerprints: dict[str, str] = {}
 
@@ -95,17 +132,14 @@ class Pipeline:
             "hand_points": {"hand_points.yaml": self.dataset.hand_points_hash()},
         }
 
-    def inputs_of(self, stage: str) -> dict:
-        return {kind: self._input_hashes[kind] for kind in stage_module(stage).INPUTS}
-
     def fingerprint_record(self, stage: str) -> dict:
         module = stage_module(stage)
         return {
             "stage": stage,
             "version": module.VERSION,
-            "params": self.config[stage],
+            "params": params_of(self.config[stage]),
             "upstream": {u: self.fingerprint(u) for u in module.UPSTREAM},
-            "inputs": self.inputs_of(stage),
+            "inputs": {kind: self._input_hashes[kind] for kind in module.INPUTS},
             "code": code_hashes(module),
             "libraries": LIBRARY_VERSIONS,
         }
@@ -117,41 +151,42 @@ class Pipeline:
         return self._fingerprints[stage]
 
     # ---------------------------------------------------------------- status
-    def status(self, stage: str) -> StageStatus:
-        manifest = self.ws.read_manifest(stage)
-        if manifest is None:
-            return StageStatus(name=stage, state="missing", reasons=["never run"])
-        if manifest.get("fingerprint") == self.fingerprint(stage):
-            # Also the artifacts it was built from must still be the ones on disk (an upstream stage may have been
+    def status(self, stage: str, *, deep: bool = False) -> StageStatus:
+        """Fresh, stale or missing; `deep` checks output hashes, not only sizes."""
+        state, reasons, manifest = cached_state(self.ws, stage, self.fingerprint(stage), deep=deep)
+        if state == "stale" and manifest is not None and reasons == ["fingerprint differs"]:
+            reasons = self._stale_reasons(stage, manifest)
+        if state == "fresh":
+            # The artifacts it was built from must still be the ones on disk (an upstream stage may have been
             # rerun alone with other settings since).
             rebuilt = [u for u in stage_module(stage).UPSTREAM
                        if (self.ws.read_manifest(u) or {}).get("fingerprint") != manifest["upstream"].get(u)]
-            if not rebuilt:
-                return StageStatus(name=stage, state="fresh", reasons=[])
-            return StageStatus(name=stage, state="stale",
-                               reasons=[f"upstream {u} on disk is not the one it was built from" for u in rebuilt])
-        return StageStatus(name=stage, state="stale", reasons=self._stale_reasons(stage, manifest))
+            if rebuilt:
+                return StageStatus(name=stage, state="stale",
+                                   reasons=[f"upstream {u} on disk is not the one it was built from" for u in rebuilt])
+        return StageStatus(name=stage, state=state, reasons=reasons)
 
     def _stale_reasons(self, stage: str, manifest: dict) -> list[str]:
         now = self.fingerprint_record(stage)
         reasons = []
         if manifest.get("version") != now["version"]:
             reasons.append(f"format version {manifest.get('version')} -> {now['version']}")
-        old_params = manifest.get("params", {})
+        old_params = manifest.get("params") if isinstance(manifest.get("params"), dict) else {}
         for key in sorted(set(old_params) | set(now["params"])):
             if old_params.get(key) != now["params"].get(key):
                 reasons.append(f"param {stage}.{key}: {old_params.get(key)!r} -> {now['params'].get(key)!r}")
         for up, fp in now["upstream"].items():
-            if manifest.get("upstream", {}).get(up) != fp:
+            if manifest["upstream"].get(up) != fp:
                 reasons.append(f"upstream {up} changed")
         if manifest.get("libraries") != now["libraries"]:
             reasons.append(f"libraries changed: {manifest.get('libraries')} -> {now['libraries']}")
-        old_code = manifest.get("code", {})
+        old_code = manifest.get("code") if isinstance(manifest.get("code"), dict) else {}
         changed = sorted(k for k in set(old_code) | set(now["code"]) if old_code.get(k) != now["code"].get(k))
         if changed:
             reasons.append(f"code changed: {', '.join(changed)}")
+        old_inputs = manifest.get("inputs") if isinstance(manifest.get("inputs"), dict) else {}
         for kind, hashes in now["inputs"].items():
-            old = manifest.get("inputs", {}).get(kind, {})
+            old = old_inputs.get(kind) if isinstance(old_inputs.get(kind), dict) else {}
             changed = sorted(k for k in set(old) | set(hashes) if old.get(k) != hashes.get(k))
             if changed:
                 reasons.append(f"{kind} changed: {', '.join(changed[:5])}{' ...' if len(changed) > 5 else ''}")
@@ -159,21 +194,38 @@ class Pipeline:
 
     # ---------------------------------------------------------------- execution
     def run(self, *, start: str | None = None, until: str | None = None, only: str | None = None,
-            force: bool = False) -> list[str]:
-        """Run stale/missing stages in order; returns the names of the stages that ran."""
-        self.ws.clean_leftovers()
+            force: bool = False, wait: bool = False) -> list[str]:
+        """Run stale/missing stages in order under the workspace lock; returns the names of the stages that ran."""
+        for name in (start, until, only):
+            if name is not None:
+                stage_module(name)
+        if only is not None and (start is not None or until is not None):
+            raise RunnerError("--only cannot be combined with --from or --until")
+        if start is not None and until is not None and PIPELINE.index(start) > PIPELINE.index(until):
+            raise RunnerError(f"--from {start} comes after --until {until}")
+        # Bad images or hand points fail now, not after hours of matching.
+        self.dataset.image_sizes, self.dataset.hand_observations  # noqa: B018 (validating reads)
+        with self.ws.locked(wait=wait, command="fullview run"):
+            return self._run_locked(start, until, only, force)
+
+    def _run_locked(self, start, until, only, force) -> list[str]:
         if only is not None:
             for up in self._upstream_chain(only):
-                if self.status(up).state != "fresh":
-                    raise RunnerError(f"--only {only}: upstream stage {up} is {self.status(up).state}; run it first")
+                st = self.status(up, deep=True)
+                if st.state != "fresh":
+                    raise RunnerError(f"--only {only}: upstream stage {up} is {st.state} "
+                                      f"({'; '.join(st.reasons)}); run it first")
             self.run_stage(only)
             return [only]
-        order = list(PIPELINE_STAGES)
+        order = list(PIPELINE)
         last = order.index(until) + 1 if until else len(order)
         first_forced = order.index(start) if start else (0 if force else len(order))
         ran = []
         for k, stage in enumerate(order[:last]):
-            if k >= first_forced or self.status(stage).state != "fresh":
+            st = None if k >= first_forced else self.status(stage, deep=True)
+            if st is None or st.state != "fresh":
+                if st is not None:
+                    log.info("%-13s %s: %s", stage, st.state, "; ".join(st.reasons))
                 self.run_stage(stage)
                 ran.append(stage)
             else:
@@ -188,7 +240,7 @@ class Pipeline:
             if up not in seen:
                 seen.add(up)
                 todo.extend(stage_module(up).UPSTREAM)
-        return [s for s in PIPELINE_STAGES if s in seen]
+        return [s for s in PIPELINE if s in seen]
 
     def run_stage(self, stage: str) -> dict:
         module = stage_module(stage)
@@ -198,17 +250,16 @@ class Pipeline:
         t0 = time.perf_counter()
         # Single-threaded BLAS: our solvers make many small calls, which OpenBLAS threads only slow down (4-10x on
         # a loaded 2-core machine); stages parallelise over pairs or images themselves where it pays.
-        with self.ws.stage_transaction(stage) as out_dir, threadpool_limits(limits=1, user_api="blas"):
-            summary = module.run(config=self.config[stage], dataset=self.dataset, ws=self.ws, out_dir=out_dir)
-            manifest = {
+        with self.ws.locked(command=f"fullview run ({stage})"), self.ws.transaction(stage) as out, \
+                threadpool_limits(limits=1, user_api="blas"):
+            summary = module.run(StageContext(options=self.config[stage], dataset=self.dataset, ws=self.ws, out=out))
+            manifest = out.commit_manifest({
                 **record,
                 "fingerprint": fingerprint,
-                "outputs": sorted(str(p.relative_to(out_dir)) for p in out_dir.rglob("*") if p.is_file()),
                 "wall_time_s": round(time.perf_counter() - t0, 3),
                 "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
                 "summary": summary,
-            }
-            self.ws.write_manifest(out_dir, manifest)
+            })
         log.info("%-13s done in %.1f s %s", stage, manifest["wall_time_s"], _short(summary))
         return manifest
 

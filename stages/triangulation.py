@@ -7,18 +7,14 @@ then re-triangulate every track with the refined poses, apply the configured bou
 from __future__ import annotations
 
 import logging
-from pathlib import Path
-
 import numpy as np
 
-from fullview.io.artifacts import load_npz, save_json, save_ply
 from fullview.io.colmap import write_text_model
-from fullview.io.dataset import Dataset
-from fullview.io.store import REGISTRATION_VERSION, SPARSE_VERSION, load_observations, load_pair_data, save_poses
-from fullview.io.workspace import Workspace
 from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.tracks import Tracks, build_tracks
+from fullview.sfm.options import TriangulationOptions
 from fullview.sfm.triangulation import filter_tracks, gather_bearings, triangulate_multiview
+from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
 
@@ -28,26 +24,27 @@ INPUTS: tuple[str, ...] = ()
 LOOSE_FACTOR = 4.0  # first round keeps tracks up to this multiple of the final error bound
 
 
-def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict:
-    obs = load_observations(ws, dataset)
-    reg = load_npz(ws.registration_path(), REGISTRATION_VERSION)
+def run(ctx: StageContext) -> dict:
+    config: TriangulationOptions = ctx.options
+    obs = ctx.ws.load_observations(ctx.dataset)
+    reg = ctx.ws.load_registration()
     registered = reg["registered"]
-    pairs, inliers, _ = load_pair_data(ws.inliers_path())
-    usable = {p: m for p, m, ok in zip(pairs, inliers, reg["pair_inlier_mask"]) if ok and len(m)}
+    verified = ctx.ws.load_inliers()
+    usable = {p: m for p, m, ok in zip(verified.pairs, verified.matches, reg["pair_inlier_mask"]) if ok and len(m)}
     tracks, _ = build_tracks(usable, [len(o["bearings"]) for o in obs])
     bearings = [o["bearings"] for o in obs]
     R, t = reg["R_cam_from_world"], reg["t_cam_from_world"]
-    max_err = np.radians(config["max_reprojection_error_deg"])
-    min_angle = np.radians(config["min_triangulation_angle_deg"])
+    max_err = np.radians(config.max_reprojection_error_deg)
+    min_angle = np.radians(config.min_triangulation_angle_deg)
 
     keep = _triangulate_and_filter(tracks, bearings, R, t, LOOSE_FACTOR * max_err, min_angle)
     tracks_kept, points = tracks.subset(keep[0]), keep[1]
-    if config["bundle_adjust"] and tracks_kept.num_tracks:
+    if config.bundle_adjust and tracks_kept.num_tracks:
         R, t, points, _ = _bundle(tracks_kept, bearings, R, t, points, registered, config)
     mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
     final = tracks.subset(mask)
     errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
-    if config["bundle_adjust"] and final.num_tracks:
+    if config.bundle_adjust and final.num_tracks:
         R, t, points, errors = _bundle(final, bearings, R, t, points, registered, config)
         # The last adjustment moved the points: drop the few tracks it left beyond the bound, so the stored
         # errors describe the stored points.
@@ -55,7 +52,7 @@ def run(*, config: dict, dataset: Dataset, ws: Workspace, out_dir: Path) -> dict
         np.maximum.at(worst, final.track_ids, errors)
         good = worst <= max_err
         final, points, errors = final.subset(good), points[good], errors[good[final.track_ids]]
-    return _write(out_dir, ws, dataset, obs, registered, R, t, final, points, errors)
+    return _write(ctx, obs, registered, R, t, final, points, errors)
 
 
 def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
@@ -75,8 +72,8 @@ def _bundle(tracks: Tracks, bearings, R, t, points, registered, config):
         R_cam_from_world=R[cams], t_cam_from_world=t[cams], points=points,
         obs_camera=local[tracks.image_ids], obs_point=tracks.track_ids,
         obs_bearings=gather_bearings(bearings, tracks.image_ids, tracks.feature_ids),
-        fixed_cameras=(0,), loss="soft_l1", loss_scale_rad=np.radians(config["ba_loss_scale_deg"]),
-        max_nfev=config["ba_max_iterations"])
+        fixed_cameras=(0,), loss="soft_l1", loss_scale_rad=np.radians(config.ba_loss_scale_deg),
+        max_nfev=config.ba_max_iterations)
     log.info("bundle adjustment: %d cameras, %d points, cost %.4g -> %.4g, median error %.4f deg",
              len(cams), len(points), result.initial_cost, result.final_cost,
              np.degrees(np.median(result.obs_error_rad)))
@@ -85,26 +82,24 @@ def _bundle(tracks: Tracks, bearings, R, t, points, registered, config):
     return R, t, result.points, result.obs_error_rad
 
 
-def _write(out_dir, ws, dataset, obs, registered, R, t, tracks: Tracks, points, errors) -> dict:
+def _write(ctx: StageContext, obs, registered, R, t, tracks: Tracks, points, errors) -> dict:
     colors = _mean_colors(tracks, obs)
     point_error = np.zeros(len(points))
     np.maximum.at(point_error, tracks.track_ids, errors)
-    names = dataset.image_names
-    save_poses(ws.sparse_path(out_dir), SPARSE_VERSION, image_names=names, registered=registered,
-               R_cam_from_world=R, t_cam_from_world=t, points=points, colors=colors, point_error_rad=point_error,
-               track_ids=tracks.track_ids, image_ids=tracks.image_ids, feature_ids=tracks.feature_ids,
-               obs_error_rad=errors)
-    save_ply(out_dir / "sparse.ply", points, colors)
-    sizes = [tuple(int(v) for v in o["image_size"]) for o in obs]
-    write_text_model(ws.colmap_dir(out_dir), image_sizes=sizes, image_names=names, registered=registered,
-                     R_cam_from_world=R, t_cam_from_world=t, points=points, colors=colors,
-                     errors_rad=point_error, track_image=tracks.image_ids, track_point2d=tracks.feature_ids,
-                     track_point3d=tracks.track_ids, pixels=[o["pixels"] for o in obs])
+    names = ctx.dataset.image_names
     lengths = np.diff(tracks.offsets)
     summary = {"points": int(len(points)), "registered": int(registered.sum()),
                "mean_track_length": float(lengths.mean()) if len(lengths) else 0.0,
                "median_error_deg": float(np.degrees(np.median(errors))) if len(errors) else 0.0}
-    save_json(out_dir / "summary.json", summary)
+    ctx.out.save_sparse(points=points, colors=colors, summary=summary, image_names=names, registered=registered,
+                        R_cam_from_world=R, t_cam_from_world=t, point_error_rad=point_error,
+                        track_ids=tracks.track_ids, image_ids=tracks.image_ids, feature_ids=tracks.feature_ids,
+                        obs_error_rad=errors)
+    sizes = [tuple(int(v) for v in o["image_size"]) for o in obs]
+    write_text_model(ctx.out.sparse_colmap_dir(), image_sizes=sizes, image_names=names, registered=registered,
+                     R_cam_from_world=R, t_cam_from_world=t, points=points, colors=colors,
+                     errors_rad=point_error, track_image=tracks.image_ids, track_point2d=tracks.feature_ids,
+                     track_point3d=tracks.track_ids, pixels=[o["pixels"] for o in obs])
     return summary
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from fullview.io.config import load_config
 from fullview.io.dataset import Dataset
-from fullview.io.synth_io import write_synthetic_dataset
+from fullview.synth import write_synthetic_dataset
 from fullview.io.workspace import Workspace
 from fullview.stages.runner import Pipeline
 

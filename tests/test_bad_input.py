@@ -91,7 +91,7 @@ def test_set_override_wrong_type_via_cli(tiny_dataset, tmp_path, capsys):
 
 
 def test_int_accepted_for_float():
-    assert load_config(None, ["filter.threshold_deg=1"])["filter"]["threshold_deg"] == 1.0
+    assert load_config(None, ["filter.threshold_deg=1"])["filter"].threshold_deg == 1.0
 
 
 def test_missing_config_file(tmp_path):
@@ -102,9 +102,9 @@ def test_missing_config_file(tmp_path):
 @pytest.mark.parametrize("item,message", [
     ("matches.pairs=seq", "matches.pairs must be one of"),
     ("registration.model=Planar", "registration.model must be one of"),
-    ("features.working_width=-5", r"features.working_width must lie in \[0"),
-    ("matches.window=0", r"matches.window must lie in \[1"),
-    ("filter.min_hand_points=5", r"filter.min_hand_points must lie in \[8"),
+    ("features.working_width=-5", r"features.working_width must be >= 128 or 0 \(native width\)"),
+    ("matches.window=0", r"matches.window must be >= 1"),
+    ("filter.min_hand_points=5", r"filter.min_hand_points must be >= 8"),
 ])
 def test_config_values_are_checked(item, message):
     with pytest.raises(ConfigError, match=message):
@@ -140,6 +140,8 @@ def test_corrupt_artifact_is_a_clear_error(tiny_dataset, tmp_path, capsys, tiny_
     path = ws / "tiny" / "features" / "pano_001.npz"
     path.write_bytes(path.read_bytes()[:100])
     capsys.readouterr()
-    code, err = _run_cli(capsys, "run", tiny_dataset, "-w", ws, "--from", "matches", "--until", "matches",
-                         *tiny_set_args)
-    assert code == 2 and "pano_001.npz: corrupt artifact" in err
+    code, err = _run_cli(capsys, "run", tiny_dataset, "-w", ws, "--only", "matches", *tiny_set_args)
+    assert code == 2 and "upstream stage features is stale" in err and "pano_001.npz" in err
+    # a normal run rebuilds the damaged stage before anything consumes it
+    code, err = _run_cli(capsys, "run", tiny_dataset, "-w", ws, "--until", "matches", *tiny_set_args)
+    assert code == 0, err

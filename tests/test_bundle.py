@@ -20,9 +20,8 @@ from fullview.sfm.bundle import (
     _residuals,
     bundle_adjust,
     rotation_exp,
-    tangent_basis,
 )
-from fullview.sfm.camera import normalize
+from fullview.sfm.camera import normalize, tangent_basis
 
 NOISE_RAD = 0.0015  # ≈ 0.5 px at 2048 px width
 

@@ -183,7 +183,7 @@ def _result(dataset="scene", **over):
 
 
 def test_baseline_file_gates_listed_datasets_only(tmp_path):
-    from fullview.stages.compare import check_against_baseline
+    from fullview.commands.compare import check_against_baseline
 
     path = tmp_path / "baseline.json"
     path.write_text(json.dumps({"render_type": "spherical", "tolerances": TOL,
@@ -204,7 +204,7 @@ def test_baseline_file_gates_listed_datasets_only(tmp_path):
 
 
 def test_markdown_report_renders_every_section():
-    from fullview.stages.compare import format_markdown
+    from fullview.commands.compare import format_markdown
 
     side = {"registered": 3, "images": 3, "points": 10, "mean_track_length": 2.5,
             "median_reprojection_error_deg": 0.03, "wall_time_s": 1.0}
@@ -219,7 +219,7 @@ def test_markdown_report_renders_every_section():
 
 # --------------------------------------------------------------------------------------------- colmap-check mapping
 def test_colmap_face_keypoints_map_back_to_their_bearings():
-    from fullview.stages.colmap_check import colmap_features
+    from fullview.commands.colmap_check import colmap_features
 
     face_size, margin = 200, 5.0
     focal = 0.5 * face_size / np.tan(np.radians(45.0 + margin))

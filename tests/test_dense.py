@@ -159,7 +159,7 @@ def test_depth_from_disparity_known_triangle():
 def test_pad_theta_is_spherically_continuous():
     n_phi, n_theta = 64, 32
     grid = dense.rectified_grid_bearings(n_phi, n_theta)
-    padded = dense._pad_theta(grid, 5, 7)
+    padded = dense.pad_theta(grid, 5, 7)
     theta = (np.arange(-5, n_theta + 7) + 0.5) * np.pi / n_theta
     phi = 2 * np.pi * ((np.arange(n_phi) + 0.5) / n_phi - 0.5)
     th, ph = np.meshgrid(theta, phi)

@@ -1,3 +1,5 @@
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -6,14 +8,14 @@ from fullview.io.artifacts import FORMAT_KEY, load_ply
 from fullview.io.config import load_config
 from fullview.io.dataset import Dataset
 from fullview.io.render import colorize_range, render_point_cloud
-from fullview.io.synth_io import write_synthetic_dataset
-from fullview.io.workspace import Workspace
+from fullview.synth import write_synthetic_dataset
+from fullview.io.workspace import DEPTH_VERSION, Workspace
 from fullview.sfm import dense
 from fullview.sfm.dense_metrics import (backproject_range_map, cloud_accuracy_completeness, dense_metrics,
                                         range_map_errors, voxel_downsample)
 from fullview.sfm.metrics import Similarity, umeyama
 from fullview.stages import densify
-from fullview.stages.evaluate import evaluate
+from fullview.commands.evaluate import evaluate
 from fullview.stages.runner import Pipeline
 
 SMALL = [
@@ -45,7 +47,7 @@ def _gt_poses(dataset):
 # --------------------------------------------------------------------------------------------- end to end
 def test_dense_ply_is_binary_with_sensible_points(reconstructed):
     dataset, ws, pipeline = reconstructed
-    path = ws.dense_ply_path()
+    path = ws.path("dense_cloud")
     head = path.read_bytes()[:400]
     assert b"format binary_little_endian 1.0" in head and b"property float nx" in head
     cloud = load_ply(path)
@@ -63,20 +65,20 @@ def test_depth_maps_are_saved_per_panorama(reconstructed):
     dataset, ws, _ = reconstructed
     for name in dataset.image_names:
         stem = name.rsplit(".", 1)[0]
-        with np.load(ws.depth_dir() / f"{stem}.npz") as data:
-            assert int(data[FORMAT_KEY]) == densify.DEPTH_VERSION
+        with np.load(ws.path("depth", stem=stem)) as data:
+            assert int(data[FORMAT_KEY]) == DEPTH_VERSION
             rng, valid = data["range"], data["valid"]
         assert rng.shape == (256, 512) and rng.dtype == np.float32 and valid.dtype == bool
         assert np.all(np.isnan(rng[~valid])) and np.all(rng[valid] > 0)
-        png = cv2.imread(str(ws.depth_dir() / f"{stem}.png"))
+        png = cv2.imread(str(ws.path("depth_image", stem=stem)))
         assert png.shape == (256, 512, 3) and png[valid].any(axis=-1).mean() > 0.99
-    preview = cv2.imread(str(ws.stage_dir("densify") / "dense_preview.png"))
+    preview = cv2.imread(str(ws.path("dense_preview")))
     assert preview is not None and preview.std() > 10
 
 
 def test_eval_reports_dense_metrics(reconstructed):
-    dataset, ws, _ = reconstructed
-    metrics = evaluate(dataset, ws)
+    dataset, ws, pipeline = reconstructed
+    metrics = evaluate(pipeline)
     d = metrics["dense"]
     assert set(d["per_panorama"]) == set(dataset.image_names)
     for name, m in d["per_panorama"].items():
@@ -92,9 +94,9 @@ def test_fusion_drops_a_corrupted_panorama(reconstructed):
     without the check its points pollute the cloud."""
     dataset, ws, _ = reconstructed
     names = dataset.image_names
-    maps = {k: (d["range"], d["valid"]) for k, d in enumerate(densify.load_depth(ws, n) for n in names)}
+    maps = {k: (d["range"], d["valid"]) for k, d in enumerate(ws.load_depth(n) for n in names)}
     maps[2] = (maps[2][0] * 1.3, maps[2][1])
-    poses = np.load(ws.sparse_path())
+    poses = np.load(ws.path("sparse"))
     R, t, centers = poses["R_cam_from_world"], poses["t_cam_from_world"], poses["centers"]
     sparse = {"points": poses["points"]}
     images = {k: dataset.load_image(n, width=512) for k, n in enumerate(names)}
@@ -106,8 +108,8 @@ def test_fusion_drops_a_corrupted_panorama(reconstructed):
     config = load_config(None, SMALL)["densify"]
     acc = {}
     for min_consistent in (1, 0):
-        config["min_consistent"] = min_consistent
-        pts, _, _, _ = densify._fuse(config, images, maps, R, t, centers, sparse)
+        options = dataclasses.replace(config, min_consistent=min_consistent)
+        pts, _, _, _ = densify._fuse(options, images, maps, R, t, centers, sparse)
         m = dense_metrics(range_est=[None] * 3, valid_est=[None] * 3, range_gt=gt, R_gt_cam_from_world=R_gt,
                           t_gt_cam_from_world=t_gt, sim=sim, points=pts, scene_size=scene, names=names)
         acc[min_consistent] = m["cloud"]["accuracy"]
@@ -119,26 +121,26 @@ def test_combine_range_estimates():
     a = np.array([[2.0, 2.0, np.nan, 5.0, np.nan]], np.float32)
     b = np.array([[2.02, 3.0, 4.0, np.nan, np.nan]], np.float32)
     c = np.array([[1.98, 2.0, np.nan, np.nan, np.nan]], np.float32)
-    rng, valid = densify.combine_range_estimates([a, b, c], rel_tol=0.02)
+    rng, valid = dense.combine_range_estimates([a, b, c], rel_tol=0.02)
     # px0: three agree -> mean; px1: two of three agree; px2 / px3: single estimates kept; px4: none
     assert np.allclose(rng[0, :4], [2.0, 2.0, 4.0, 5.0], atol=1e-5) and valid.tolist() == [[True] * 4 + [False]]
-    rng, valid = densify.combine_range_estimates([a, b], rel_tol=0.02)
+    rng, valid = dense.combine_range_estimates([a, b], rel_tol=0.02)
     assert valid[0].tolist() == [True, False, True, True, False]  # 2 vs 3: a conflict is dropped
     assert np.isnan(rng[0, 1])
-    single, ok = densify.combine_range_estimates([b], rel_tol=0.02)
+    single, ok = dense.combine_range_estimates([b], rel_tol=0.02)
     assert ok[0].tolist() == [True, True, True, False, False]
 
 
 def test_mask_below_latitude():
     rng = np.ones((8, 16), np.float32)
-    out, valid = densify.mask_below_latitude(rng, np.ones((8, 16), bool), -45.0)
+    out, valid = dense.mask_below_latitude(rng, np.ones((8, 16), bool), -45.0)
     assert valid[:6].all() and not valid[6:].any() and np.isnan(out[6:]).all()  # rows 6, 7 centre below -45°
 
 
 def test_pair_min_depth_ratio_is_capped():
-    assert np.isclose(densify.pair_min_depth_ratio(4.0, 3.0, 1.0, 0.5, 45.0), 1.5)
-    assert np.isclose(densify.pair_min_depth_ratio(1.0, 1.0, 1.0, 0.5, 45.0), np.sqrt(2))  # capped at 45°
-    assert np.isclose(densify.pair_min_depth_ratio(np.nan, 2.0, 1.0, 1.0, 90.0), 2.0)
+    assert np.isclose(dense.pair_min_depth_ratio(4.0, 3.0, 1.0, 0.5, 45.0), 1.5)
+    assert np.isclose(dense.pair_min_depth_ratio(1.0, 1.0, 1.0, 0.5, 45.0), np.sqrt(2))  # capped at 45°
+    assert np.isclose(dense.pair_min_depth_ratio(np.nan, 2.0, 1.0, 1.0, 90.0), 2.0)
 
 
 def test_fuse_depth_maps_views_subset_matches_full():
@@ -201,7 +203,7 @@ def test_range_error_per_pixel_matches_law_of_sines_derivative():
     c_i, c_j = np.array([0.2, 0.1, -0.3]), np.array([1.0, 0.3, 0.1])
     rng_map = np.linspace(1.0, 6.0, 32 * 64, dtype=np.float32).reshape(32, 64)
     pixel_angle = np.pi / 512
-    err = densify.range_error_per_pixel(rng_map, R, c_i, c_j, pixel_angle)
+    err = dense.range_error_per_pixel(rng_map, R, c_i, c_j, pixel_angle)
     w = pixel_grid_bearings(64, 32) @ R  # world directions of the pixel rays
     T = np.linalg.norm(c_j - c_i)
     theta = np.arccos(np.clip(w @ (c_j - c_i) / T, -1, 1))

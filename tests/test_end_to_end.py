@@ -19,10 +19,10 @@ def reconstructed(tiny_dataset, tmp_path_factory, tiny_set_args):
     return tiny_dataset, ws
 
 
-def test_eval_metrics(reconstructed, capsys):
+def test_eval_metrics(reconstructed, capsys, tiny_set_args):
     dataset, ws = reconstructed
     capsys.readouterr()
-    assert main(["eval", str(dataset), "-w", str(ws)]) == 0
+    assert main(["eval", str(dataset), "-w", str(ws), *tiny_set_args]) == 0
     metrics = json.loads(capsys.readouterr().out)
     assert metrics["registered"] == 3
     assert metrics["auc@5"] > 95
@@ -70,11 +70,10 @@ def test_sparse_ply_is_binary_with_colours(reconstructed):
 
 def test_without_hand_points_too(tiny_dataset, tmp_path, capsys, tiny_set_args):
     ws = tmp_path / "ws"
-    args = ["run", str(tiny_dataset), "-w", str(ws), "--until", SPARSE_UNTIL, *tiny_set_args,
-            "--set", "filter.use_hand_points=false"]
-    assert main(args) == 0
+    settings = [*tiny_set_args, "--set", "filter.use_hand_points=false"]
+    assert main(["run", str(tiny_dataset), "-w", str(ws), "--until", SPARSE_UNTIL, *settings]) == 0
     capsys.readouterr()
-    main(["eval", str(tiny_dataset), "-w", str(ws)])
+    assert main(["eval", str(tiny_dataset), "-w", str(ws), *settings]) == 0
     metrics = json.loads(capsys.readouterr().out)
     assert metrics["registered"] == 3 and metrics["auc@5"] > 95
     summary = json.loads((ws / "tiny" / "filter" / "manifest.json").read_text())["summary"]
@@ -84,11 +83,11 @@ def test_without_hand_points_too(tiny_dataset, tmp_path, capsys, tiny_set_args):
 def test_planar_model_runs(reconstructed, tmp_path, capsys, tiny_set_args):
     dataset, _ = reconstructed
     ws = tmp_path / "ws"
-    assert main(["run", str(dataset), "-w", str(ws), "--until", "registration", *tiny_set_args,
-                 "--set", "registration.model=planar", "--set", "registration.max_rotation_residual_deg=20",
-                 "--set", "registration.max_direction_residual_deg=20"]) == 0
+    settings = [*tiny_set_args, "--set", "registration.model=planar", "--set",
+                "registration.max_rotation_residual_deg=20", "--set", "registration.max_direction_residual_deg=20"]
+    assert main(["run", str(dataset), "-w", str(ws), "--until", "registration", *settings]) == 0
     capsys.readouterr()
-    main(["eval", str(dataset), "-w", str(ws)])
+    assert main(["eval", str(dataset), "-w", str(ws), *settings]) == 0
     metrics = json.loads(capsys.readouterr().out)
     # The synthetic cameras tilt by up to 5°, which the level-camera model cannot represent.
     assert metrics["registered"] == 3 and metrics["auc@10"] > 20
@@ -110,10 +109,10 @@ def test_unrelated_image_is_reported_not_fatal(dataset_copy, tmp_path, capsys, t
 def test_sequential_chain_registers_every_image(tiny_dataset, tmp_path, capsys, tiny_set_args):
     """Pairs (0,1), (1,2) only: averaging cannot scale the chain; attaching by points does."""
     ws = tmp_path / "ws"
-    assert main(["run", str(tiny_dataset), "-w", str(ws), "--until", SPARSE_UNTIL, *tiny_set_args,
-                 "--set", "matches.pairs=sequential", "--set", "matches.window=1"]) == 0
+    settings = [*tiny_set_args, "--set", "matches.pairs=sequential", "--set", "matches.window=1"]
+    assert main(["run", str(tiny_dataset), "-w", str(ws), "--until", SPARSE_UNTIL, *settings]) == 0
     capsys.readouterr()
-    main(["eval", str(tiny_dataset), "-w", str(ws)])
+    assert main(["eval", str(tiny_dataset), "-w", str(ws), *settings]) == 0
     metrics = json.loads(capsys.readouterr().out)
     assert metrics["registered"] == 3 and metrics["auc@5"] > 95
 
@@ -123,7 +122,6 @@ def test_colours_at_reduced_working_width(tiny_dataset, tmp_path):
     import cv2
 
     from fullview.io.dataset import Dataset
-    from fullview.io.store import load_features
     from fullview.io.workspace import Workspace
 
     ws = tmp_path / "ws"
@@ -131,7 +129,7 @@ def test_colours_at_reduced_working_width(tiny_dataset, tmp_path):
                  "--set", "features.working_width=256"]) == 0
     ds = Dataset(tiny_dataset)
     name = ds.image_names[0]
-    feats = load_features(Workspace(ws, ds.name), name)
+    feats = Workspace(ws, ds.name).load_features(name)
     image = cv2.imread(str(ds.image_path(name)))  # native 512 px: stored pixels are native coordinates
     cols = np.clip(feats["pixels"][:, 0].astype(int), 0, 511)
     rows = np.clip(feats["pixels"][:, 1].astype(int), 0, 255)

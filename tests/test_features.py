@@ -1,5 +1,7 @@
 import cv2
 import numpy as np
+
+from fullview.sfm.options import FeaturesOptions
 import pytest
 
 from fullview.sfm import features as ft
@@ -23,7 +25,7 @@ def test_face_rotations_are_proper_and_cover_the_sphere():
     assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3)) and np.allclose(np.linalg.det(R), 1)
     rng = np.random.default_rng(1)
     b = normalize(rng.normal(size=(5000, 3)))
-    owners = np.stack([ft._owned_by_face(b, f) for f in range(6)])
+    owners = np.stack([ft.owned_by_face(b, f) for f in range(6)])
     # every bearing belongs to at least one face; only the measure-zero seams to two
     assert owners.any(axis=0).all() and owners.sum(axis=0).max() <= 2 and (owners.sum(axis=0) == 1).mean() > 0.999
 
@@ -55,7 +57,7 @@ def _blob_panorama(width, rng, n=300):
 def test_detected_bearings_are_unbiased_and_unique():
     rng = np.random.default_rng(2)
     img, centres = _blob_panorama(1024, rng)
-    feats = ft.detect_features(img, ft.FeatureOptions(contrast_threshold=0.01))
+    feats = ft.detect_features(img, FeaturesOptions(contrast_threshold=0.01))
     assert len(feats.bearings) > 0.8 * len(centres)
     ang = np.degrees(np.arccos(np.clip(feats.bearings @ centres.T, -1, 1)))
     nearest = ang.min(axis=1)
@@ -75,7 +77,7 @@ def test_detected_bearings_are_unbiased_and_unique():
 def test_latitude_mask():
     rng = np.random.default_rng(3)
     img, _ = _blob_panorama(512, rng)
-    feats = ft.detect_features(img, ft.FeatureOptions(min_latitude_deg=-10, max_latitude_deg=20))
+    feats = ft.detect_features(img, FeaturesOptions(min_latitude_deg=-10, max_latitude_deg=20))
     lat = 90 - 180 * feats.pixels[:, 1] / 256
     assert len(lat) and lat.min() >= -10 - 1e-9 and lat.max() <= 20 + 1e-9
 

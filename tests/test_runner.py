@@ -5,7 +5,8 @@ import json
 import pytest
 
 import fullview.stages.matches as matches_stage
-from fullview.stages.runner import PIPELINE_STAGES, RunnerError
+from fullview.stages import PIPELINE
+from fullview.stages.runner import RunnerError
 
 SPARSE = ["features", "matches", "filter", "epipoles", "registration", "triangulation"]
 
@@ -25,9 +26,9 @@ def test_config_edit_reruns_that_stage_and_downstream_only(tiny_dataset, make_pi
     make_pipeline(tiny_dataset).run(until="triangulation")
     before = {s: json.loads((tmp_path / "ws" / "tiny" / s / "manifest.json").read_text())["fingerprint"]
               for s in SPARSE}
-    p = make_pipeline(tiny_dataset, ["registration.seed=3"])
+    p = make_pipeline(tiny_dataset, ["registration.max_rotation_residual_deg=4.5"])
     status = p.status("registration")
-    assert status.state == "stale" and any("registration.seed" in r for r in status.reasons)
+    assert status.state == "stale" and any("registration.max_rotation_residual_deg" in r for r in status.reasons)
     assert p.status("triangulation").state == "stale"
     assert all(p.status(s).state == "fresh" for s in SPARSE[:4])
     assert p.run(until="triangulation") == ["registration", "triangulation"]
@@ -90,7 +91,7 @@ def test_interrupted_stage_keeps_previous_artifacts(tiny_dataset, make_pipeline,
 
 
 def test_stage_list_order():
-    assert list(PIPELINE_STAGES[:6]) == SPARSE
+    assert list(PIPELINE[:6]) == SPARSE
 
 
 def test_runs_are_deterministic(tiny_dataset, make_pipeline, tmp_path):

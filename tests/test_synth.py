@@ -1,4 +1,4 @@
-"""Tests of the synthetic equirectangular scene renderer (fullview.sfm.synth)."""
+"""Tests of the synthetic equirectangular scene renderer (fullview.synth)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fullview.sfm import synth
+from fullview import synth
 from fullview.sfm.camera import bearings_to_pixels, pixel_grid_bearings
 
 WIDTH = 512

@@ -1,4 +1,4 @@
-"""Write a rendered synthetic scene as a dataset folder (see io.dataset for the layout)."""
+"""Write a rendered synthetic scene as a dataset folder (see fullview.io.dataset for the layout)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 import yaml
 
 from fullview.io.artifacts import save_npz
-from fullview.sfm.synth import SynthScene, render_scene
+from fullview.synth.scene import SynthScene, render_scene
 
 log = logging.getLogger(__name__)
 

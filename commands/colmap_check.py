@@ -29,17 +29,16 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
-from fullview.io.artifacts import atomic_path, save_json
 from fullview.io.colmap import extract_sift_on_images, pycolmap_version
+from fullview.io.render import save_png
 from fullview.io.dataset import Dataset
-from fullview.io.store import load_features, load_pair_data
-from fullview.io.workspace import Workspace
+from fullview.io.workspace import StageWriter, Workspace, folder_of
 from fullview.sfm import two_view
 from fullview.sfm.camera import bearings_to_lonlat
-from fullview.sfm.features import (FACE_NAMES, _face_keypoints_to_bearings, _owned_by_face, native_face_size,
-                                   render_faces)
-from fullview.sfm.matching import MatchOptions, match_descriptors, pair_list
-from fullview.stages.runner import Pipeline
+from fullview.sfm.features import FACE_NAMES, face_keypoints_to_bearings, native_face_size, owned_by_face, render_faces
+from fullview.sfm.matching import match_descriptors, pair_list
+from fullview.sfm.options import FilterOptions
+from fullview.stages.runner import Pipeline, RunnerError, record_fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +53,8 @@ def colmap_features(bearing_parts: list[tuple[np.ndarray, int, np.ndarray]], fac
     """
     bearings, descs, faces = [], [], []
     for xy, face, desc in bearing_parts:
-        b = _face_keypoints_to_bearings(xy, face, face_size, focal)
-        keep = _owned_by_face(b, face)
+        b = face_keypoints_to_bearings(xy, face, face_size, focal)
+        keep = owned_by_face(b, face)
         bearings.append(b[keep])
         descs.append(desc[keep])
         faces.append(np.full(int(keep.sum()), face, np.uint8))
@@ -69,29 +68,30 @@ def colmap_features(bearing_parts: list[tuple[np.ndarray, int, np.ndarray]], fac
     return bearings[keep], descs, faces[keep]
 
 
-def verify(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, config: dict, seed: int) -> int:
+def verify(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, config: FilterOptions, seed: int) -> int:
     """Inlier count of the filter stage's unseeded verification (0 below its min_inliers)."""
     if len(matches) < 8:
         return 0
-    opts = two_view.RansacOptions(threshold_rad=np.radians(config["threshold_deg"]),
-                                  max_iterations=config["max_iterations"], confidence=config["confidence"], seed=seed)
+    opts = two_view.RansacOptions(threshold_rad=np.radians(config.threshold_deg),
+                                  max_iterations=config.max_iterations, confidence=config.confidence, seed=seed)
     try:
         res = two_view.ransac_f(bear_i[matches[:, 0]], bear_j[matches[:, 1]], opts)
     except ValueError:
         return 0
     count = int(res.inliers.sum())
-    return count if count >= config["min_inliers"] else 0
+    return count if count >= config.min_inliers else 0
 
 
 def _ours(dataset: Dataset, ws: Workspace) -> tuple[list, list, list, list, dict[str, int]]:
     """Pairs, raw and verified (SIFT-only) match counts from the matches/filter artifacts, whether the filter seeded
     each pair with hand points, features per image."""
-    num_sift = {n: len(load_features(ws, n)["bearings"]) for n in dataset.image_names}
+    num_sift = {n: len(ws.load_features(n)["bearings"]) for n in dataset.image_names}
     sift = [num_sift[n] for n in dataset.image_names]
-    pairs, raw, _ = load_pair_data(ws.matches_path())
-    pairs_f, inliers, extra = load_pair_data(ws.inliers_path())
-    if pairs != pairs_f:
-        raise RuntimeError(f"{ws.root}: matches and filter artifacts disagree on the pair list; rerun filter")
+    raw_data, verified_data = ws.load_matches(), ws.load_inliers()
+    pairs, raw = raw_data.pairs, raw_data.matches
+    inliers, extra = verified_data.matches, verified_data.extra
+    if pairs != verified_data.pairs:
+        raise RunnerError(f"{ws.root}: matches and filter artifacts disagree on the pair list; rerun filter")
     verified = [int(((m[:, 0] < sift[i]) & (m[:, 1] < sift[j])).sum()) for (i, j), m in zip(pairs, inliers)]
     seeded = [bool(v) for v in extra.get("seeded", np.zeros(len(pairs), bool))]
     return pairs, [len(m) for m in raw], verified, seeded, num_sift
@@ -99,82 +99,90 @@ def _ours(dataset: Dataset, ws: Workspace) -> tuple[list, list, list, list, dict
 
 def colmap_check(dataset: Dataset, ws: Workspace, pipeline: Pipeline, *, max_features: int | None = None) -> dict:
     """Run the check; writes colmap_check/{check.json, check.md, faces/, database.db}; returns the report."""
-    ran = pipeline.run(until="filter")
-    log.info("our pipeline until filter: %s", ", ".join(ran) if ran else "fresh")
+    if max_features is not None and max_features < 0:
+        raise RunnerError(f"--colmap-max-features must be >= 0 (0: COLMAP's default), got {max_features}")
+    with ws.locked(command="fullview colmap-check"):
+        ran = pipeline.run(until="filter")
+        log.info("our pipeline until filter: %s", ", ".join(ran) if ran else "fresh")
+        with ws.transaction(folder_of("check_report")) as out:
+            report = _check(dataset, ws, pipeline, out, max_features)
+            out.save_json("check_report", report)
+            markdown = format_markdown(report)
+            out.save_text("check_markdown", markdown)
+            upstream = {s: pipeline.fingerprint(s) for s in ("features", "matches", "filter")}
+            out.commit_manifest({"fingerprint": record_fingerprint({**upstream, "cap": report["settings"][
+                "colmap_max_features_per_face"]}), "upstream": upstream, "summary": {"flagged": len(report["flagged"])}})
+    report["markdown"] = markdown
+    return report
+
+
+def _check(dataset: Dataset, ws: Workspace, pipeline: Pipeline, out: StageWriter, max_features: int | None) -> dict:
     fcfg, mcfg, vcfg = (pipeline.config[s] for s in ("features", "matches", "filter"))
-    cap = fcfg["max_features_per_face"] if max_features is None else max_features
+    cap = fcfg.max_features_per_face if max_features is None else max_features
     names = dataset.image_names
     pairs, ours_raw, ours_verified, ours_seeded, ours_features = _ours(dataset, ws)
-    expected = pair_list(len(names), mcfg["pairs"], mcfg["window"])
-    if [tuple(p) for p in expected] != pairs:
-        raise RuntimeError(f"{ws.root}: the matches artifact's pair list differs from the config's; rerun matches")
-
-    out_root = ws.root / "colmap_check"
-    faces_dir = out_root / "faces"
-    faces_dir.mkdir(parents=True, exist_ok=True)
-    geometry, groups = {}, {}
-    for name in tqdm(names, desc="faces", unit="image"):
-        full_w, _ = dataset.image_sizes[name]
-        image = dataset.load_image(name, width=min(fcfg["working_width"] or full_w, full_w))
-        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        face_size = fcfg["face_size"] or native_face_size(grey.shape[1], fcfg["margin_deg"])
-        faces, focal = render_faces(grey, face_size, fcfg["margin_deg"])
-        geometry[name] = (face_size, focal)
-        params = f"{focal:.17g},{focal:.17g},{face_size / 2:.17g},{face_size / 2:.17g}"
-        for f, face in enumerate(faces):
-            face_name = f"{Path(name).stem}_{FACE_NAMES[f]}.png"
-            ok, png = cv2.imencode(".png", face)
-            if not ok:
-                raise RuntimeError(f"cannot encode {faces_dir / face_name}")
-            with atomic_path(faces_dir / face_name) as tmp:
-                tmp.write_bytes(png.tobytes())
-            groups.setdefault(params, []).append(face_name)
+    if [tuple(p) for p in pair_list(len(names), mcfg.pairs, mcfg.window)] != pairs:
+        raise RunnerError(f"{ws.root}: the matches artifact's pair list differs from the config's; rerun matches")
+    geometry, groups = _write_faces(dataset, fcfg, out)
     log.info("COLMAP SIFT (CPU) on %d faces, max %s features per face", sum(map(len, groups.values())),
              cap if cap > 0 else "default")
-    extracted = extract_sift_on_images(faces_dir, out_root / "database.db", groups, max_num_features=cap)
-
+    faces_dir = out.path("check_face", face="x").parent
+    extracted = extract_sift_on_images(faces_dir, out.path("check_database"), groups, max_num_features=cap)
     bearings, descriptors, colmap_counts = [], [], {}
     for name in names:
         face_size, focal = geometry[name]
-        parts = []
-        for f in range(6):
-            xy, desc = extracted.get(f"{Path(name).stem}_{FACE_NAMES[f]}.png", (np.zeros((0, 2)), np.zeros((0, 128))))
-            parts.append((xy, f, desc))
-        b, d, _ = colmap_features(parts, face_size, focal, fcfg["min_latitude_deg"], fcfg["max_latitude_deg"])
+        parts = [(*extracted.get(_face_file(name, f), (np.zeros((0, 2)), np.zeros((0, 128)))), f) for f in range(6)]
+        b, d, _ = colmap_features([(xy, f, desc) for xy, desc, f in parts], face_size, focal, fcfg.min_latitude_deg,
+                                  fcfg.max_latitude_deg)
         bearings.append(b)
         descriptors.append(d)
         colmap_counts[name] = len(b)
-
-    options = MatchOptions(ratio=mcfg["ratio"], mutual=mcfg["mutual"])
     # as in the matches stage: threads over pairs, single-threaded BLAS
     with threadpool_limits(limits=1, user_api="blas"), ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        jobs = pool.map(lambda p: match_descriptors(descriptors[p[0]], descriptors[p[1]], options), pairs)
+        jobs = pool.map(lambda p: match_descriptors(descriptors[p[0]], descriptors[p[1]], mcfg), pairs)
         all_matches = list(tqdm(jobs, total=len(pairs), desc="colmap-check matches", unit="pair"))
-        verified_counts = [verify(bearings[i], bearings[j], m, vcfg, seed=vcfg["seed"] + k)
+        verified_counts = [verify(bearings[i], bearings[j], m, vcfg, seed=vcfg.seed + k)
                            for k, ((i, j), m) in enumerate(zip(pairs, all_matches))]
     rows = []
     for k, (i, j) in enumerate(pairs):
-        matches, verified = all_matches[k], verified_counts[k]
-        row = {"pair": [names[i], names[j]], "ours_raw": ours_raw[k], "colmap_raw": int(len(matches)),
-               "ours_verified": ours_verified[k], "colmap_verified": verified, "ours_seeded": ours_seeded[k]}
+        row = {"pair": [names[i], names[j]], "ours_raw": ours_raw[k], "colmap_raw": int(len(all_matches[k])),
+               "ours_verified": ours_verified[k], "colmap_verified": verified_counts[k],
+               "ours_seeded": ours_seeded[k]}
         row["flag_raw"] = row["ours_raw"] < FLAG_RATIO * row["colmap_raw"]
         row["flag_verified"] = row["ours_verified"] < FLAG_RATIO * row["colmap_verified"]
         rows.append(row)
-    report = {"dataset": dataset.name, "pycolmap": pycolmap_version(),
-              "settings": {"working_width": fcfg["working_width"], "face_size": {n: g[0] for n, g in geometry.items()},
-                           "margin_deg": fcfg["margin_deg"], "colmap_max_features_per_face": cap,
-                           "ours_max_features_per_face": fcfg["max_features_per_face"],
-                           "latitude_deg": [fcfg["min_latitude_deg"], fcfg["max_latitude_deg"]],
-                           "ratio": mcfg["ratio"], "mutual": mcfg["mutual"], "threshold_deg": vcfg["threshold_deg"],
-                           "min_inliers": vcfg["min_inliers"], "flag_ratio": FLAG_RATIO},
-              "features": {n: {"ours": ours_features[n], "colmap": colmap_counts[n]} for n in names},
-              "pairs": rows, "flagged": [r["pair"] for r in rows if r["flag_raw"] or r["flag_verified"]]}
-    save_json(out_root / "check.json", report)
-    markdown = format_markdown(report)
-    with atomic_path(out_root / "check.md") as tmp:
-        tmp.write_text(markdown)
-    report["markdown"] = markdown
-    return report
+    return {"dataset": dataset.name, "pycolmap": pycolmap_version(),
+            "settings": {"working_width": fcfg.working_width, "face_size": {n: g[0] for n, g in geometry.items()},
+                         "margin_deg": fcfg.margin_deg, "colmap_max_features_per_face": cap,
+                         "ours_max_features_per_face": fcfg.max_features_per_face,
+                         "latitude_deg": [fcfg.min_latitude_deg, fcfg.max_latitude_deg],
+                         "ratio": mcfg.ratio, "mutual": mcfg.mutual, "threshold_deg": vcfg.threshold_deg,
+                         "min_inliers": vcfg.min_inliers, "flag_ratio": FLAG_RATIO},
+            "features": {n: {"ours": ours_features[n], "colmap": colmap_counts[n]} for n in names},
+            "pairs": rows, "flagged": [r["pair"] for r in rows if r["flag_raw"] or r["flag_verified"]]}
+
+
+def _face_file(name: str, face: int) -> str:
+    return f"{Path(name).stem}_{FACE_NAMES[face]}.png"
+
+
+def _write_faces(dataset: Dataset, fcfg, out: StageWriter) -> tuple[dict, dict]:
+    """Render every panorama's cube faces as PNG; returns per image (face size, focal) and the faces grouped by
+    camera parameters (one COLMAP PINHOLE camera per group)."""
+    geometry, groups = {}, {}
+    for name in tqdm(dataset.image_names, desc="faces", unit="image"):
+        full_w, _ = dataset.image_sizes[name]
+        image = dataset.load_image(name, width=min(fcfg.working_width or full_w, full_w))
+        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        face_size = fcfg.face_size or native_face_size(grey.shape[1], fcfg.margin_deg)
+        faces, focal = render_faces(grey, face_size, fcfg.margin_deg)
+        geometry[name] = (face_size, focal)
+        params = f"{focal:.17g},{focal:.17g},{face_size / 2:.17g},{face_size / 2:.17g}"
+        for f, face in enumerate(faces):
+            face_name = _face_file(name, f)
+            save_png(out.path("check_face", face=Path(face_name).stem), face)
+            groups.setdefault(params, []).append(face_name)
+    return geometry, groups
 
 
 def format_markdown(report: dict) -> str:

@@ -1,10 +1,10 @@
 """`fullview compare`: our reconstruction against pycolmap's panorama pipeline on the same images.
 
-COLMAP's run (pycolmap.panorama.reconstruct, exhaustive matcher, CPU) is cached in the workspace like a stage,
-in `workspace/<dataset>/colmap_<render type>/` (manifest + `model/`): its fingerprint covers the image contents,
-the options and the pycolmap version, so it reruns only when one of those changes. Our pipeline is brought up to
-date until triangulation through the Pipeline. Results go to `workspace/<dataset>/compare/`: `colmap.json`,
-`colmap.md` and `top_view.png` (other render types get a `_<render type>` suffix).
+COLMAP's run (pycolmap.panorama.reconstruct, exhaustive matcher, CPU) is cached by the stage runner
+(`run_cached`) in the workspace folder `colmap_<render type>/`: its fingerprint covers the image contents, the
+options and the pycolmap version, so it reruns only when one of those changes. Our pipeline is brought up to date
+until triangulation through the Pipeline. Results go to `compare_<render type>/`: `colmap.json`, `colmap.md` and
+`top_view.png`.
 
 A stored baseline (benchmarks/baseline.json) gates the result: see `check_against_baseline`.
 """
@@ -18,20 +18,21 @@ from pathlib import Path
 
 import numpy as np
 
-from fullview.io.artifacts import atomic_path, load_npz, save_json
+from fullview.io.artifacts import atomic_path
 from fullview.io.colmap import load_reconstruction, model_arrays, pycolmap_version, reconstruct_equirectangular
+from fullview.io.config import ConfigError
 from fullview.io.dataset import Dataset
-from fullview.io.store import SPARSE_VERSION, load_observations, load_poses
-from fullview.io.workspace import Workspace
+from fullview.io.workspace import StageWriter, Workspace, folder_of
 from fullview.sfm import compare as cmp
 from fullview.sfm.metrics import pose_metrics
-from fullview.stages.runner import Pipeline, record_fingerprint
+from fullview.stages import PIPELINE
+from fullview.stages.runner import Pipeline, RunnerError, record_fingerprint, run_cached
 
 log = logging.getLogger(__name__)
 
 COLMAP_VERSION = 1  # format of the cached COLMAP run (bump to force a rerun)
 RENDER_TYPES = ("spherical", "perspective_overlapping", "perspective_non_overlapping")
-SPARSE_STAGES = ("features", "matches", "filter", "epipoles", "registration", "triangulation")
+SPARSE_STAGES = PIPELINE[:PIPELINE.index("triangulation") + 1]
 DEFAULT_BASELINE = Path(__file__).resolve().parents[1] / "benchmarks" / "baseline.json"
 
 
@@ -51,46 +52,43 @@ def colmap_record(dataset: Dataset, render_type: str, matcher: str = "exhaustive
 
 def colmap_reference(dataset: Dataset, ws: Workspace, *, render_type: str = "spherical", matcher: str = "exhaustive",
                      seed: int = 0, force: bool = False) -> tuple[Path | None, dict]:
-    """COLMAP's model folder (None when it reconstructed nothing) and its manifest; reruns only when stale."""
+    """COLMAP's model folder (None when it reconstructed nothing) and its manifest; cached by the stage runner."""
     if render_type not in RENDER_TYPES:
-        raise ValueError(f"unknown render type {render_type!r} (expected one of {', '.join(RENDER_TYPES)})")
-    record = colmap_record(dataset, render_type, matcher, seed)
-    name, fingerprint = record["stage"], record_fingerprint(record)
-    manifest = ws.read_manifest(name)
-    if not force and manifest is not None and manifest.get("fingerprint") == fingerprint:
-        log.info("%s fresh, reusing %s", name, ws.stage_dir(name))
-    else:
-        log.info("%s %s: running pycolmap.panorama.reconstruct (%s, %s matcher, CPU)", name,
-                 "missing" if manifest is None else "stale", render_type, matcher)
-        with ws.stage_transaction(name) as out_dir:
-            # exactly the dataset's image list (no stray files such as README.md); not "images", which the
-            # perspective render types fill with their rendered views
-            images = out_dir / "panoramas"
-            images.mkdir()
-            for image_name in dataset.image_names:
-                os.symlink(dataset.image_path(image_name).resolve(), images / image_name)
-            result = reconstruct_equirectangular(images, out_dir, render_type=render_type, matcher=matcher,
-                                                 seed=seed)
-            summary = {"num_models": result["num_models"]}
-            if result["model_dir"] is not None:
-                rec = load_reconstruction(result["model_dir"])
-                summary.update(registered=int(rec.num_reg_images()), points=int(rec.num_points3D()))
-            manifest = {**record, "fingerprint": fingerprint, "wall_time_s": result["wall_time_s"],
-                        "model": "model" if result["model_dir"] is not None else None, "summary": summary}
-            ws.write_manifest(out_dir, manifest)
-        log.info("%s done in %.1f s: %s", name, manifest["wall_time_s"], manifest["summary"])
-    model = ws.stage_dir(name) / manifest["model"] if manifest.get("model") else None
+        raise RunnerError(f"unknown render type {render_type!r} (expected one of {', '.join(RENDER_TYPES)})")
+
+    def produce(out: StageWriter) -> dict:
+        log.info("running pycolmap.panorama.reconstruct (%s, %s matcher, CPU)", render_type, matcher)
+        # exactly the dataset's image list (no stray files such as README.md); not "images", which the
+        # perspective render types fill with their rendered views
+        images = out.path("colmap_reference_images", render_type=render_type)
+        images.mkdir()
+        for image_name in dataset.image_names:
+            os.symlink(dataset.image_path(image_name).resolve(), images / image_name)
+        result = reconstruct_equirectangular(images, out.dir, out.path("colmap_reference", render_type=render_type),
+                                             render_type=render_type, matcher=matcher, seed=seed)
+        summary = {"num_models": result["num_models"], "colmap_wall_time_s": result["wall_time_s"],
+                   "model": result["model_dir"] is not None}
+        if result["model_dir"] is not None:
+            rec = load_reconstruction(result["model_dir"])
+            summary.update(registered=int(rec.num_reg_images()), points=int(rec.num_points3D()))
+        return summary
+
+    folder = folder_of("colmap_reference", render_type=render_type)
+    with ws.locked(command="fullview compare"):
+        manifest = run_cached(ws, folder, colmap_record(dataset, render_type, matcher, seed), produce, force=force)
+    model = ws.path("colmap_reference", render_type=render_type) if manifest["summary"].get("model") else None
     return model, manifest
 
 
 # --------------------------------------------------------------------------------------------- both models
 def our_model(dataset: Dataset, ws: Workspace) -> dict:
     """Our bundle-adjusted poses, points and observations (bearings from the features + hand points)."""
-    poses, source = load_poses(ws)
+    _, source = ws.load_poses()
     if source != "triangulation":
-        raise RuntimeError(f"{ws.root}: triangulation is not current; run the pipeline until triangulation")
-    sparse = load_npz(ws.sparse_path(), SPARSE_VERSION, ("points", "track_ids", "image_ids", "feature_ids"))
-    obs = load_observations(ws, dataset)
+        raise RunnerError(f"{ws.root}: triangulation is not current; run the pipeline until triangulation")
+    sparse = ws.load_sparse()
+    poses = sparse
+    obs = ws.load_observations(dataset)
     offsets = np.cumsum([0] + [len(o["bearings"]) for o in obs])
     all_bearings = np.concatenate([o["bearings"] for o in obs])
     bearings = all_bearings[offsets[sparse["image_ids"]] + sparse["feature_ids"]]
@@ -121,7 +119,10 @@ def _empty_model(n: int) -> dict:
 # --------------------------------------------------------------------------------------------- the comparison
 def compare(dataset: Dataset, ws: Workspace, pipeline: Pipeline, *, render_type: str = "spherical",
             force_colmap: bool = False, baseline_path: Path | None = DEFAULT_BASELINE) -> dict:
-    """Run what is stale, compare, write compare/colmap.{json,md} and top_view.png; the result (with `gate`)."""
+    """Run what is stale, compare, write compare_<render type>/colmap.{json,md} and top_view.png; the result
+    (with `gate`)."""
+    if baseline_path is not None and baseline_path != DEFAULT_BASELINE and not Path(baseline_path).is_file():
+        raise ConfigError(f"--baseline {baseline_path}: no such file")
     ran = pipeline.run(until="triangulation")
     log.info("our pipeline: %s", ", ".join(ran) if ran else "fresh")
     model_dir, colmap_manifest = colmap_reference(dataset, ws, render_type=render_type, force=force_colmap)
@@ -159,14 +160,16 @@ def compare(dataset: Dataset, ws: Workspace, pipeline: Pipeline, *, render_type:
             for side, m in (("ours", ours), ("colmap", theirs))}
     result["gate"] = check_against_baseline(result, baseline_path)
 
-    out_dir = ws.root / "compare"
-    suffix = "" if render_type == "spherical" else f"_{render_type}"
-    save_json(out_dir / f"colmap{suffix}.json", result)
     markdown = format_markdown(result)
-    with atomic_path(out_dir / f"colmap{suffix}.md") as tmp:
-        tmp.write_text(markdown)
-    plot_top_view(out_dir / f"top_view{suffix}.png", ours, theirs, sim, names, title=f"{dataset.name}: "
-                  f"cameras after alignment (ours → COLMAP {render_type})")
+    with ws.locked(command="fullview compare"), ws.transaction(folder_of("compare_report", render_type=render_type)) as out:
+        out.save_json("compare_report", result, render_type=render_type)
+        out.save_text("compare_markdown", markdown, render_type=render_type)
+        plot_top_view(out.path("compare_top_view", render_type=render_type), ours, theirs, sim, names,
+                      title=f"{dataset.name}: cameras after alignment (ours → COLMAP {render_type})")
+        upstream = {"triangulation": manifests["triangulation"]["fingerprint"],
+                    folder_of("colmap_reference", render_type=render_type): colmap_manifest["fingerprint"]}
+        out.commit_manifest({"fingerprint": record_fingerprint(upstream), "upstream": upstream,
+                             "summary": {"gate": result["gate"]["status"]}})
     result["markdown"] = markdown
     return result
 

@@ -1,0 +1,90 @@
+"""`fullview eval`: the current reconstruction against the dataset's ground_truth/ (poses, and dense results when
+the dataset has ground-truth depth)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from fullview.io.dataset import Dataset, DatasetError
+from fullview.io.workspace import Workspace, WorkspaceBusy, folder_of
+from fullview.sfm.dense_metrics import dense_metrics
+from fullview.sfm.metrics import Similarity, pose_metrics, umeyama
+from fullview.stages.runner import Pipeline, RunnerError
+
+log = logging.getLogger(__name__)
+
+
+def evaluate(pipeline: Pipeline) -> dict:
+    """Pose metrics (and dense metrics when available); also written to eval/metrics.json when the workspace is
+    not busy (eval is a read-only command: it never waits for a run)."""
+    dataset, ws = pipeline.dataset, pipeline.ws
+    if not dataset.has_ground_truth():
+        raise DatasetError(f"{dataset.root}: no ground_truth/poses.yaml to evaluate against")
+    gt = dataset.ground_truth_poses()
+    missing = [n for n in dataset.image_names if n not in gt]
+    if missing:
+        raise DatasetError(f"{dataset.ground_truth_dir / 'poses.yaml'}: no pose for {missing}")
+    with ws.reading():
+        source = _current_model(pipeline)
+        est = ws.load_sparse() if source == "triangulation" else ws.load_registration()
+        R_gt = np.stack([gt[n].R_world_from_cam.T for n in dataset.image_names])
+        c_gt = np.stack([gt[n].center for n in dataset.image_names])
+        metrics = {"dataset": dataset.name, "poses_from": source}
+        metrics.update(pose_metrics(est["R_cam_from_world"], est["centers"], R_gt, c_gt, est["registered"]))
+        if source == "triangulation" and pipeline.status("densify").state == "fresh":
+            dense = evaluate_dense(dataset, ws, est, R_gt, c_gt)
+            if dense is not None:
+                metrics["dense"] = dense
+    _save(pipeline, metrics)
+    return metrics
+
+
+def _current_model(pipeline: Pipeline) -> str:
+    """The stage whose poses are evaluated: triangulation when fresh, else registration when fresh; an error
+    naming the reason otherwise (metrics of a stale model would describe other settings or images)."""
+    for stage in ("triangulation", "registration"):
+        status = pipeline.status(stage)
+        if status.state == "fresh":
+            return stage
+    raise RunnerError(f"{pipeline.ws.root}: the reconstruction is {status.state} ({'; '.join(status.reasons)}); "
+                      "run the pipeline first")
+
+
+def _save(pipeline: Pipeline, metrics: dict) -> None:
+    ws = pipeline.ws
+    try:
+        with ws.locked(command="fullview eval"), ws.transaction(folder_of("eval_metrics")) as out:
+            out.save_json("eval_metrics", metrics)
+            upstream = {s: pipeline.fingerprint(s) for s in ("registration", "triangulation", "densify")}
+            out.commit_manifest({"fingerprint": pipeline.fingerprint(metrics["poses_from"]), "upstream": upstream,
+                                 "summary": {"poses_from": metrics["poses_from"]}})
+    except WorkspaceBusy as e:
+        log.warning("metrics not written to %s: %s", ws.path("eval_metrics"), e)
+
+
+def evaluate_dense(dataset: Dataset, ws: Workspace, est: dict, R_gt_cam_from_world: np.ndarray,
+                   c_gt: np.ndarray) -> dict | None:
+    """Dense metrics of the workspace's densify results against the dataset's ground-truth depth (None when either
+    is missing or fewer than 3 cameras are registered). The reconstruction is aligned by the similarity of its
+    camera centres onto the true ones (as for the pose metrics)."""
+    names = dataset.image_names
+    gt = [dataset.ground_truth_depth(n) for n in names]
+    registered = est["registered"].astype(bool)
+    manifest = ws.read_manifest("densify")
+    if manifest is None or any(g is None for g in gt) or registered.sum() < 3:
+        return None
+    sim: Similarity = umeyama(est["centers"][registered], c_gt[registered])
+    depth = [ws.load_depth(n) if registered[k] else None for k, n in enumerate(names)]
+    missing = {"range": np.full((1, 2), np.nan, np.float32), "valid": np.zeros((1, 2), bool)}
+    depth = [d if d is not None else missing for d in depth]  # no range map: nothing of it is valid
+    cloud = ws.load_dense_cloud()
+    points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]) if cloud is not None else None
+    t_gt = -np.einsum("nab,nb->na", R_gt_cam_from_world, c_gt)
+    out = dense_metrics(range_est=[d["range"] for d in depth], valid_est=[d["valid"] for d in depth], range_gt=gt,
+                        R_gt_cam_from_world=R_gt_cam_from_world, t_gt_cam_from_world=t_gt, sim=sim, points=points,
+                        scene_size=dataset.ground_truth_scene_size(c_gt), names=names)
+    out["median_pair_time_s"] = manifest.get("summary", {}).get("median_pair_time_s")
+    out["stage_wall_time_s"] = manifest.get("wall_time_s")
+    return out

@@ -1,0 +1,96 @@
+"""`fullview export`: the reconstruction in formats other tools open.
+
+- ``colmap`` / ``colmap-bin``: a COLMAP model (text / binary) written by pycolmap, EQUIRECTANGULAR cameras;
+- ``nerfstudio``: ``transforms.json`` (``camera_model: EQUIRECTANGULAR``) plus the sparse points for splatting;
+- ``ply``: the sparse and dense clouds as binary PLY with colours and normals.
+
+The export goes to the workspace's ``export_<format>/`` folder, or to ``--out DIR`` (a new or empty folder, or one a
+previous export wrote), in a transaction either way: an interrupted export leaves the previous one intact.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from fullview.io.config import ConfigError
+from fullview.io.exports import (SparseModel, sparse_point_normals, write_colmap_model, write_nerfstudio,
+                                 write_point_cloud)
+from fullview.io.workspace import StageWriter, folder_of, folder_transaction, make_dirs
+from fullview.stages.runner import Pipeline, RunnerError, record_fingerprint
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("colmap", "colmap-bin", "nerfstudio", "ply")
+
+
+def export(pipeline: Pipeline, fmt: str, out: Path | None = None) -> Path:
+    """Write the current reconstruction in `fmt`; returns the folder written."""
+    if fmt not in FORMATS:
+        raise ConfigError(f"--format {fmt!r}: expected one of {', '.join(FORMATS)}")
+    ws = pipeline.ws
+    status = pipeline.status("triangulation")
+    if status.state != "fresh":
+        raise RunnerError(f"{ws.root}: the sparse model is {status.state} ({'; '.join(status.reasons)}); "
+                          "run the pipeline first")
+    with ws.locked(command="fullview export"):
+        if out is None:
+            with ws.transaction(folder_of("export_dir", format=fmt)) as writer:
+                _write(pipeline, fmt, writer.path("export_dir", format=fmt), writer)
+            return ws.path("export_dir", format=fmt)
+        return _export_outside(pipeline, fmt, Path(out))
+
+
+def _export_outside(pipeline: Pipeline, fmt: str, out: Path) -> Path:
+    """Export into a user-chosen folder, which must be new, empty or a previous export (never a folder of other
+    files, which the swap would replace)."""
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "manifest.json").exists())):
+        raise ConfigError(f"--out {out}: exists and is not empty nor a previous fullview export; choose a new folder")
+    make_dirs(out.parent)
+    with folder_transaction(out) as writer:
+        _write(pipeline, fmt, writer.dir, writer)
+    return out
+
+
+def _write(pipeline: Pipeline, fmt: str, folder: Path, writer: StageWriter) -> None:
+    ws, dataset = pipeline.ws, pipeline.dataset
+    model = sparse_model(pipeline)
+    if fmt in ("colmap", "colmap-bin"):
+        write_colmap_model(model, folder, binary=fmt == "colmap-bin")
+    elif fmt == "nerfstudio":
+        final = writer.dir.parent / writer.folder  # where the export lives once committed
+        paths = [os.path.relpath(dataset.image_path(n).resolve(), final.resolve()) for n in model.image_names]
+        write_nerfstudio(model, folder, image_paths=paths)
+    else:
+        normals = sparse_point_normals(model.points, model.centers, track_point3d=model.track_point3d,
+                                       track_image=model.track_image)
+        write_point_cloud(folder / "sparse.ply", model.points, model.colors, normals)
+        dense = ws.load_dense_cloud() if pipeline.status("densify").state == "fresh" else None
+        if dense is not None:
+            xyz = np.column_stack([dense["x"], dense["y"], dense["z"]])
+            normals = np.column_stack([dense["nx"], dense["ny"], dense["nz"]]) if "nx" in dense else None
+            write_point_cloud(folder / "dense.ply", xyz, np.column_stack([dense["red"], dense["green"], dense["blue"]]),
+                              normals)
+    writer.commit_manifest({"fingerprint": record_fingerprint({"triangulation": pipeline.fingerprint("triangulation"),
+                                                               "format": fmt}),
+                            "upstream": {"triangulation": pipeline.fingerprint("triangulation")},
+                            "summary": {"format": fmt, "images": int(model.registered.sum()),
+                                        "points": int(len(model.points))}})
+    log.info("exported %s: %d registered images, %d points", fmt, int(model.registered.sum()), len(model.points))
+
+
+def sparse_model(pipeline: Pipeline) -> SparseModel:
+    """The bundle-adjusted sparse model with every observation's pixel, as the exporters take it."""
+    ws, dataset = pipeline.ws, pipeline.dataset
+    with ws.reading():
+        sparse = ws.load_sparse()
+        obs = ws.load_observations(dataset)
+    return SparseModel(
+        image_names=list(dataset.image_names), image_sizes=[tuple(int(v) for v in o["image_size"]) for o in obs],
+        registered=sparse["registered"].astype(bool), R_cam_from_world=sparse["R_cam_from_world"],
+        t_cam_from_world=sparse["t_cam_from_world"], points=sparse["points"], colors=sparse["colors"],
+        point_errors_rad=sparse["point_error_rad"], track_point3d=sparse["track_ids"],
+        track_image=sparse["image_ids"], track_point2d=sparse["feature_ids"], pixels=[o["pixels"] for o in obs])

@@ -1,0 +1,265 @@
+"""Export formats for a sparse model: COLMAP (text or binary, through pycolmap), nerfstudio, PLY point clouds.
+
+Pure functions over arrays: they get an output folder or path and know nothing of the workspace layout.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fullview.io.artifacts import save_json, save_ply
+
+log = logging.getLogger(__name__)
+
+COLMAP_FILES = ("cameras", "images", "points3D", "rigs", "frames")
+# nerfstudio camera axes are OpenGL's (x right, y up, z back): ours with y and z flipped
+GL_FROM_CV = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass(kw_only=True)
+class SparseModel:
+    """A sparse reconstruction as flat arrays; images are indexed 0..N-1, points 0..P-1."""
+
+    image_names: list[str]  # N image file names (COLMAP's image name)
+    image_sizes: list[tuple[int, int]]  # N (width, height) in pixels
+    registered: np.ndarray  # (N,) bool: the image has a pose
+    R_cam_from_world: np.ndarray  # (N, 3, 3) rotations, x_cam = R x_world + t
+    t_cam_from_world: np.ndarray  # (N, 3) translations
+    points: np.ndarray  # (P, 3) world coordinates
+    colors: np.ndarray  # (P, 3) uint8 RGB
+    point_errors_rad: np.ndarray  # (P,) mean angular reprojection error, radians
+    track_point3d: np.ndarray  # (K,) observation -> point index
+    track_image: np.ndarray  # (K,) observation -> image index
+    track_point2d: np.ndarray  # (K,) observation -> index into pixels[image]
+    pixels: list[np.ndarray]  # N arrays (M_i, 2): every 2-D feature of image i, equirectangular pixels
+
+    @property
+    def centers(self) -> np.ndarray:
+        """(N, 3) camera centres −Rᵀt (NaN for unregistered images)."""
+        c = -np.einsum("nba,nb->na", self.R_cam_from_world, self.t_cam_from_world)
+        c[~np.asarray(self.registered, bool)] = np.nan
+        return c
+
+    def validate(self) -> None:
+        """Raise ValueError naming the field whose shape or indices do not fit the rest, before pycolmap's own
+        checks fail with a less readable message."""
+        n, p = len(self.image_names), len(self.points)
+        for name, shape in [("registered", (n,)), ("R_cam_from_world", (n, 3, 3)), ("t_cam_from_world", (n, 3)),
+                            ("points", (p, 3)), ("colors", (p, 3)), ("point_errors_rad", (p,))]:
+            if np.shape(getattr(self, name)) != shape:
+                raise ValueError(f"SparseModel.{name} has shape {np.shape(getattr(self, name))}, expected {shape}")
+        for name in ("image_sizes", "pixels"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"SparseModel.{name} has {len(getattr(self, name))} entries for {n} images")
+        k = len(self.track_point3d)
+        for name in ("track_image", "track_point2d"):
+            if len(getattr(self, name)) != k:
+                raise ValueError(f"SparseModel.{name} has {len(getattr(self, name))} entries, track_point3d {k}")
+        if k == 0:
+            return
+        image, feature = np.asarray(self.track_image), np.asarray(self.track_point2d)
+        for name, arr, size in (("track_point3d", np.asarray(self.track_point3d), p), ("track_image", image, n)):
+            if arr.min() < 0 or arr.max() >= size:
+                raise ValueError(f"SparseModel.{name} holds indices outside [0, {size})")
+        counts = np.array([len(px) for px in self.pixels], np.int64)
+        if np.any((feature < 0) | (feature >= counts[image])):
+            raise ValueError("SparseModel.track_point2d holds indices beyond their image's pixels")
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# COLMAP
+
+def write_colmap_model(model: SparseModel, out_dir: Path, *, binary: bool) -> Path:
+    """Write `model` as a COLMAP model (cameras, images, points3D, rigs, frames; .txt or .bin) into `out_dir`.
+
+    Built as a pycolmap.Reconstruction and written by pycolmap itself, so the files are whatever this COLMAP
+    version reads (4.x wants a rig and a frame per image). One EQUIRECTANGULAR camera per distinct image size;
+    image id = image index + 1, point id = point index + 1 (so ids match the rows of our arrays); only registered
+    images are written, with all their 2-D features, and observations in unregistered images are dropped.
+    A point's ERROR is our angular reprojection error in DEGREES, not pixels: the equirectangular pixel size
+    varies with latitude, so a pixel error would not compare across the image.
+    The files are written to a temporary folder first and then moved in, so a failure leaves no half model; the
+    other format's files of the same model are removed (pycolmap would read a stale .bin before a fresh .txt).
+    """
+    model.validate()
+    rec = build_reconstruction(model)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ext, other = (".bin", ".txt") if binary else (".txt", ".bin")
+    with tempfile.TemporaryDirectory(prefix=".colmap.", dir=out_dir) as tmp:
+        (rec.write_binary if binary else rec.write_text)(tmp)
+        for name in COLMAP_FILES:
+            (out_dir / (name + other)).unlink(missing_ok=True)
+            if (Path(tmp) / (name + ext)).exists():
+                os.replace(Path(tmp) / (name + ext), out_dir / (name + ext))
+    log.info("COLMAP %s model: %d images, %d points -> %s", "binary" if binary else "text",
+             rec.num_reg_images(), rec.num_points3D(), out_dir)
+    return out_dir
+
+
+def build_reconstruction(model: SparseModel):
+    """A pycolmap.Reconstruction holding `model` (see `write_colmap_model` for ids and units)."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    reg = np.flatnonzero(model.registered)
+    sizes = sorted({tuple(int(v) for v in model.image_sizes[k]) for k in reg})
+    camera_of = {size: cid for cid, size in enumerate(sizes, start=1)}
+    for (w, h), cid in camera_of.items():
+        rec.add_camera_with_trivial_rig(pycolmap.Camera(model="EQUIRECTANGULAR", width=w, height=h,
+                                                        params=[w, h], camera_id=cid))
+    for k in reg.tolist():
+        cid = camera_of[tuple(int(v) for v in model.image_sizes[k])]
+        keypoints = np.asarray(model.pixels[k], np.float64).reshape(-1, 2)
+        image = pycolmap.Image(name=model.image_names[k], keypoints=keypoints, camera_id=cid, image_id=k + 1)
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(model.R_cam_from_world[k], np.float64)),
+                                np.asarray(model.t_cam_from_world[k], np.float64))
+        rec.add_image_with_trivial_frame(image, pose)
+    _add_points(rec, model)
+    return rec
+
+
+def _add_points(rec, model: SparseModel) -> None:
+    """Every point with its track (observations in registered images), colour and error in degrees."""
+    import pycolmap
+
+    point, image, feature = (np.asarray(a, np.int64) for a in
+                             (model.track_point3d, model.track_image, model.track_point2d))
+    keep = np.asarray(model.registered, bool)[image]
+    point, image, feature = point[keep], image[keep] + 1, feature[keep]
+    order = np.argsort(point, kind="stable")
+    starts = np.searchsorted(point[order], np.arange(len(model.points) + 1)).tolist()
+    image, feature = image[order].tolist(), feature[order].tolist()
+    errors_deg = np.degrees(np.asarray(model.point_errors_rad, np.float64)).tolist()
+    points = np.asarray(model.points, np.float64)
+    colors = np.asarray(model.colors, np.uint8)
+    for p in range(len(points)):
+        s, e = starts[p], starts[p + 1]
+        track = pycolmap.Track([pycolmap.TrackElement(i, j) for i, j in zip(image[s:e], feature[s:e])])
+        rec.add_point3D_with_id(p + 1, pycolmap.Point3D(xyz=points[p], color=colors[p], error=errors_deg[p],
+                                                        track=track))
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# nerfstudio
+
+def write_nerfstudio(model: SparseModel, out_dir: Path, *, image_paths: list[str],
+                     ply_name: str = "sparse_points.ply") -> Path:
+    """`out_dir/transforms.json` for nerfstudio's `nerfstudio-data` parser, plus the sparse points as a PLY.
+
+    Checked against nerfstudio (main, 2025-07): `cameras.py` casts EQUIRECTANGULAR rays from
+    coord = ((x − cx)/fx, −(y − cy)/fy), lon = π·coord_x, polar angle from +y = π(0.5 − coord_y), in OpenGL camera
+    axes; with fl_x = w/2, fl_y = h, cx = w/2, cy = h/2 (what `process_data/metashape_utils.py` writes for
+    spherical sensors) that is exactly our bearing with y and z negated, so `transform_matrix` is our
+    camera-to-world [Rᵀ | c] with its y and z columns negated. Pixel centres sit at +0.5 in both.
+    Only registered images become frames; `file_path` is `image_paths[k]` as given (nerfstudio resolves a
+    relative path against the folder of transforms.json). w, h and the intrinsics are top-level when all frames
+    share a size, else per frame.
+    World frame: kept as ours (no re-orientation to nerfstudio's z-up world; its dataparser orients and centres
+    the poses itself, `orientation_method="up"` by default), so `applied_transform` is written as the identity.
+    It is written rather than left out because, without it, nerfstudio assumes COLMAP's legacy axis swap
+    whenever a `colmap/sparse/0` folder sits beside transforms.json. The PLY (`ply_file_path`, relative to
+    out_dir, loaded by nerfstudio with open3d) is in the same world frame as the poses, as nerfstudio expects.
+    """
+    model.validate()
+    if len(image_paths) != len(model.image_names):
+        raise ValueError(f"image_paths has {len(image_paths)} entries for {len(model.image_names)} images")
+    out_dir = Path(out_dir)
+    reg = np.flatnonzero(model.registered)
+    c2w = nerfstudio_camera_to_world(model.R_cam_from_world[reg], model.t_cam_from_world[reg])
+    intrinsics = [_equirect_intrinsics(*model.image_sizes[k]) for k in reg]
+    shared = intrinsics[0] if intrinsics and all(i == intrinsics[0] for i in intrinsics) else {}
+    frames = [{"file_path": str(image_paths[k]), **({} if shared else intrinsics[f]),
+               "transform_matrix": c2w[f].tolist()} for f, k in enumerate(reg.tolist())]
+    write_point_cloud(out_dir / ply_name, model.points, model.colors)
+    meta = {"camera_model": "EQUIRECTANGULAR", **shared, "frames": frames,
+            "applied_transform": np.eye(4)[:3].tolist(), "ply_file_path": ply_name}
+    return save_json(out_dir / "transforms.json", meta)
+
+
+def _equirect_intrinsics(w: int, h: int) -> dict:
+    return {"w": int(w), "h": int(h), "fl_x": w / 2.0, "fl_y": float(h), "cx": w / 2.0, "cy": h / 2.0}
+
+
+def nerfstudio_camera_to_world(R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) camera-to-world matrices in nerfstudio's OpenGL camera axes (x right, y up, z back)."""
+    R = np.asarray(R_cam_from_world, np.float64).reshape(-1, 3, 3)
+    t = np.asarray(t_cam_from_world, np.float64).reshape(-1, 3)
+    out = np.tile(np.eye(4), (len(R), 1, 1))
+    out[:, :3, :3] = np.swapaxes(R, 1, 2) @ GL_FROM_CV
+    out[:, :3, 3] = -np.einsum("nba,nb->na", R, t)
+    return out
+
+
+def read_nerfstudio(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(file paths, R_cam_from_world (F,3,3), centres (F,3)) of the frames of a transforms.json, in our camera
+    axes and in the world frame before nerfstudio's `applied_transform` (undone when present and not identity).
+    A file with `applied_scale` is refused: its meaning for the saved poses is not pinned down by nerfstudio."""
+    meta = json.loads(Path(path).read_text())
+    if "applied_scale" in meta:
+        raise ValueError(f"{path}: applied_scale={meta['applied_scale']} is not supported")
+    c2w = np.array([f["transform_matrix"] for f in meta["frames"]], np.float64).reshape(-1, 4, 4)
+    if "applied_transform" in meta:
+        applied = np.vstack([np.asarray(meta["applied_transform"], np.float64), [0, 0, 0, 1]])
+        c2w = np.linalg.solve(applied, c2w)
+    R_world_from_cam = c2w[:, :3, :3] @ GL_FROM_CV
+    return [f["file_path"] for f in meta["frames"]], np.swapaxes(R_world_from_cam, 1, 2), c2w[:, :3, 3].copy()
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# PLY
+
+def write_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray | None = None,
+                      normals: np.ndarray | None = None) -> Path:
+    """Binary PLY (float32 xyz, optional normals, uint8 rgb) through `artifacts.save_ply`, with lengths checked."""
+    n = len(points)
+    for name, arr in (("colors", colors), ("normals", normals)):
+        if arr is not None and np.shape(arr) != (n, 3):
+            raise ValueError(f"{name} has shape {np.shape(arr)}, expected ({n}, 3)")
+    return save_ply(path, points, colors, normals)
+
+
+def sparse_point_normals(points: np.ndarray, centers: np.ndarray, *, knn: int = 16,
+                         track_point3d: np.ndarray | None = None, track_image: np.ndarray | None = None
+                         ) -> np.ndarray:
+    """(P, 3) unit normals of a sparse cloud: open3d's PCA over the `knn` nearest points, each flipped to face
+    the cameras that see it (the mean centre of its observing cameras when tracks are given, else the mean
+    camera centre). Why facing the cameras: a surface is seen from its front, and PCA only gives an axis.
+    `centers` (N, 3) may hold NaN rows for unregistered cameras; they are ignored.
+    """
+    import open3d as o3d
+
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(max(3, int(knn))))
+    normals = np.asarray(pcd.normals, np.float64).copy()
+    toward = _view_targets(points, np.asarray(centers, np.float64).reshape(-1, 3), track_point3d, track_image)
+    flip = np.einsum("pa,pa->p", normals, toward - points) < 0
+    normals[flip] *= -1
+    return normals
+
+
+def _view_targets(points: np.ndarray, centers: np.ndarray, track_point3d, track_image) -> np.ndarray:
+    """Per point, the mean centre of the registered cameras observing it; the mean camera centre otherwise."""
+    valid = np.isfinite(centers).all(axis=1)
+    if not valid.any():
+        raise ValueError("centers has no finite camera centre to orient normals towards")
+    targets = np.tile(centers[valid].mean(axis=0), (len(points), 1))
+    if track_point3d is None or track_image is None:
+        return targets
+    keep = valid[track_image]
+    pts, imgs = np.asarray(track_point3d)[keep], np.asarray(track_image)[keep]
+    counts = np.bincount(pts, minlength=len(points))
+    sums = np.stack([np.bincount(pts, centers[imgs, a], minlength=len(points)) for a in range(3)], axis=1)
+    seen = counts > 0
+    targets[seen] = sums[seen] / counts[seen, None]
+    return targets

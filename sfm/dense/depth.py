@@ -1,0 +1,224 @@
+"""Ranges from disparities (law of sines), back to the panoramas, and per-panorama range maps.
+
+Owns ``depth_from_disparity``, the rectified range maps, their resampling into each camera's equirectangular frame
+(edge-aware, never blending across depth edges), ``densify_pair`` (one pair end to end), and the per-panorama
+treatment of the pair estimates: expected range error per pixel, combination of several estimates, latitude mask.
+Ranges are distances from the camera centre; invalid ones are NaN.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fullview.sfm.camera import bearings_to_pixels_f32, pixel_grid_bearings, pixel_grid_lonlat, pixel_latitude
+from fullview.sfm.dense.disparity import DisparityResult, SgbmParams, compute_disparity
+from fullview.sfm.dense.rectify import rectify_pair, theta_of_columns
+
+log = logging.getLogger(__name__)
+
+
+def depth_from_disparity(theta_i: np.ndarray, disparity_angle: np.ndarray, baseline: float) -> np.ndarray:
+    """Range ``|O_i P|`` from the angle θ_i (at O_i, from the epipole) and the angular disparity d (radians).
+
+    Derivation (the report's law of sines). In the triangle O_i O_j P with |O_i O_j| = T:
+    - the angle at O_i is θ_i (between the baseline direction O_i→O_j and the ray O_i→P);
+    - camera j sees P at θ_j from the same direction O_i→O_j, so the interior angle at O_j is π − θ_j;
+    - the angle at P is d = ∠O_i P O_j. Angle sum: θ_i + (π − θ_j) + d = π  ⇒  θ_j = θ_i + d.
+    The law of sines gives |O_i P| / sin(π − θ_j) = T / sin(d), hence ``|O_i P| = T sin(θ_i + d) / sin(d)``.
+    (By symmetry, |O_j P| = T sin(θ_i) / sin(d) = depth_from_disparity(π − θ_j, d, T).)
+    Non-positive disparities give NaN.
+    """
+    theta_i = np.asarray(theta_i, dtype=np.float64)
+    d = np.asarray(disparity_angle, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = baseline * np.sin(theta_i + d) / np.sin(d)
+        return np.where((d > 0) & (r > 0), r, np.nan)
+
+
+def rectified_range_maps(disparity: DisparityResult, baseline: float) -> tuple[np.ndarray, np.ndarray]:
+    """(range_i, range_j): float32 ranges on the rectified grids of cameras i and j (NaN invalid)."""
+    theta = theta_of_columns(disparity.disparity_i.shape[1])[None, :]
+    range_i = depth_from_disparity(theta, disparity.disparity_i, baseline)
+    range_j = depth_from_disparity(np.pi - theta, disparity.disparity_j, baseline)
+    return range_i.astype(np.float32), range_j.astype(np.float32)
+
+
+def sample_edge_aware(
+    values: np.ndarray, u: np.ndarray, v: np.ndarray, edge_tol: float, *, wrap_rows: bool
+) -> np.ndarray:
+    """Bilinear sample of a range map at continuous pixel coordinates (u = column, v = row).
+
+    ``wrap_rows``: rows are periodic and columns clamped (rectified grid); otherwise columns are periodic and rows
+    clamped (equirectangular panorama). Where one of the four neighbours is invalid (NaN) or they span a relative
+    range larger than ``edge_tol`` (a depth edge), the nearest neighbour is taken instead, so values are never
+    blended across discontinuities.
+    """
+    n_rows, n_cols = values.shape
+    x = np.asarray(u, dtype=np.float32) - np.float32(0.5)
+    y = np.asarray(v, dtype=np.float32) - np.float32(0.5)
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = x - x0, y - y0
+    xi, yi = x0.astype(np.int64), y0.astype(np.int64)
+    if wrap_rows:
+        c0, c1 = np.clip(xi, 0, n_cols - 1), np.clip(xi + 1, 0, n_cols - 1)
+        r0, r1 = np.mod(yi, n_rows), np.mod(yi + 1, n_rows)
+    else:
+        c0, c1 = np.mod(xi, n_cols), np.mod(xi + 1, n_cols)
+        r0, r1 = np.clip(yi, 0, n_rows - 1), np.clip(yi + 1, 0, n_rows - 1)
+    flat = np.ascontiguousarray(values, dtype=np.float32).ravel()
+    r0 *= n_cols
+    r1 *= n_cols
+    v00, v01, v10, v11 = flat.take(r0 + c0), flat.take(r0 + c1), flat.take(r1 + c0), flat.take(r1 + c1)
+    lo = np.fmin(np.fmin(v00, v01), np.fmin(v10, v11))
+    hi = np.fmax(np.fmax(v00, v01), np.fmax(v10, v11))
+    top = v00 + (v01 - v00) * fx
+    bilinear = top + (v10 + (v11 - v10) * fx - top) * fy
+    right, below = fx >= 0.5, fy >= 0.5
+    near = np.where(below, np.where(right, v11, v10), np.where(right, v01, v00))
+    with np.errstate(invalid="ignore"):
+        smooth = np.isfinite(bilinear) & (hi - lo <= np.float32(edge_tol) * lo)
+    return np.where(smooth, bilinear, near)
+
+
+def range_map_to_panorama(
+    range_rect: np.ndarray,
+    R_rect_from_cam: np.ndarray,
+    *,
+    width: int,
+    height: int | None = None,
+    interpolation: str = "edge_aware",
+    edge_tol: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Resample a rectified range map into the camera's own equirectangular frame.
+
+    ``range_rect`` is (n_phi, n_theta) on the rectified grid of that camera (NaN invalid); ``R_rect_from_cam`` is
+    the camera's ``RectifiedPair.R_rect_from_cam_*``. Output size ``width`` × ``height`` (default width / 2).
+    ``interpolation``: ``"nearest"`` or ``"edge_aware"`` (bilinear except across depth edges / invalid pixels; see
+    ``sample_edge_aware``). Returns (range float32 (H, W) with NaN invalid, valid bool (H, W)).
+    """
+    if interpolation not in ("nearest", "edge_aware"):
+        raise ValueError(f"interpolation must be 'nearest' or 'edge_aware', got {interpolation!r}")
+    height = int(height or width // 2)
+    n_phi, n_theta = range_rect.shape
+    b_rect = pixel_grid_bearings(width, height, np.float32) @ np.asarray(R_rect_from_cam, np.float32).T
+    # the rectified frame is an equirectangular camera (n_phi x n_theta) whose top pole is the epipole: θ from the pole
+    v, u = bearings_to_pixels_f32(b_rect, n_phi, n_theta, from_pole=True)
+    values = np.asarray(range_rect, dtype=np.float32)
+    if interpolation == "nearest":
+        col = np.clip(np.floor(u), 0, n_theta - 1).astype(np.intp)
+        row = np.mod(np.floor(v), n_phi).astype(np.intp)
+        out = values[row, col]
+    else:
+        out = sample_edge_aware(values, u, v, edge_tol, wrap_rows=True)
+    valid = np.isfinite(out) & (out > 0)
+    return np.where(valid, out, np.nan).astype(np.float32), valid
+
+
+@dataclass(kw_only=True)
+class PairDepth:
+    range_i: np.ndarray  # (H, W) float32 range map of camera i in its panorama frame, NaN invalid
+    range_j: np.ndarray  # (H, W) float32 range map of camera j in its panorama frame, NaN invalid
+    valid_i: np.ndarray  # (H, W) bool validity of range_i
+    valid_j: np.ndarray  # (H, W) bool validity of range_j
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per step
+
+
+def densify_pair(
+    image_i: np.ndarray,
+    image_j: np.ndarray,
+    R_cam_from_world_i: np.ndarray,
+    t_cam_from_world_i: np.ndarray,
+    R_cam_from_world_j: np.ndarray,
+    t_cam_from_world_j: np.ndarray,
+    *,
+    rect_height: int | None = None,
+    out_width: int | None = None,
+    min_depth_ratio: float = 2.0,
+    min_epipole_angle_deg: float = 8.0,
+    params: SgbmParams | None = None,
+) -> PairDepth:
+    """Rectify, match (with LR check), triangulate and map back to both panoramas (size ``out_width`` ×
+    ``out_width/2``, default the source size)."""
+    t = [time.perf_counter()]
+    pair = rectify_pair(
+        image_i, image_j, R_cam_from_world_i, t_cam_from_world_i, R_cam_from_world_j, t_cam_from_world_j,
+        height=rect_height,
+    )
+    t.append(time.perf_counter())
+    disp = compute_disparity(
+        pair.rect_i, pair.rect_j, min_depth_ratio=min_depth_ratio, min_epipole_angle_deg=min_epipole_angle_deg,
+        params=params,
+    )
+    t.append(time.perf_counter())
+    range_i, range_j = rectified_range_maps(disp, pair.baseline)
+    width = int(out_width or image_i.shape[1])
+    pano_i, valid_i = range_map_to_panorama(range_i, pair.R_rect_from_cam_i, width=width)
+    pano_j, valid_j = range_map_to_panorama(range_j, pair.R_rect_from_cam_j, width=width)
+    t.append(time.perf_counter())
+    timings = {"rectify": t[1] - t[0], "disparity": t[2] - t[1], "depth_and_backmap": t[3] - t[2]}
+    log.debug("densify_pair timings: %s", timings)
+    return PairDepth(range_i=pano_i, range_j=pano_j, valid_i=valid_i, valid_j=valid_j, timings=timings)
+
+
+def range_error_per_pixel(range_map: np.ndarray, R_cam_from_world: np.ndarray, center: np.ndarray,
+                          other_center: np.ndarray, pixel_angle: float) -> np.ndarray:
+    """Relative range error caused by one rectified pixel (``pixel_angle`` rad) of disparity error, per pixel of a
+    camera's equirectangular range map from the pair with the camera at ``other_center``.
+
+    With r = |O_i P|, r_j = |O_j P|, baseline T and θ the angle at O_i between the baseline and the ray, the law of
+    sines r = T sin(θ + d) / sin(d) gives |∂r/∂d| / r = r_j² / (r T sin θ): large near the epipoles and for distant
+    points. NaN where the range is invalid."""
+    height, width = range_map.shape
+    baseline = np.asarray(other_center, np.float64) - np.asarray(center, np.float64)
+    T = float(np.linalg.norm(baseline))
+    e = (np.asarray(R_cam_from_world, np.float64) @ baseline / T).astype(np.float32)  # epipole, camera frame
+    lon, lat = pixel_grid_lonlat(width, height, np.float32)
+    cos_theta = (np.cos(lat)[:, None] * (np.sin(lon) * e[0] + np.cos(lon) * e[2])[None, :]
+                 - np.sin(lat)[:, None] * e[1])
+    sin_theta = np.sqrt(np.maximum(1.0 - cos_theta**2, 1e-12))
+    r = np.asarray(range_map, np.float32)
+    r_j_sq = r * r + T * T - 2.0 * T * r * cos_theta
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (r_j_sq * np.float32(pixel_angle) / (r * np.float32(T) * sin_theta)).astype(np.float32)
+
+
+def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """One range map from a panorama's pair estimates (each (H, W), NaN invalid).
+
+    Where one pair has a range it is kept; where several have, the median is taken and the estimates within
+    ``rel_tol`` (relative) of it are averaged, and the pixel is dropped unless at least two agree (two conflicting
+    estimates cannot say which is right). Returns (range float32 NaN-invalid, valid bool)."""
+    if not estimates:
+        raise ValueError("combine_range_estimates needs at least one estimate")
+    if len(estimates) == 1:
+        rng = np.asarray(estimates[0], np.float32)
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(rng) & (rng > 0)
+        return np.where(valid, rng, np.nan).astype(np.float32), valid
+    stack = np.sort(np.stack(estimates).astype(np.float32), axis=0)  # NaN sorts last
+    count = np.isfinite(stack).sum(0)
+    lo = np.take_along_axis(stack, np.maximum((count - 1) // 2, 0)[None], 0)[0]
+    hi = np.take_along_axis(stack, np.maximum(count // 2, 0)[None], 0)[0]
+    median = 0.5 * (lo + hi)
+    with np.errstate(invalid="ignore"):
+        agree = np.abs(stack - median) <= rel_tol * median
+    n_agree = agree.sum(0)
+    mean = np.where(agree, stack, 0).sum(0) / np.maximum(n_agree, 1)
+    valid = ((count == 1) | (n_agree >= 2)) & (count > 0)
+    out = np.where(count == 1, stack[0], mean)
+    valid &= np.isfinite(out) & (out > 0)
+    return np.where(valid, out, np.nan).astype(np.float32), valid
+
+
+def mask_below_latitude(rng: np.ndarray, valid: np.ndarray, min_latitude_deg: float):
+    """Invalidate the rows of an equirectangular map whose centre latitude is below ``min_latitude_deg``."""
+    if min_latitude_deg <= -90.0:
+        return rng, valid
+    height = rng.shape[0]
+    lat = np.degrees(pixel_latitude(np.arange(height) + 0.5, height))
+    below = (lat < min_latitude_deg)[:, None]
+    return np.where(below, np.nan, rng).astype(np.float32), valid & ~below

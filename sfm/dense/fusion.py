@@ -1,0 +1,170 @@
+"""Fusion of per-panorama range maps into one point cloud: multi-view consistency, cleaning, normals.
+
+A back-projected pixel is kept where enough neighbouring views (``fusion_neighbours``) see a surface at the same range;
+``clean_point_cloud`` then removes statistical outliers and estimates normals with open3d.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Sequence
+
+import numpy as np
+
+from fullview.sfm.camera import bearings_to_pixels, pixels_to_bearings
+from fullview.sfm.dense.depth import sample_edge_aware
+
+log = logging.getLogger(__name__)
+
+
+def _pixel_centers(height: int, width: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices of a strided pixel grid."""
+    rows, cols = np.mgrid[0:height:stride, 0:width:stride]
+    return rows.ravel(), cols.ravel()
+
+
+def _valid_range(values: np.ndarray) -> np.ndarray:
+    """Finite and positive."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(values) & (values > 0)
+
+
+def _sample_colors(image: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(N, 3) uint8 colours of ``image`` at range-map pixels (rows, cols) of a map of ``shape`` (nearest)."""
+    img = np.asarray(image)
+    if img.ndim == 2:
+        img = img[..., None]
+    img = np.repeat(img, 3, axis=2) if img.shape[2] == 1 else img[..., :3]
+    if img.dtype != np.uint8:
+        img = np.clip(img * (255.0 if img.dtype.kind == "f" and img.max() <= 1.0 else 1.0), 0, 255).astype(np.uint8)
+    y = np.minimum(((rows + 0.5) * img.shape[0] / shape[0]).astype(np.intp), img.shape[0] - 1)
+    x = np.minimum(((cols + 0.5) * img.shape[1] / shape[1]).astype(np.intp), img.shape[1] - 1)
+    return img[y, x]
+
+
+def _support(
+    points: np.ndarray, range_map: np.ndarray, R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray,
+    rel_tol: float,
+) -> np.ndarray:
+    """Whether each world point agrees (relative range difference ≤ rel_tol) with another view's range map, read
+    with the edge-aware bilinear sampler at the point's projection."""
+    x_cam = points @ R_cam_from_world.T + t_cam_from_world
+    r_pred = np.linalg.norm(x_cam, axis=1)
+    height, width = range_map.shape
+    pix = bearings_to_pixels(x_cam, width, height)
+    observed = sample_edge_aware(range_map, pix[:, 0], pix[:, 1], max(2 * rel_tol, 0.02), wrap_rows=False)
+    with np.errstate(invalid="ignore"):
+        return _valid_range(observed) & (np.abs(observed - r_pred) <= rel_tol * r_pred)
+
+
+def fuse_depth_maps(
+    range_maps: Sequence[np.ndarray],
+    images: Sequence[np.ndarray],
+    R_cam_from_world: np.ndarray,
+    t_cam_from_world: np.ndarray,
+    *,
+    min_consistent: int = 1,
+    rel_tol: float = 0.02,
+    stride: int = 1,
+    neighbors: Sequence[Sequence[int]] | None = None,
+    views: Sequence[int] | None = None,
+    return_sources: bool = False,
+):
+    """Back-project per-panorama range maps to world points and keep the multi-view consistent ones.
+
+    - ``range_maps[k]``: (H_k, W_k) range (distance from the centre) in camera k's equirectangular frame; NaN or
+      ≤ 0 is invalid. ``images[k]``: that panorama (any size; grey or 3-channel, colours keep its channel order).
+    - A point from view i is kept if at least ``min_consistent`` other views (``neighbors[i]``, default all) have a
+      valid range at its projection within ``rel_tol`` (relative) of its predicted range. Views with no valid range
+      there neither support nor veto it.
+    - ``stride`` subsamples the pixels of every map.
+    - ``views``: back-project only these views (default all); every map still supports the others' points. Fusing
+      one view at a time bounds the memory to one view's points.
+    Returns (points (N, 3) float64, colours (N, 3) uint8[, source view index (N,) int]).
+    """
+    R_all = np.asarray(R_cam_from_world, dtype=np.float64)
+    t_all = np.asarray(t_cam_from_world, dtype=np.float64)
+    n_views = len(range_maps)
+    if len(images) != n_views or len(R_all) != n_views or len(t_all) != n_views:
+        raise ValueError(
+            f"range_maps ({n_views}), images ({len(images)}), R_cam_from_world ({len(R_all)}) and "
+            f"t_cam_from_world ({len(t_all)}) must have the same length"
+        )
+    maps = [np.asarray(m, dtype=np.float32) for m in range_maps]
+    all_pts, all_cols, all_src = [], [], []
+    for i in range(n_views) if views is None else views:
+        rmap = maps[i]
+        rows, cols = _pixel_centers(*rmap.shape, stride)
+        ranges = rmap[rows, cols]
+        keep = _valid_range(ranges)
+        rows, cols, ranges = rows[keep], cols[keep], ranges[keep]
+        pix = np.stack([cols + 0.5, rows + 0.5], axis=1)
+        x_cam = pixels_to_bearings(pix, rmap.shape[1], rmap.shape[0]) * ranges[:, None]
+        pts = (x_cam - t_all[i]) @ R_all[i]  # world = Rᵀ (x_cam − t)
+        count = np.zeros(len(pts), dtype=np.int32)
+        others = neighbors[i] if neighbors is not None else range(n_views)
+        for k in others:
+            if k != i:
+                count += _support(pts, maps[k], R_all[k], t_all[k], rel_tol)
+        ok = count >= min_consistent
+        log.debug("fusion: view %d keeps %d / %d points", i, ok.sum(), len(ok))
+        all_pts.append(pts[ok])
+        all_cols.append(_sample_colors(images[i], rows[ok], cols[ok], rmap.shape))
+        all_src.append(np.full(ok.sum(), i, dtype=np.int64))
+    points = np.concatenate(all_pts) if all_pts else np.zeros((0, 3))
+    colors = np.concatenate(all_cols) if all_cols else np.zeros((0, 3), np.uint8)
+    if return_sources:
+        return points, colors, (np.concatenate(all_src) if all_src else np.zeros(0, np.int64))
+    return points, colors
+
+
+def clean_point_cloud(
+    points: np.ndarray,
+    colors: np.ndarray,
+    *,
+    voxel_size: float,
+    nb_neighbors: int = 20,
+    std_ratio: float = 2.0,
+    normal_radius: float | None = None,
+    viewpoint: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel down-sampling, statistical outlier removal and normal estimation with open3d.
+
+    ``colors`` are uint8 (N, 3) (returned as uint8) or floats in [0, 1] (returned as float64). Normals are estimated
+    from neighbours within ``normal_radius`` (default 3 · voxel_size, at most 30) and, if ``viewpoint`` (3,) is given,
+    oriented towards it. Returns (points (M, 3), colours (M, 3), normals (M, 3)).
+    """
+    import open3d as o3d
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    cols = np.asarray(colors)
+    if len(cols) != len(pts):
+        raise ValueError(f"colors has {len(cols)} rows but points has {len(pts)}")
+    is_u8 = cols.dtype == np.uint8
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pcd.colors = o3d.utility.Vector3dVector(cols.astype(np.float64) / (255.0 if is_u8 else 1.0))
+    if voxel_size > 0:
+        pcd = pcd.voxel_down_sample(voxel_size)
+    if nb_neighbors > 0 and len(pcd.points) > nb_neighbors:
+        pcd, _ = pcd.remove_statistical_outlier(nb_neighbors=nb_neighbors, std_ratio=std_ratio)
+    radius = normal_radius or 3.0 * voxel_size
+    if len(pcd.points) >= 3:
+        search = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30) if radius > 0 else (
+            o3d.geometry.KDTreeSearchParamKNN(30)
+        )
+        pcd.estimate_normals(search)
+        if viewpoint is not None:
+            pcd.orient_normals_towards_camera_location(np.asarray(viewpoint, dtype=np.float64))
+    out_cols = np.asarray(pcd.colors)
+    out_cols = np.clip(np.rint(out_cols * 255), 0, 255).astype(np.uint8) if is_u8 else out_cols
+    normals = np.asarray(pcd.normals) if pcd.has_normals() else np.zeros((len(pcd.points), 3))
+    log.info("clean_point_cloud: %d -> %d points", len(pts), len(pcd.points))
+    return np.asarray(pcd.points), out_cols, normals
+
+
+def fusion_neighbours(centers: np.ndarray, k: int) -> list[list[int]]:
+    """For each camera, the ``k`` nearest others (indices into ``centers``)."""
+    dist = np.linalg.norm(centers[:, None] - centers[None], axis=-1)
+    np.fill_diagonal(dist, np.inf)
+    order = np.argsort(dist, axis=1, kind="stable")[:, : min(k, len(centers) - 1)]
+    return [row.tolist() for row in order]
