@@ -49,10 +49,9 @@ def synth_dataset(work: Path, views: int, width: int, seed: int) -> Path:
 
 def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = False) -> dict:
     ws = work / "ws" / label
-    cmd = [sys.executable, "-m", "fullview", "run", str(dataset), "-w", str(ws), "-c", str(ROOT / "pipeline.yaml"),
+    settings = ["-c", str(ROOT / "pipeline.yaml")] + [a for item in extra for a in ("--set", item)]
+    cmd = [sys.executable, "-m", "fullview", "run", str(dataset), "-w", str(ws), *settings,
            "--until", "densify" if dense else "triangulation", "--force"]
-    for item in extra:
-        cmd += ["--set", item]
     t0 = time.perf_counter()
     proc = run(cmd)
     wall = time.perf_counter() - t0
@@ -73,7 +72,7 @@ def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = 
         out["densify"] = {k: summary.get(k) for k in ("pairs", "points", "median_pair_time_s", "valid_share")}
         out["densify"]["stage_time_s"] = json.loads((root / "densify" / "manifest.json").read_text())["wall_time_s"]
     if (dataset / "ground_truth" / "poses.yaml").exists():
-        proc = run([sys.executable, "-m", "fullview", "eval", str(dataset), "-w", str(ws)])
+        proc = run([sys.executable, "-m", "fullview", "eval", str(dataset), "-w", str(ws), *settings])
         out["metrics"] = json.loads(proc.stdout) if proc.returncode == 0 else {"error": proc.stderr[-2000:]}
     return out
 

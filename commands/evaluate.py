@@ -33,7 +33,7 @@ def evaluate(pipeline: Pipeline) -> dict:
         c_gt = np.stack([gt[n].center for n in dataset.image_names])
         metrics = {"dataset": dataset.name, "poses_from": source}
         metrics.update(pose_metrics(est["R_cam_from_world"], est["centers"], R_gt, c_gt, est["registered"]))
-        if source == "triangulation" and pipeline.status("densify").state == "fresh":
+        if source == "triangulation" and pipeline.status("densify", deep=True).state == "fresh":
             dense = evaluate_dense(dataset, ws, est, R_gt, c_gt)
             if dense is not None:
                 metrics["dense"] = dense
@@ -45,7 +45,7 @@ def _current_model(pipeline: Pipeline) -> str:
     """The stage whose poses are evaluated: triangulation when fresh, else registration when fresh; an error
     naming the reason otherwise (metrics of a stale model would describe other settings or images)."""
     for stage in ("triangulation", "registration"):
-        status = pipeline.status(stage)
+        status = pipeline.chain_status(stage)
         if status.state == "fresh":
             return stage
     raise RunnerError(f"{pipeline.ws.root}: the reconstruction is {status.state} ({'; '.join(status.reasons)}); "

@@ -32,7 +32,7 @@ def export(pipeline: Pipeline, fmt: str, out: Path | None = None) -> Path:
     if fmt not in FORMATS:
         raise ConfigError(f"--format {fmt!r}: expected one of {', '.join(FORMATS)}")
     ws = pipeline.ws
-    status = pipeline.status("triangulation")
+    status = pipeline.chain_status("triangulation")
     if status.state != "fresh":
         raise RunnerError(f"{ws.root}: the sparse model is {status.state} ({'; '.join(status.reasons)}); "
                           "run the pipeline first")
@@ -68,7 +68,7 @@ def _write(pipeline: Pipeline, fmt: str, folder: Path, writer: StageWriter) -> N
         normals = sparse_point_normals(model.points, model.centers, track_point3d=model.track_point3d,
                                        track_image=model.track_image)
         write_point_cloud(folder / "sparse.ply", model.points, model.colors, normals)
-        dense = ws.load_dense_cloud() if pipeline.status("densify").state == "fresh" else None
+        dense = ws.load_dense_cloud() if pipeline.status("densify", deep=True).state == "fresh" else None
         if dense is not None:
             xyz = np.column_stack([dense["x"], dense["y"], dense["z"]])
             normals = np.column_stack([dense["nx"], dense["ny"], dense["nz"]]) if "nx" in dense else None

@@ -166,6 +166,16 @@ class Pipeline:
                                    reasons=[f"upstream {u} on disk is not the one it was built from" for u in rebuilt])
         return StageStatus(name=stage, state=state, reasons=reasons)
 
+    def chain_status(self, stage: str) -> StageStatus:
+        """The status of `stage` and everything upstream of it, hashes checked: the first stage that is not fresh,
+        else `stage`'s (fresh) status. What a command must see before it consumes a stage's artifacts."""
+        for name in [*self._upstream_chain(stage), stage]:
+            status = self.status(name, deep=True)
+            if status.state != "fresh":
+                return StageStatus(name=stage, state=status.state,
+                                   reasons=[f"{name}: {r}" for r in status.reasons] if name != stage else status.reasons)
+        return status
+
     def _stale_reasons(self, stage: str, manifest: dict) -> list[str]:
         now = self.fingerprint_record(stage)
         reasons = []

@@ -203,6 +203,22 @@ def test_7_read_only_workspace(tiny_dataset, tmp_path, capsys):
         (tmp_path / "ws").chmod(0o700)
 
 
+def test_7_permission_denied_is_one_line(tiny_dataset, tmp_path, capsys, monkeypatch):
+    """As root the read-only test above cannot run: the same refusal, raised where the lock file is opened."""
+    import errno
+
+    import fullview.io.workspace as workspace
+    real_open = os.open
+
+    def denied(path, *args, **kwargs):
+        if str(path).endswith(".lock"):
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(workspace.os, "open", denied)
+    _one_line_error(*_cli(capsys, "run", tiny_dataset, "-w", tmp_path / "ws")[::2], "Permission denied", ".lock")
+
+
 def test_7_disk_full_is_one_line(tiny_dataset, tmp_path, capsys, monkeypatch):
     import errno
 
