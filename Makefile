@@ -8,7 +8,7 @@ SYNTH      := $(WORKSPACE)/datasets/synth6
 DATASET    ?=
 STAGE      ?=
 
-.PHONY: setup run stage status test bench clean eval synth
+.PHONY: setup run stage status test bench clean eval synth export
 
 $(VENV)/.installed: pyproject.toml
 	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0; then \
@@ -30,7 +30,7 @@ run: setup
 ifeq ($(DATASET),)
 	@$(MAKE) --no-print-directory $(SYNTH)/images
 	$(PY) -m fullview run $(SYNTH) -c $(CONFIG) -w $(WORKSPACE)
-	$(PY) -m fullview eval $(SYNTH) -w $(WORKSPACE)
+	$(PY) -m fullview eval $(SYNTH) -c $(CONFIG) -w $(WORKSPACE)
 else
 	$(PY) -m fullview run $(DATASET) -c $(CONFIG) -w $(WORKSPACE)
 endif
@@ -43,7 +43,12 @@ status: setup
 	$(PY) -m fullview status $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)
 
 eval: setup
-	$(PY) -m fullview eval $(or $(DATASET),$(SYNTH)) -w $(WORKSPACE)
+	$(PY) -m fullview eval $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)
+
+# The current model for other tools: make export FORMAT=colmap|colmap-bin|nerfstudio|ply [DATASET=…]
+FORMAT ?= colmap
+export: setup
+	$(PY) -m fullview export $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE) --format $(FORMAT)
 
 test: setup
 	$(PY) -m pytest tests

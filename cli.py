@@ -23,7 +23,6 @@ from fullview.stages.runner import Pipeline
 
 log = logging.getLogger("fullview")
 DEFAULT_CONFIG = Path("pipeline.yaml")
-BASELINE = Path(__file__).resolve().parent / "benchmarks" / "baseline.json"
 
 
 def _pipeline(args) -> Pipeline:
@@ -42,6 +41,7 @@ def cmd_run(args) -> int:
 
 def cmd_status(args) -> int:
     pipeline = _pipeline(args)
+    pipeline.ws.check_root()
     with pipeline.ws.reading():
         for stage in PIPELINE:
             st = pipeline.status(stage, deep=args.verify)
@@ -52,8 +52,8 @@ def cmd_status(args) -> int:
 
 def cmd_synth(args) -> int:
     from fullview.synth import write_synthetic_dataset
-    if args.views < 2 or args.width < 64 or args.width % 2:
-        raise ConfigError("synth needs --views >= 2 and an even --width >= 64")
+    if args.views < 2 or args.width < 64 or args.width % 2 or args.seed < 0:
+        raise ConfigError("synth needs --views >= 2, an even --width >= 64 and --seed >= 0")
     print(write_synthetic_dataset(args.out, views=args.views, width=args.width, seed=args.seed))
     return 0
 
@@ -75,10 +75,13 @@ def cmd_colmap_check(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    from fullview.commands.compare import compare
+    from fullview.commands.compare import DEFAULT_BASELINE, compare
+    if args.baseline is not None and not args.baseline.is_file():
+        raise ConfigError(f"--baseline {args.baseline}: no such file")
     pipeline = _pipeline(args)
+    baseline = None if args.no_gate else (args.baseline or DEFAULT_BASELINE)
     result = compare(pipeline.dataset, pipeline.ws, pipeline, render_type=args.render_type,
-                     force_colmap=args.force_colmap, baseline_path=None if args.no_gate else args.baseline)
+                     force_colmap=args.force_colmap, baseline_path=baseline)
     print(result["markdown"])
     print(f"written: {pipeline.ws.path('compare_report', render_type=args.render_type).parent}/")
     if result["gate"]["status"] == "fail":
@@ -137,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--render-type", default="spherical",
                    choices=("spherical", "perspective_overlapping", "perspective_non_overlapping"))
     p.add_argument("--force-colmap", action="store_true", help="rerun COLMAP even when its cached run is fresh")
-    p.add_argument("--baseline", type=Path, default=BASELINE, help="stored baseline (default: benchmarks/baseline.json)")
+    p.add_argument("--baseline", type=Path, default=None, help="stored baseline (default: benchmarks/baseline.json)")
     p.add_argument("--no-gate", action="store_true", help="compare without checking the baseline")
     p.set_defaults(func=cmd_compare)
     p = sub.add_parser("export", help="the reconstruction as COLMAP, nerfstudio or PLY files")

@@ -121,8 +121,8 @@ def compare(dataset: Dataset, ws: Workspace, pipeline: Pipeline, *, render_type:
             force_colmap: bool = False, baseline_path: Path | None = DEFAULT_BASELINE) -> dict:
     """Run what is stale, compare, write compare_<render type>/colmap.{json,md} and top_view.png; the result
     (with `gate`)."""
-    if baseline_path is not None and baseline_path != DEFAULT_BASELINE and not Path(baseline_path).is_file():
-        raise ConfigError(f"--baseline {baseline_path}: no such file")
+    if baseline_path is not None and Path(baseline_path).is_file():
+        load_baseline(Path(baseline_path))  # a broken baseline fails now, not after the COLMAP run
     ran = pipeline.run(until="triangulation")
     log.info("our pipeline: %s", ", ".join(ran) if ran else "fresh")
     model_dir, colmap_manifest = colmap_reference(dataset, ws, render_type=render_type, force=force_colmap)
@@ -182,7 +182,7 @@ def check_against_baseline(result: dict, baseline_path: Path | None) -> dict:
         return {"status": "not gated", "reason": "no baseline given", "metrics": current, "failures": []}
     if not Path(baseline_path).exists():
         return {"status": "not gated", "reason": f"{baseline_path} not found", "metrics": current, "failures": []}
-    baseline = json.loads(Path(baseline_path).read_text())
+    baseline = load_baseline(Path(baseline_path))
     entry = baseline.get("datasets", {}).get(result["dataset"])
     if entry is None:
         return {"status": "not gated", "reason": f"{result['dataset']} not in {baseline_path}", "metrics": current,
@@ -197,6 +197,21 @@ def check_against_baseline(result: dict, baseline_path: Path | None) -> dict:
     failures = cmp.gate(current, entry["metrics"], tolerances)
     return {"status": "fail" if failures else "pass", "baseline": entry["metrics"], "tolerances": tolerances,
             "metrics": current, "failures": failures}
+
+
+def load_baseline(path: Path) -> dict:
+    """A baseline file, checked for the shape the gate reads; ConfigError naming the file otherwise."""
+    try:
+        baseline = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ConfigError(f"{path}: not a readable baseline ({type(e).__name__}: {e})") from None
+    entries = baseline.get("datasets") if isinstance(baseline, dict) else None
+    if not isinstance(entries, dict) or not all(isinstance(e, dict) and isinstance(e.get("metrics"), dict)
+                                                for e in entries.values()):
+        raise ConfigError(f"{path}: a baseline needs a 'datasets' mapping of entries with 'metrics'")
+    if not isinstance(baseline.get("tolerances", {}), dict):
+        raise ConfigError(f"{path}: 'tolerances' must be a mapping")
+    return baseline
 
 
 # --------------------------------------------------------------------------------------------- reports

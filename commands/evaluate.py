@@ -47,6 +47,9 @@ def _current_model(pipeline: Pipeline) -> str:
     for stage in ("triangulation", "registration"):
         status = pipeline.chain_status(stage)
         if status.state == "fresh":
+            if stage == "registration":
+                log.warning("triangulation is not current: evaluating the registration's poses (before bundle "
+                            "adjustment)")
             return stage
     raise RunnerError(f"{pipeline.ws.root}: the reconstruction is {status.state} ({'; '.join(status.reasons)}); "
                       "run the pipeline first")
@@ -60,7 +63,7 @@ def _save(pipeline: Pipeline, metrics: dict) -> None:
             upstream = {s: pipeline.fingerprint(s) for s in ("registration", "triangulation", "densify")}
             out.commit_manifest({"fingerprint": pipeline.fingerprint(metrics["poses_from"]), "upstream": upstream,
                                  "summary": {"poses_from": metrics["poses_from"]}})
-    except WorkspaceBusy as e:
+    except (WorkspaceBusy, OSError) as e:  # eval reads; a busy or read-only workspace only loses the copy on disk
         log.warning("metrics not written to %s: %s", ws.path("eval_metrics"), e)
 
 

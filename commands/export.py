@@ -19,12 +19,14 @@ import numpy as np
 from fullview.io.config import ConfigError
 from fullview.io.exports import (SparseModel, sparse_point_normals, write_colmap_model, write_nerfstudio,
                                  write_point_cloud)
-from fullview.io.workspace import StageWriter, folder_of, folder_transaction, make_dirs
+from fullview.io.workspace import (RUN_LOCK, StageWriter, folder_of, folder_transaction, make_dirs,
+                                   read_manifest_file)
 from fullview.stages.runner import Pipeline, RunnerError, record_fingerprint
 
 log = logging.getLogger(__name__)
 
 FORMATS = ("colmap", "colmap-bin", "nerfstudio", "ply")
+EXPORT_KIND = "fullview export"  # marks a folder as a previous export, which --out may replace
 
 
 def export(pipeline: Pipeline, fmt: str, out: Path | None = None) -> Path:
@@ -36,23 +38,34 @@ def export(pipeline: Pipeline, fmt: str, out: Path | None = None) -> Path:
     if status.state != "fresh":
         raise RunnerError(f"{ws.root}: the sparse model is {status.state} ({'; '.join(status.reasons)}); "
                           "run the pipeline first")
-    with ws.locked(command="fullview export"):
-        if out is None:
-            with ws.transaction(folder_of("export_dir", format=fmt)) as writer:
-                _write(pipeline, fmt, writer.path("export_dir", format=fmt), writer)
-            return ws.path("export_dir", format=fmt)
+    if out is not None:  # nothing is written in the workspace: reading under the commit lock is enough
         return _export_outside(pipeline, fmt, Path(out))
+    with ws.locked(command="fullview export"), ws.transaction(folder_of("export_dir", format=fmt)) as writer:
+        _write(pipeline, fmt, writer.path("export_dir", format=fmt), writer)
+    return ws.path("export_dir", format=fmt)
 
 
 def _export_outside(pipeline: Pipeline, fmt: str, out: Path) -> Path:
     """Export into a user-chosen folder, which must be new, empty or a previous export (never a folder of other
-    files, which the swap would replace)."""
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "manifest.json").exists())):
+    files, which the swap would replace) and lie outside every workspace."""
+    out = out.resolve()
+    if out == Path.cwd() or out in Path.cwd().parents:
+        raise ConfigError(f"--out {out}: is the current folder or contains it; choose a new folder")
+    inside = next((p for p in out.parents if (p / RUN_LOCK).is_file()), None)
+    if inside is not None:
+        raise ConfigError(f"--out {out}: lies inside the workspace {inside}; leave out --out to export there")
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not _is_export(out))):
         raise ConfigError(f"--out {out}: exists and is not empty nor a previous fullview export; choose a new folder")
     make_dirs(out.parent)
     with folder_transaction(out) as writer:
         _write(pipeline, fmt, writer.dir, writer)
     return out
+
+
+def _is_export(folder: Path) -> bool:
+    """A folder a previous `fullview export` wrote: its manifest says so."""
+    manifest = read_manifest_file(folder)
+    return manifest is not None and manifest.get("summary", {}).get("kind") == EXPORT_KIND
 
 
 def _write(pipeline: Pipeline, fmt: str, folder: Path, writer: StageWriter) -> None:
@@ -77,7 +90,7 @@ def _write(pipeline: Pipeline, fmt: str, folder: Path, writer: StageWriter) -> N
     writer.commit_manifest({"fingerprint": record_fingerprint({"triangulation": pipeline.fingerprint("triangulation"),
                                                                "format": fmt}),
                             "upstream": {"triangulation": pipeline.fingerprint("triangulation")},
-                            "summary": {"format": fmt, "images": int(model.registered.sum()),
+                            "summary": {"kind": EXPORT_KIND, "format": fmt, "images": int(model.registered.sum()),
                                         "points": int(len(model.points))}})
     log.info("exported %s: %d registered images, %d points", fmt, int(model.registered.sum()), len(model.points))
 

@@ -3,7 +3,7 @@
 Layout (``FILES`` is the single table of names; nothing else in fullview spells a workspace path)::
 
     <workspace>/<dataset name>/
-        .lock, .commit.lock                  run lock and commit lock (see Guarantees in the README)
+        .fullview.lock, .fullview.commit.lock   run lock and commit lock (see Guarantees in the README)
         <folder>/manifest.json               fingerprint, params, inputs, outputs (size + sha256), summary; last
         features/<stem>.npz                  per-image features
         matches/matches.npz                  raw matches of every pair
@@ -48,9 +48,13 @@ from fullview.sfm.camera import pixels_to_bearings
 
 log = logging.getLogger(__name__)
 
+MANIFEST_NAME = "manifest.json"  # written last in every folder a transaction commits
+RUN_LOCK = ".fullview.lock"  # held by the process that writes the workspace (holds its pid and command)
+COMMIT_LOCK = ".fullview.commit.lock"  # exclusive while a folder is swapped in, shared while a command reads
+
 # Every file of a workspace: artifact -> (folder, name pattern). Patterns take `stem`, `render_type`, `format`, ...
 FILES: dict[str, tuple[str, str]] = {
-    "manifest": ("{folder}", "manifest.json"),
+    "manifest": ("{folder}", MANIFEST_NAME),
     "features": ("features", "{stem}.npz"),
     "matches": ("matches", "matches.npz"),
     "inliers": ("filter", "inliers.npz"),
@@ -123,6 +127,14 @@ class Workspace:
         self._lock_depth = 0
         self._lock_fd: int | None = None
 
+    def check_root(self) -> None:
+        """An error when the workspace path cannot be a folder (it or a parent is a file)."""
+        for p in [self.root, *self.root.parents]:
+            if p.exists():
+                if not p.is_dir():
+                    raise ArtifactError(f"{p}: exists and is not a folder")
+                return
+
     def folder(self, name: str) -> Path:
         return self.root / name
 
@@ -133,22 +145,7 @@ class Workspace:
     # ---- manifests and verification
     def manifest(self, folder: str) -> tuple[dict | None, str | None]:
         """(manifest, problem): (None, None) when never run; (None, reason) when unreadable or malformed."""
-        path = self.path("manifest", folder=folder)
-        if not path.exists():
-            return None, None
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-            return None, f"{path}: unreadable manifest ({type(e).__name__})"
-        if not isinstance(data, dict):
-            return None, f"{path}: malformed manifest (not a mapping)"
-        for key, kind in MANIFEST_KEYS.items():
-            if not isinstance(data.get(key), kind):
-                return None, f"{path}: malformed manifest (no valid {key!r})"
-        if not all(isinstance(v, dict) and isinstance(v.get("size"), int) and isinstance(v.get("sha256"), str)
-                   for v in data["outputs"].values()):
-            return None, f"{path}: malformed manifest (bad 'outputs' entry)"
-        return data, None
+        return parse_manifest(self.path("manifest", folder=folder))
 
     def read_manifest(self, folder: str) -> dict | None:
         """The folder's manifest, or None when it is missing or malformed."""
@@ -253,7 +250,7 @@ class Workspace:
                 self._lock_depth -= 1
             return
         make_dirs(self.root)
-        fd = os.open(self.root / ".lock", os.O_RDWR | os.O_CREAT, 0o666)
+        fd = os.open(self.root / RUN_LOCK, os.O_RDWR | os.O_CREAT, 0o666)
         try:
             _acquire(fd, self.root, wait)
             os.ftruncate(fd, 0)
@@ -273,7 +270,7 @@ class Workspace:
     @contextmanager
     def reading(self) -> Iterator[None]:
         """Shared commit lock: no stage is swapped in while a read-only command reads the workspace."""
-        fd = _open_for_shared_lock(self.root / ".commit.lock")
+        fd = _open_for_shared_lock(self.root / COMMIT_LOCK)
         if fd is None:
             yield
             return
@@ -295,7 +292,7 @@ class Workspace:
 
     @contextmanager
     def _commit_lock(self) -> Iterator[None]:
-        fd = os.open(self.root / ".commit.lock", os.O_RDWR | os.O_CREAT, 0o666)
+        fd = os.open(self.root / COMMIT_LOCK, os.O_RDWR | os.O_CREAT, 0o666)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX)
             yield
@@ -377,15 +374,47 @@ class StageWriter:
         """Write manifest.json (the record plus size and sha256 of every output); the transaction may commit."""
         outputs = {}
         for p in sorted(self.dir.rglob("*")):
-            if p.is_file() and not p.is_symlink() and p.name != "manifest.json":
+            if p.is_file() and not p.is_symlink() and p.name != MANIFEST_NAME:
                 outputs[str(p.relative_to(self.dir))] = {"size": p.stat().st_size, "sha256": file_sha256(p)}
         manifest = {**record, "outputs": outputs}
-        save_json(self.dir / "manifest.json", manifest)
+        save_json(self.dir / MANIFEST_NAME, manifest)
         self.committed = True
         return manifest
 
 
 # ---------------------------------------------------------------------------------------------------- helpers
+def parse_manifest(path: Path) -> tuple[dict | None, str | None]:
+    """(manifest, problem) of a manifest file: (None, None) when absent, (None, reason) when malformed."""
+    if not path.exists():
+        return None, None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        return None, f"{path}: unreadable manifest ({type(e).__name__})"
+    if not isinstance(data, dict):
+        return None, f"{path}: malformed manifest (not a mapping)"
+    for key, kind in MANIFEST_KEYS.items():
+        if not isinstance(data.get(key), kind):
+            return None, f"{path}: malformed manifest (no valid {key!r})"
+    if not all(isinstance(v, dict) and isinstance(v.get("size"), int) and isinstance(v.get("sha256"), str)
+               for v in data["outputs"].values()):
+        return None, f"{path}: malformed manifest (bad 'outputs' entry)"
+    if not all(_inside_folder(rel) for rel in data["outputs"]):
+        return None, f"{path}: malformed manifest (an output outside its folder)"
+    return data, None
+
+
+def _inside_folder(rel: str) -> bool:
+    """An output path a manifest may list: relative, without '..' (verification must not read elsewhere)."""
+    parts = Path(rel).parts
+    return bool(parts) and not Path(rel).is_absolute() and ".." not in parts
+
+
+def read_manifest_file(folder: Path) -> dict | None:
+    """The manifest of any folder a transaction wrote, or None when it has none or a malformed one."""
+    return parse_manifest(Path(folder) / MANIFEST_NAME)[0]
+
+
 @contextmanager
 def folder_transaction(final: Path, commit_lock=None) -> Iterator[StageWriter]:
     """Write a folder's new content beside it and swap it in only when complete (manifest written); used for
@@ -459,7 +488,7 @@ def _acquire(fd: int, root: Path, wait: bool) -> None:
 
 def _lock_holder(root: Path) -> str:
     try:
-        info = json.loads((root / ".lock").read_text())
+        info = json.loads((root / RUN_LOCK).read_text())
         return f"pid {info['pid']} ({info['command']}, since {info['since']})"
     except (OSError, ValueError, KeyError, TypeError):
         return "another process"

@@ -66,6 +66,18 @@ def bearings_to_lonlat(bearings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.arctan2(bearings[..., 0], bearings[..., 2]), np.arcsin(np.clip(-bearings[..., 1] / norm, -1, 1))
 
 
+def rays_to_remap_coords(rays: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap source coordinates (integer = pixel centre, x wrapped into [0, W)) of (..., 3) rays of any length,
+    in the rays' dtype: where each ray meets a width x height panorama."""
+    x, y, z = rays[..., 0], rays[..., 1], rays[..., 2]
+    lon = np.arctan2(x, z)  # unnormalised rays: the angles need no unit length
+    lat = np.arctan2(-y, np.hypot(x, z))
+    # continuous pixel coordinates, then remap's convention: minus 0.5
+    map_x = np.mod((lon / (2 * np.pi) + 0.5) * width, width) - 0.5
+    map_y = (0.5 - lat / np.pi) * height - 0.5
+    return map_x, map_y
+
+
 def pixel_grid_bearings(width: int, height: int, dtype=np.float64) -> np.ndarray:
     """(H, W, 3) bearings of every pixel centre of a width x height panorama.
 

@@ -15,7 +15,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from fullview.sfm.camera import bearings_to_lonlat, bearings_to_pixels, normalize
+from fullview.sfm.camera import bearings_to_lonlat, bearings_to_pixels, normalize, rays_to_remap_coords
 from fullview.sfm.options import FeaturesOptions
 
 log = logging.getLogger(__name__)
@@ -61,12 +61,7 @@ def face_maps(face_size: int, margin_deg: float, width: int, height: int) -> tup
     u, v = np.meshgrid(uv, uv)
     rays_face = np.stack([u, v, np.ones_like(u)], axis=-1).reshape(-1, 3)
     rays_cam = (rays_face @ face_rotations().astype(np.float32).transpose(0, 2, 1)).reshape(6, face_size, face_size, 3)
-    x, y, z = rays_cam[..., 0], rays_cam[..., 1], rays_cam[..., 2]
-    lon = np.arctan2(x, z)  # unnormalised rays: the angles need no unit length
-    lat = np.arctan2(-y, np.hypot(x, z))
-    # continuous pixel coordinates, then remap's convention (integer = pixel centre): minus 0.5
-    map_x = np.mod((lon / (2 * np.pi) + 0.5) * width, width) - 0.5
-    map_y = (0.5 - lat / np.pi) * height - 0.5
+    map_x, map_y = rays_to_remap_coords(rays_cam, width, height)
     return map_x.astype(np.float32), map_y.astype(np.float32), focal
 
 

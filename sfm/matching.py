@@ -12,7 +12,8 @@ from fullview.sfm.options import MatchesOptions
 BLOCK_ROWS = 4096  # rows per matrix-product block (bounds memory)
 
 
-def pair_list(num_images: int, mode: str = "exhaustive", window: int = 3) -> list[tuple[int, int]]:
+def pair_list(num_images: int, mode: str = MatchesOptions.pairs, window: int = MatchesOptions.window
+              ) -> list[tuple[int, int]]:
     """Image pairs (i < j): 'exhaustive', or 'sequential' (each image with its next `window` images)."""
     if mode == "exhaustive":
         return list(combinations(range(num_images), 2))

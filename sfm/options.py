@@ -29,12 +29,12 @@ Rule = tuple[str, Callable[[Any], bool]]
 @dataclass(frozen=True, kw_only=True)
 class FeaturesOptions:
     working_width: int = setting(2048, "panoramas are resized to this width before detection (never upsampled)",
-                                 ge=128, zero_means="native width")
-    face_size: int = setting(0, "cube face side in pixels", ge=32,
+                                 ge=128, le=65536, zero_means="native width")
+    face_size: int = setting(0, "cube face side in pixels", ge=32, le=16384,
                              zero_means="as many pixels per degree as the working panorama")
     margin_deg: float = setting(5.0, "extra field of view on each side of a face's 90°, keeps features at seams",
                                 ge=0.0, le=30.0)
-    max_features_per_face: int = setting(1500, "SIFT nfeatures per face", ge=1, zero_means="unlimited")
+    max_features_per_face: int = setting(1500, "SIFT nfeatures per face", ge=1, le=1_000_000, zero_means="unlimited")
     contrast_threshold: float = setting(0.02, "SIFT contrast threshold (OpenCV's default is 0.04)", gt=0.0, le=1.0)
     min_latitude_deg: float = setting(-90.0, "drop features below this latitude (tripod, hand)", ge=-90.0, le=90.0)
     max_latitude_deg: float = setting(90.0, "drop features above this latitude", ge=-90.0, le=90.0)
@@ -46,7 +46,7 @@ class FeaturesOptions:
 @dataclass(frozen=True, kw_only=True)
 class MatchesOptions:
     pairs: str = setting("exhaustive", "which pairs are matched", choices=("exhaustive", "sequential"))
-    window: int = setting(3, "sequential: partners after each image", ge=1)
+    window: int = setting(3, "sequential: partners after each image", ge=1, le=100_000)
     ratio: float = setting(0.8, "Lowe's ratio test on descriptor distances", gt=0.0, le=1.0)
     mutual: bool = setting(True, "keep only mutual nearest neighbours")
     RULES: ClassVar[list[Rule]] = []
@@ -55,12 +55,13 @@ class MatchesOptions:
 @dataclass(frozen=True, kw_only=True)
 class FilterOptions:
     use_hand_points: bool = setting(True, "seed F with hand points where a pair has >= min_hand_points")
-    min_hand_points: int = setting(8, "hand correspondences needed to seed a pair (the 8-point algorithm)", ge=8)
+    min_hand_points: int = setting(8, "hand correspondences needed to seed a pair (the 8-point algorithm)", ge=8,
+                                   le=1_000_000)
     threshold_deg: float = setting(0.35, "angular distance to the epipolar great circle of an inlier", gt=0.0, le=90.0)
-    max_iterations: int = setting(5000, "RANSAC hypotheses cap", ge=1)
+    max_iterations: int = setting(5000, "RANSAC hypotheses cap", ge=1, le=10_000_000)
     confidence: float = setting(0.9999, "RANSAC adaptive stopping confidence", gt=0.0, lt=1.0)
-    min_inliers: int = setting(30, "pairs with fewer inliers are dropped", ge=8)
-    seed: int = setting(0, "RANSAC random seed (pair k uses seed + k)", ge=0)
+    min_inliers: int = setting(30, "pairs with fewer inliers are dropped", ge=8, le=1_000_000)
+    seed: int = setting(0, "RANSAC random seed (pair k uses seed + k)", ge=0, le=2**31)
     RULES: ClassVar[list[Rule]] = []
 
 
@@ -75,7 +76,7 @@ class EpipolesOptions:
 class RegistrationOptions:
     model: str = setting("general", "general: rotation + translation averaging; planar: the report's Newton method",
                          choices=("general", "planar"))
-    min_inliers: int = setting(30, "pairs with fewer inliers are not used", ge=8)
+    min_inliers: int = setting(30, "pairs with fewer inliers are not used", ge=8, le=1_000_000)
     max_rotation_residual_deg: float = setting(5.0, "pairs whose relative rotation disagrees more are rejected",
                                                gt=0.0, le=180.0)
     max_direction_residual_deg: float = setting(10.0, "pairs whose baseline direction disagrees more are rejected",
@@ -90,19 +91,20 @@ class TriangulationOptions:
     min_triangulation_angle_deg: float = setting(1.5, "tracks seen under a smaller angle are dropped", ge=0.0, lt=90.0)
     bundle_adjust: bool = setting(True, "refine poses and points jointly")
     ba_loss_scale_deg: float = setting(0.2, "soft-L1 loss scale of bundle adjustment residuals", gt=0.0, le=90.0)
-    ba_max_iterations: int = setting(100, "function evaluations of bundle adjustment", ge=1)
+    ba_max_iterations: int = setting(100, "function evaluations of bundle adjustment", ge=1, le=100_000)
     RULES: ClassVar[list[Rule]] = []
 
 
 @dataclass(frozen=True, kw_only=True)
 class DensifyOptions:
-    neighbours: int = setting(2, "stereo partners per camera (best by inlier count, short baselines discounted)", ge=1)
+    neighbours: int = setting(2, "stereo partners per camera (best by inlier count, short baselines discounted)",
+                              ge=1, le=64)
     min_triangulation_angle_deg: float = setting(
         5.0, "partner baselines must subtend at least this at the scene's median depth", gt=0.0, lt=90.0)
     max_triangulation_angle_deg: float = setting(60.0, "... and at most this", gt=0.0, le=180.0)
-    min_pair_inliers: int = setting(50, "epipolar inliers a stereo pair needs", ge=8)
+    min_pair_inliers: int = setting(50, "epipolar inliers a stereo pair needs", ge=8, le=1_000_000)
     working_width: int = setting(2048, "panoramas are resized to this width; range maps have this size "
-                                 "(never upsampled)", ge=128, zero_means="native width")
+                                 "(never upsampled)", ge=128, le=65536, zero_means="native width")
     rect_height: int = setting(1024, "rectified grid height (angle from the epipole); width = 2x", ge=16, le=16384)
     min_depth_percentile: float = setting(1.0, "nearest plausible depth: this percentile of a camera's sparse-point "
                                           "distances", ge=0.0, le=100.0)
@@ -111,7 +113,7 @@ class DensifyOptions:
                                        gt=0.0, le=90.0)
     epipole_margin_deg: float = setting(8.0, "pixels closer than this to an epipole are masked", ge=0.0, lt=90.0)
     max_range_error_per_px: float = setting(0.05, "drop ranges whose relative error per pixel of disparity error "
-                                            "exceeds this", gt=0.0)
+                                            "exceeds this", gt=0.0, le=1000.0)
     block_size: int = setting(5, "SGBM matching window side", ge=1, le=31, odd=True)
     min_texture_std: float = setting(2.0, "grey-level std below which a pixel counts as untextured (not matched)",
                                      ge=0.0, le=255.0)
@@ -119,13 +121,14 @@ class DensifyOptions:
                                       ge=-90.0, le=90.0)
     combine_tolerance: float = setting(0.02, "relative agreement of a panorama's pair estimates (conflicting ones "
                                        "are dropped)", gt=0.0, le=1.0)
-    min_consistent: int = setting(1, "other depth maps that must agree for a fused point", ge=0)
+    min_consistent: int = setting(1, "other depth maps that must agree for a fused point", ge=0, le=64)
     consistency_tolerance: float = setting(0.02, "relative range tolerance for agreement", gt=0.0, le=1.0)
-    fusion_views: int = setting(4, "nearest other panoramas checking each panorama's points", ge=1)
-    fusion_stride: int = setting(2, "fuse every n-th pixel of the range maps in both directions", ge=1)
-    voxel_size: float = setting(0.0, "voxel size of the fused cloud", ge=0.0, zero_means="0.2% of the scene's size")
-    outlier_neighbours: int = setting(20, "statistical outlier removal: neighbours", ge=1)
-    outlier_std_ratio: float = setting(2.0, "statistical outlier removal: std ratio", gt=0.0)
+    fusion_views: int = setting(4, "nearest other panoramas checking each panorama's points", ge=1, le=64)
+    fusion_stride: int = setting(2, "fuse every n-th pixel of the range maps in both directions", ge=1, le=64)
+    voxel_size: float = setting(0.0, "voxel size of the fused cloud (model units)", ge=0.0,
+                                zero_means="0.2% of the scene's size")
+    outlier_neighbours: int = setting(20, "statistical outlier removal: neighbours", ge=1, le=1000)
+    outlier_std_ratio: float = setting(2.0, "statistical outlier removal: std ratio", gt=0.0, le=1000.0)
     preview: bool = setting(True, "render densify/dense_preview.png")
     RULES: ClassVar[list[Rule]] = [
         ("min_triangulation_angle_deg < max_triangulation_angle_deg",

@@ -59,6 +59,11 @@ def run(ctx: StageContext) -> dict:
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = {k: ctx.dataset.load_image(names[k], width=width) for k in cams}
     maps, pair_log = _range_maps(ctx, images, R, t, near, pairs)
+    checkers = min(config.fusion_views, len(maps) - 1)
+    if config.min_consistent > checkers:
+        raise ConfigError(f"densify.min_consistent={config.min_consistent}: a point can be checked by at most "
+                          f"{checkers} other panorama(s) here (densify.fusion_views={config.fusion_views}, "
+                          f"{len(maps)} range maps); no point could be kept")
     points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
     if config.preview and len(points) >= 3:
         render_point_cloud(ctx.out.path("dense_preview"), points, colors, normals=normals, up=camera_up(R[cams]),

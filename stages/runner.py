@@ -211,6 +211,8 @@ class Pipeline:
                 stage_module(name)
         if only is not None and (start is not None or until is not None):
             raise RunnerError("--only cannot be combined with --from or --until")
+        if force and (start is not None or only is not None):
+            raise RunnerError("--force reruns every stage; it cannot be combined with --from or --only")
         if start is not None and until is not None and PIPELINE.index(start) > PIPELINE.index(until):
             raise RunnerError(f"--from {start} comes after --until {until}")
         # Bad images or hand points fail now, not after hours of matching.

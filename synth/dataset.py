@@ -11,20 +11,30 @@ import cv2
 import numpy as np
 import yaml
 
-from fullview.io.artifacts import save_npz
+from fullview.io.artifacts import apply_umask, save_npz
+from fullview.io.errors import FullviewError
+from fullview.io.workspace import make_dirs
 from fullview.synth.scene import SynthScene, render_scene
 
 log = logging.getLogger(__name__)
 
 SCENE_VERSION = 1
+SCENE_FILE = Path("ground_truth") / "scene.npz"  # what marks a folder as a synthetic dataset
+
+
+class SynthError(FullviewError):
+    """The output folder of `fullview synth` cannot be used."""
 
 
 def write_synthetic_dataset(out: Path, *, views: int, width: int, seed: int) -> Path:
-    """Render and write a scene; the folder appears complete or not at all."""
-    out = Path(out)
+    """Render and write a scene; the folder appears complete or not at all. An existing folder is replaced only
+    when it is empty or a synthetic dataset written before (never a folder of other files)."""
+    out = Path(out).resolve()
+    _check_replaceable(out)
     scene = render_scene(views=views, width=width, seed=seed)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    make_dirs(out.parent)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    apply_umask(tmp, directory=True)
     try:
         _write(tmp, scene, dict(views=views, width=width, seed=seed))
         if out.exists():
@@ -35,6 +45,13 @@ def write_synthetic_dataset(out: Path, *, views: int, width: int, seed: int) -> 
         raise
     log.info("synthetic dataset written to %s", out)
     return out
+
+
+def _check_replaceable(out: Path) -> None:
+    if out == Path.cwd() or out in Path.cwd().parents:
+        raise SynthError(f"{out}: is the current folder or contains it; choose a new folder")
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / SCENE_FILE).is_file())):
+        raise SynthError(f"{out}: exists and is not empty nor a synthetic dataset; choose a new folder")
 
 
 def _write(root: Path, scene: SynthScene, params: dict) -> None:
@@ -48,7 +65,7 @@ def _write(root: Path, scene: SynthScene, params: dict) -> None:
                 "center": np.round(v.center, 12).tolist()} for v in scene.views]
     (root / "ground_truth" / "poses.yaml").write_text(yaml.safe_dump({"cameras": cameras}, sort_keys=False))
     (root / "hand_points.yaml").write_text(yaml.safe_dump({"points": _plain(scene.hand_points)}, sort_keys=False, default_flow_style=None))
-    save_npz(root / "ground_truth" / "scene.npz", SCENE_VERSION, boxes=scene.boxes,
+    save_npz(root / SCENE_FILE, SCENE_VERSION, boxes=scene.boxes,
              scene_size=np.float64(scene.scene_size), **{k: np.int64(v) for k, v in params.items()})
 
 

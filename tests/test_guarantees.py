@@ -359,3 +359,60 @@ def test_reads_never_see_a_half_committed_stage(filtered):
     with ws.reading():
         manifest = ws.read_manifest("matches")
         assert ws.verify("matches", manifest, deep=True) is None
+
+
+# ------------------------------------------------------------------------------------------------ review findings
+def test_synth_never_replaces_a_folder_of_other_files(tmp_path, capsys):
+    folder = tmp_path / "thesis"
+    folder.mkdir()
+    (folder / "chapter1.txt").write_text("precious")
+    _one_line_error(*_cli(capsys, "synth", folder, "--views", "2", "--width", "64")[::2], "not empty")
+    assert (folder / "chapter1.txt").read_text() == "precious"
+    assert _cli(capsys, "synth", tmp_path / "new", "--views", "2", "--width", "64")[0] == 0
+    assert _cli(capsys, "synth", tmp_path / "new", "--views", "2", "--width", "64")[0] == 0  # its own output: ok
+
+
+def test_export_out_never_replaces_a_workspace_or_foreign_folder(reconstructed_copy, tiny_set_args, tmp_path, capsys):
+    dataset, ws = reconstructed_copy
+    args = ["export", dataset, "-w", ws, "--format", "ply", *tiny_set_args, "--out"]
+    _one_line_error(*_cli(capsys, *args, ws / "tiny" / "triangulation")[::2], "inside the workspace")
+    assert (ws / "tiny" / "triangulation" / "sparse.npz").exists()
+    app = tmp_path / "webapp"
+    app.mkdir()
+    (app / "manifest.json").write_text("{}")
+    (app / "index.html").write_text("<html>")
+    _one_line_error(*_cli(capsys, *args, app)[::2], "not empty")
+    assert (app / "index.html").exists()
+
+
+def test_a_malformed_baseline_is_refused_before_colmap_runs(tiny_dataset, tmp_path, capsys):
+    bad = tmp_path / "b.json"
+    bad.write_text("[1]")
+    _one_line_error(*_cli(capsys, "compare", tiny_dataset, "-w", tmp_path / "ws", "--baseline", bad)[::2], "b.json")
+    assert not (tmp_path / "ws" / "tiny" / "colmap_spherical").exists()
+
+
+def test_force_with_from_is_refused(tiny_dataset, tmp_path, capsys):
+    _one_line_error(*_cli(capsys, "run", tiny_dataset, "-w", tmp_path / "ws", "--force", "--from", "matches")[::2],
+                    "--force")
+
+
+def test_manifest_outputs_must_stay_in_their_folder(filtered, tiny_set_args, capsys):
+    dataset, ws = filtered
+    path = ws / "tiny" / "matches" / "manifest.json"
+    manifest = json.loads(path.read_text())
+    manifest["outputs"]["/dev/zero"] = {"size": 0, "sha256": "0"}
+    path.write_text(json.dumps(manifest))
+    code, out, _ = _cli(capsys, "status", dataset, "-w", ws, "--verify", *tiny_set_args)
+    assert code == 0 and "matches       stale" in out and "outside its folder" in out
+
+
+@pytest.mark.parametrize("override", ["features.face_size=1000000", "features.max_features_per_face=99999999999"])
+def test_huge_values_are_refused_not_internal_errors(tiny_dataset, tmp_path, capsys, override):
+    _one_line_error(*_cli(capsys, "run", tiny_dataset, "-w", tmp_path / "ws", "--set", override)[::2],
+                    override.split("=")[0])
+
+
+def test_status_of_a_workspace_that_is_a_file(tiny_dataset, tmp_path, capsys):
+    (tmp_path / "ws").write_text("")
+    _one_line_error(*_cli(capsys, "status", tiny_dataset, "-w", tmp_path / "ws")[::2], "not a folder")

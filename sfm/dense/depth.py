@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fullview.sfm.options import DensifyOptions
+
 from fullview.sfm.camera import bearings_to_pixels_f32, pixel_grid_bearings, pixel_grid_lonlat, pixel_latitude
 from fullview.sfm.dense.disparity import DisparityResult, SgbmParams, compute_disparity
 from fullview.sfm.dense.rectify import rectify_pair, theta_of_columns
@@ -138,7 +140,7 @@ def densify_pair(
     rect_height: int | None = None,
     out_width: int | None = None,
     min_depth_ratio: float = 2.0,
-    min_epipole_angle_deg: float = 8.0,
+    min_epipole_angle_deg: float = DensifyOptions.epipole_margin_deg,
     params: SgbmParams | None = None,
 ) -> PairDepth:
     """Rectify, match (with LR check), triangulate and map back to both panoramas (size ``out_width`` ×

@@ -139,7 +139,7 @@ def compute_disparity(
     rect_j: np.ndarray,
     *,
     min_depth_ratio: float = 2.0,
-    min_epipole_angle_deg: float = 8.0,
+    min_epipole_angle_deg: float = DensifyOptions.epipole_margin_deg,
     lr_max_diff_px: float = 1.0,
     min_disparity: int = 0,
     params: SgbmParams | None = None,

@@ -11,6 +11,8 @@ from typing import Sequence
 
 import numpy as np
 
+from fullview.sfm.options import DensifyOptions
+
 from fullview.sfm.camera import bearings_to_pixels, pixels_to_bearings
 from fullview.sfm.dense.depth import sample_edge_aware
 
@@ -63,8 +65,8 @@ def fuse_depth_maps(
     R_cam_from_world: np.ndarray,
     t_cam_from_world: np.ndarray,
     *,
-    min_consistent: int = 1,
-    rel_tol: float = 0.02,
+    min_consistent: int = DensifyOptions.min_consistent,
+    rel_tol: float = DensifyOptions.consistency_tolerance,
     stride: int = 1,
     neighbors: Sequence[Sequence[int]] | None = None,
     views: Sequence[int] | None = None,
@@ -123,8 +125,8 @@ def clean_point_cloud(
     colors: np.ndarray,
     *,
     voxel_size: float,
-    nb_neighbors: int = 20,
-    std_ratio: float = 2.0,
+    nb_neighbors: int = DensifyOptions.outlier_neighbours,
+    std_ratio: float = DensifyOptions.outlier_std_ratio,
     normal_radius: float | None = None,
     viewpoint: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

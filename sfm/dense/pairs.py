@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from fullview.sfm.options import DensifyOptions
+
 
 def select_stereo_pairs(
     centers: np.ndarray,
@@ -15,9 +17,9 @@ def select_stereo_pairs(
     *,
     k: int,
     min_triangulation_angle_deg: float,
-    max_triangulation_angle_deg: float = 60.0,
+    max_triangulation_angle_deg: float = DensifyOptions.max_triangulation_angle_deg,
     target_triangulation_angle_deg: float = 10.0,
-    min_inliers: int = 50,
+    min_inliers: int = DensifyOptions.min_pair_inliers,
     scene_depths: np.ndarray | None = None,
 ) -> np.ndarray:
     """Union over cameras of each camera's ``k`` best dense-stereo partners, as (M, 2) pairs (i < j), sorted.

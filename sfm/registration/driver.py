@@ -54,6 +54,8 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+
+from fullview.sfm.options import RegistrationOptions
 from scipy.spatial.transform import Rotation
 
 from fullview.sfm.camera import normalize
@@ -144,12 +146,12 @@ def register(
     R_j_from_i,
     t_j_from_i,
     weights,
-    model: str = "general",
+    model: str = RegistrationOptions.model,
     e_ij=None,
     e_ji=None,
     min_weight: float = 0.0,
-    max_rotation_residual_deg: float = 5.0,
-    max_direction_residual_deg: float = 10.0,
+    max_rotation_residual_deg: float = RegistrationOptions.max_rotation_residual_deg,
+    max_direction_residual_deg: float = RegistrationOptions.max_direction_residual_deg,
     robust_scale_deg: float = 2.0,
     min_pairs_per_camera: int = 2,
 ) -> Registration:

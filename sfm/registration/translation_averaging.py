@@ -12,6 +12,8 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+
+from fullview.sfm.options import RegistrationOptions
 import scipy.sparse as sp
 from scipy.sparse.linalg import ArpackNoConvergence, eigsh, splu, spsolve
 
@@ -174,7 +176,7 @@ def translation_averaging(
     root: int,
     *,
     weights: np.ndarray | None = None,
-    max_direction_residual_deg: float = 10.0,
+    max_direction_residual_deg: float = RegistrationOptions.max_direction_residual_deg,
     robust_scale_deg: float = 2.0,
     min_pairs_per_camera: int = 2,
     lud_iterations: int = 20,
