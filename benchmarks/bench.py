@@ -25,10 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
+from fullview.stages import PIPELINE
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "datasets" / "openmvg-360"
 RESULTS = ROOT / "benchmarks" / "results"
-SPARSE_STAGES = ("features", "matches", "filter", "epipoles", "registration", "triangulation")
+SPARSE_STAGES = PIPELINE[:PIPELINE.index("triangulation") + 1]
 log = logging.getLogger("bench")
 
 
@@ -57,8 +59,9 @@ def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = 
     wall = time.perf_counter() - t0
     if proc.returncode:
         return {"error": proc.stderr[-2000:]}
-    root = ws / dataset.name
-    manifests = {s: json.loads((root / s / "manifest.json").read_text()) for s in SPARSE_STAGES}
+    from fullview.io.workspace import Workspace
+    workspace = Workspace(ws, dataset.name)
+    manifests = {s: workspace.read_manifest(s) for s in SPARSE_STAGES}
     out = {
         "wall_time_s": round(wall, 2),
         "stage_time_s": {s: m["wall_time_s"] for s, m in manifests.items()},
@@ -68,9 +71,9 @@ def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = 
         "points": manifests["triangulation"]["summary"]["points"],
     }
     if dense:
-        summary = json.loads((root / "densify" / "manifest.json").read_text())["summary"]
-        out["densify"] = {k: summary.get(k) for k in ("pairs", "points", "median_pair_time_s", "valid_share")}
-        out["densify"]["stage_time_s"] = json.loads((root / "densify" / "manifest.json").read_text())["wall_time_s"]
+        manifest = workspace.read_manifest("densify")
+        out["densify"] = {k: manifest["summary"].get(k) for k in ("pairs", "points", "median_pair_time_s", "valid_share")}
+        out["densify"]["stage_time_s"] = manifest["wall_time_s"]
     if (dataset / "ground_truth" / "poses.yaml").exists():
         proc = run([sys.executable, "-m", "fullview", "eval", str(dataset), "-w", str(ws), *settings])
         out["metrics"] = json.loads(proc.stdout) if proc.returncode == 0 else {"error": proc.stderr[-2000:]}
