@@ -8,7 +8,7 @@ SYNTH      := $(WORKSPACE)/datasets/synth6
 DATASET    ?=
 STAGE      ?=
 
-.PHONY: setup run stage status test bench clean eval synth export
+.PHONY: setup run stage status test bench clean eval synth export chromium view
 
 $(VENV)/.installed: pyproject.toml
 	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0; then \
@@ -20,7 +20,20 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install --quiet -e ".[test]"
 	@touch $@
 
-setup: $(VENV)/.installed
+# The viewer's JavaScript libraries, pinned by package-lock.json and vendored here (the page loads nothing else),
+# and Debian's chromium for the browser tests.
+VENDOR := viewer/web/node_modules
+$(VENDOR)/.installed: viewer/web/package-lock.json
+	cd viewer/web && npm ci --no-audit --no-fund --loglevel=error
+	@touch $@
+
+chromium:
+	@if ! command -v chromium >/dev/null 2>&1; then \
+	  echo "installing chromium (browser tests of the viewer)"; \
+	  (apt-get install -y chromium || (apt-get update && apt-get install -y chromium)) >/dev/null; \
+	fi
+
+setup: $(VENV)/.installed $(VENDOR)/.installed chromium
 
 $(SYNTH)/images: | $(VENV)/.installed
 	$(PY) -m fullview synth $(SYNTH) --views 6 --width 2048 --seed 0
@@ -41,6 +54,10 @@ stage: setup
 
 status: setup
 	$(PY) -m fullview status $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)
+
+# The viewer on 127.0.0.1 (prints its address): make view [DATASET=…]
+view: setup
+	$(PY) -m fullview view $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)
 
 eval: setup
 	$(PY) -m fullview eval $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)

@@ -97,6 +97,13 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    from fullview.commands.view import view
+    pipeline = _pipeline(args)
+    view(pipeline, pipeline.config, port=args.port, open_browser=not args.no_browser)
+    return 0
+
+
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder (images/, optional hand_points.yaml, ground_truth/)")
     p.add_argument("-w", "--workspace", type=Path, default=Path("workspace"), help="workspace root")
@@ -148,6 +155,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", required=True, help="colmap | colmap-bin | nerfstudio | ply")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: WORKSPACE/DATASET/export_FORMAT)")
     p.set_defaults(func=cmd_export)
+    p = sub.add_parser("view", help="the viewer: 3-D scene, virtual tour, correlated views, hand-point picker")
+    _common(p)
+    p.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: a free one, printed)")
+    p.add_argument("--no-browser", action="store_true", help="do not open a browser")
+    p.set_defaults(func=cmd_view)
     return parser
 
 

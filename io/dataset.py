@@ -39,6 +39,7 @@ import os
 import re
 import reprlib
 import threading
+import time
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -46,8 +47,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import PIL.Image
+import yaml
 from scipy.spatial import cKDTree
 
+from fullview.io.artifacts import save_text
 from fullview.io.errors import FullviewError
 from fullview.io.yamlio import YamlError, load_yaml
 
@@ -163,7 +166,25 @@ class Dataset:
         path = self.hand_points_path
         if not path.exists():
             return []
-        data = _load_yaml(path)
+        return self._parse_hand_points(path, _load_yaml(path))
+
+    def save_hand_points(self, points: list) -> Path | None:
+        """Validate `points` (the `points:` list of hand_points.yaml) and write the file atomically; the previous
+        file, with every point it held, is kept as hand_points.yaml.<UTC time>.bak. Returns the backup's path."""
+        tracks = self._parse_hand_points(self.hand_points_path, {"points": points})
+        text = yaml.safe_dump({"points": [{"name": t.name, "observations": {i: [round(x, 3), round(y, 3)]
+                                                                             for i, (x, y) in t.observations.items()}}
+                                          for t in tracks]}, sort_keys=False, default_flow_style=None)
+        backup = None
+        if self.hand_points_path.exists():
+            stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
+            backup = self.hand_points_path.with_name(f"{self.hand_points_path.name}.{stamp}.bak")
+            save_text(backup, self.hand_points_path.read_text())
+        save_text(self.hand_points_path, text)
+        self.__dict__.pop("hand_observations", None)  # the cached parse is stale now
+        return backup
+
+    def _parse_hand_points(self, path: Path, data) -> list[HandTrack]:
         points = data.get("points") if isinstance(data, dict) else None
         if not isinstance(points, list):
             raise DatasetError(f"{path}: expected a top-level 'points:' list")

@@ -17,6 +17,7 @@ Layout (``FILES`` is the single table of names; nothing else in fullview spells 
         compare_<render type>/colmap.json, colmap.md, top_view.png   (fullview compare)
         colmap_check/check.json, check.md, database.db, faces/       (fullview colmap-check)
         export_<format>/...                                  (fullview export)
+        view_cache/<stem>_<width>_<image hash>.jpg           (fullview view: panoramas at display width)
 
 Reading goes through `Workspace` (``load_*``); writing only through a `StageWriter` (``save_*``), which exists only
 inside `Workspace.transaction` and is bound to that run's temporary folder: no code path can write into a live
@@ -81,6 +82,7 @@ FILES: dict[str, tuple[str, str]] = {
     "check_database": ("colmap_check", "database.db"),
     "check_face": ("colmap_check", "faces/{face}.png"),
     "export_dir": ("export_{format}", ""),
+    "view_cache": ("view_cache", "{stem}.jpg"),
 }
 
 FEATURES_VERSION = 1
@@ -235,6 +237,20 @@ class Workspace:
         if reg:
             return load_npz(self.path("registration"), REGISTRATION_VERSION, POSE_KEYS), "registration"
         raise ArtifactError(f"{self.root}: no registration or triangulation results; run the pipeline first")
+
+    def cached_bytes(self, artifact: str, produce, **fields) -> bytes:
+        """A cache file (not a stage artifact: its name carries what it depends on, so it is never stale): read when
+        present, else produced, and written atomically when the workspace is writable."""
+        path = self.path(artifact, **fields)
+        if path.exists():
+            return path.read_bytes()
+        data = produce()
+        try:
+            make_dirs(path.parent)
+            save_bytes(path, data)
+        except OSError as e:
+            log.warning("cache not written to %s: %s", path, e)
+        return data
 
     # ---- locks
     @contextmanager

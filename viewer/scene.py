@@ -1,0 +1,199 @@
+"""What the viewer page shows, read from the workspace through its owner: stage states, cameras and their
+neighbours, point clouds for the 3-D scene, inlier matches of a pair, and downscaled panoramas from a cache."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from fullview.io.artifacts import ArtifactError
+from fullview.sfm.camera import bearings_to_lonlat, camera_up
+from fullview.stages import PIPELINE
+from fullview.stages.runner import Pipeline
+
+log = logging.getLogger(__name__)
+
+NEIGHBOURS = 4  # hotspots per panorama: its nearest registered panoramas among those it shares verified pairs with
+POINT_SEED = 0  # clouds are shuffled once, so any prefix is a uniform subsample (the page's point budget)
+
+
+class SceneData:
+    """The page's data for one pipeline (dataset, workspace, config); reloads when the workspace changes."""
+
+    def __init__(self, pipeline: Pipeline):
+        self.pipeline = pipeline
+        self.dataset, self.ws = pipeline.dataset, pipeline.ws
+
+    # ---------------------------------------------------------------------------------------------- state
+    def generation(self) -> str:
+        """Changes whenever a stage is committed: the page polls it to notice a workspace that changed."""
+        fps = {s: (self.ws.read_manifest(s) or {}).get("fingerprint") for s in PIPELINE}
+        return hashlib.sha256(json.dumps(fps, sort_keys=True).encode()).hexdigest()[:12]
+
+    def state(self) -> dict:
+        self.pipeline._fingerprints.clear()  # inputs or config may have changed since the last poll
+        with self.ws.reading():
+            stages = {s: _status(self.pipeline, s) for s in PIPELINE}
+            out = {"dataset": self.dataset.name, "generation": self.generation(), "stages": stages,
+                   "images": [{"name": n, "size": self.dataset.image_sizes[n]} for n in self.dataset.image_names],
+                   "model": None, "message": _message(stages)}
+            if stages["registration"]["state"] != "missing":
+                try:
+                    out["model"] = self._model(stages)
+                except ArtifactError as e:
+                    out["message"] = f"cannot read the reconstruction: {e}"
+        return out
+
+    def _model(self, stages: dict) -> dict:
+        poses, source = self.ws.load_poses()
+        registered = poses["registered"].astype(bool)
+        R, centers = poses["R_cam_from_world"], poses["centers"]
+        names = [str(n) for n in poses["image_names"]]
+        links = self._links(len(names))
+        cams = []
+        for k, name in enumerate(names):
+            cams.append({"name": name, "registered": bool(registered[k]),
+                         "R_cam_from_world": R[k].tolist() if registered[k] else None,
+                         "center": centers[k].tolist() if registered[k] else None,
+                         "neighbours": _neighbours(k, R, centers, registered, links, names)})
+        reg = registered.nonzero()[0]
+        return {"poses_from": source, "cameras": cams,
+                "unregistered": [n for n, ok in zip(names, registered) if not ok],
+                "R_display_from_world": display_rotation(R[reg], centers[reg]).tolist(),
+                "has_sparse": source == "triangulation", "has_dense": stages["densify"]["state"] == "fresh",
+                "pairs": self._pairs(names)}
+
+    def _links(self, n: int) -> np.ndarray:
+        """(N, N) verified inliers between images (0 = no verified pair)."""
+        links = np.zeros((n, n))
+        try:
+            epi = self.ws.load_epipoles()
+        except ArtifactError:
+            return links
+        ok = epi["valid"].astype(bool)
+        i, j = epi["pairs"][ok].T
+        links[i, j] = links[j, i] = epi["num_inliers"][ok]
+        return links
+
+    def _pairs(self, names: list[str]) -> list[dict]:
+        try:
+            verified = self.ws.load_inliers()
+        except ArtifactError:
+            return []
+        return [{"a": names[i], "b": names[j], "inliers": int(len(m))}
+                for (i, j), m in zip(verified.pairs, verified.matches) if len(m)]
+
+    # ---------------------------------------------------------------------------------------------- points
+    def points(self, kind: str) -> bytes:
+        """A cloud as bytes: uint32 count, float32 xyz (world frame) and uint8 rgb, in a fixed random order."""
+        return _cloud_bytes(self.ws.root, kind, self.generation(), self)
+
+    def load_cloud(self, kind: str) -> tuple[np.ndarray, np.ndarray]:
+        with self.ws.reading():
+            if kind == "sparse":
+                sparse = self.ws.load_sparse()
+                return sparse["points"], sparse["colors"]
+            cloud = self.ws.load_dense_cloud()
+        if cloud is None:
+            return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+        return (np.column_stack([cloud["x"], cloud["y"], cloud["z"]]),
+                np.column_stack([cloud["red"], cloud["green"], cloud["blue"]]))
+
+    def matches(self, a: str, b: str) -> list[list[float]]:
+        """Inlier matches of a verified pair as [x_a, y_a, x_b, y_b] pixels of the full-size panoramas."""
+        names = self.dataset.image_names
+        i, j = names.index(a), names.index(b)
+        flip = i > j
+        if flip:
+            i, j = j, i
+        with self.ws.reading():
+            verified = self.ws.load_inliers()
+            obs = self.ws.load_observations(self.dataset)
+        m = dict(zip(verified.pairs, verified.matches)).get((i, j), np.zeros((0, 2), int))
+        px = np.column_stack([obs[i]["pixels"][m[:, 0]], obs[j]["pixels"][m[:, 1]]])
+        return (px[:, [2, 3, 0, 1]] if flip else px).round(2).tolist()
+
+    # ---------------------------------------------------------------------------------------------- images
+    def panorama_jpeg(self, name: str, width: int) -> bytes:
+        """The panorama at a display width (never above native), from the workspace's cache."""
+        native = self.dataset.image_sizes[name][0]
+        width = int(min(max(width, 256), native))
+        key = self.dataset.image_hash(name)[:12]
+
+        def encode() -> bytes:
+            ok, jpg = cv2.imencode(".jpg", self.dataset.load_image(name, width=width), [cv2.IMWRITE_JPEG_QUALITY, 88])
+            if not ok:
+                raise ArtifactError(f"cannot encode {name} for display")
+            return jpg.tobytes()
+
+        return self.ws.cached_bytes("view_cache", encode, stem=f"{_stem(name)}_{width}_{key}")
+
+    def depth_png(self, name: str) -> bytes | None:
+        path = self.ws.path("depth_image", stem=_stem(name))
+        return path.read_bytes() if path.exists() else None
+
+
+@lru_cache(maxsize=4)
+def _cloud_bytes(root, kind: str, generation: str, scene: SceneData) -> bytes:
+    points, colors = scene.load_cloud(kind)
+    order = np.random.default_rng(POINT_SEED).permutation(len(points))
+    head = np.array([len(points)], "<u4").tobytes()
+    return head + points[order].astype("<f4").tobytes() + colors[order].astype(np.uint8).tobytes()
+
+
+def _stem(name: str) -> str:
+    return name.rsplit(".", 1)[0]
+
+
+def _status(pipeline: Pipeline, stage: str) -> dict:
+    st = pipeline.status(stage)
+    return {"state": st.state, "reasons": st.reasons}
+
+
+def _message(stages: dict) -> str | None:
+    """What the page says above everything when the model is missing or stale."""
+    if stages["registration"]["state"] == "missing":
+        return "this dataset has not been reconstructed yet: run `fullview run` first"
+    stale = [s for s, st in stages.items() if st["state"] != "fresh"]
+    if stale:
+        return "stale or missing stages (shown results may be outdated): " + ", ".join(
+            f"{s} ({stages[s]['state']}: {'; '.join(stages[s]['reasons'][:1])})" for s in stale)
+    return None
+
+
+def _neighbours(k: int, R, centers, registered, links, names) -> list[dict]:
+    """Hotspots of camera k: its nearest registered cameras among those with a verified pair to it (any registered
+    camera when it has none), with the direction to each in camera k's frame as yaw/pitch (PSV: yaw = longitude)."""
+    if not registered[k]:
+        return []
+    others = [j for j in np.flatnonzero(registered) if j != k]
+    linked = [j for j in others if links[k, j] > 0] or others
+    dist = {j: float(np.linalg.norm(centers[j] - centers[k])) for j in linked}
+    out = []
+    for j in sorted(linked, key=dist.get)[:NEIGHBOURS]:
+        d = R[k] @ (centers[j] - centers[k])
+        lon, lat = bearings_to_lonlat(d / max(np.linalg.norm(d), 1e-12))
+        out.append({"name": names[j], "yaw": float(lon), "pitch": float(lat), "distance": dist[j]})
+    return out
+
+
+def display_rotation(R_cam_from_world: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    """R_display_from_world: the cameras' mean up becomes +y (three.js' up), the main horizontal direction of the
+    camera track +x."""
+    up = camera_up(R_cam_from_world) if len(R_cam_from_world) else np.array([0.0, -1.0, 0.0])
+    spread = centers - centers.mean(0) if len(centers) > 1 else np.eye(3)
+    flat = spread - np.outer(spread @ up, up)
+    x = np.linalg.svd(flat, full_matrices=False)[2][0] if np.abs(flat).sum() > 1e-12 else _any_perpendicular(up)
+    x -= (x @ up) * up
+    x /= np.linalg.norm(x)
+    return np.stack([x, up, np.cross(x, up)])
+
+
+def _any_perpendicular(v: np.ndarray) -> np.ndarray:
+    a = np.eye(3)[np.argmin(np.abs(v))]
+    return np.cross(v, a)

@@ -1,0 +1,533 @@
+// fullview viewer: 3-D scene (three.js), virtual tour (Photo Sphere Viewer), correlated views and hand-point picker.
+// Geometry follows fullview's conventions: pixels (0,0) = top-left corner, lon = 2π(x/W − 0.5), lat = π(0.5 − y/H),
+// bearing = (cos lat sin lon, −sin lat, cos lat cos lon); x_cam = R_cam_from_world (x_world − centre).
+import * as THREE from 'three';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { Viewer } from '@photo-sphere-viewer/core';
+import { MarkersPlugin } from '@photo-sphere-viewer/markers-plugin';
+
+const TOUR_WIDTH = 4096;      // display width of tour panoramas (served downscaled, cached by the server)
+const CORR_WIDTH = 2048;      // display width of the correlated views
+const RAY_TOLERANCE = 0.01;   // rad: a point this close to a clicked ray counts as lying on it
+const hooks = window.fullview = { ready: false, lastClick: null, tour: null, errors: [] };
+
+// ------------------------------------------------------------------------------------------------ small math
+const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+const sub = (a, b) => [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+const norm = (a) => Math.hypot(a[0], a[1], a[2]);
+const unit = (a) => { const n = norm(a) || 1; return [a[0] / n, a[1] / n, a[2] / n]; };
+const mul = (R, v) => [dot(R[0], v), dot(R[1], v), dot(R[2], v)];
+const mulT = (R, v) => [R[0][0] * v[0] + R[1][0] * v[1] + R[2][0] * v[2], R[0][1] * v[0] + R[1][1] * v[1] +
+  R[2][1] * v[2], R[0][2] * v[0] + R[1][2] * v[1] + R[2][2] * v[2]];
+
+export function pixelToBearing(x, y, W, H) {
+  const lon = 2 * Math.PI * (x / W - 0.5), lat = Math.PI * (0.5 - y / H);
+  return [Math.cos(lat) * Math.sin(lon), -Math.sin(lat), Math.cos(lat) * Math.cos(lon)];
+}
+export function bearingToPixel(b, W, H) {
+  const lon = Math.atan2(b[0], b[2]), lat = Math.atan2(-b[1], Math.hypot(b[0], b[2]));
+  return [((lon / (2 * Math.PI) + 0.5) * W + W) % W, (0.5 - lat / Math.PI) * H];
+}
+const yawPitch = (b) => ({ yaw: Math.atan2(b[0], b[2]), pitch: Math.atan2(-b[1], Math.hypot(b[0], b[2])) });
+const fromYawPitch = (p) => [Math.cos(p.pitch) * Math.sin(p.yaw), -Math.sin(p.pitch), Math.cos(p.pitch) * Math.cos(p.yaw)];
+
+// Great circle of bearings orthogonal to `n` (camera frame), as full-size pixel polylines split where they wrap.
+function greatCircle(n, W, H, samples = 720) {
+  n = unit(n);
+  const a = Math.abs(n[0]) < 0.9 ? [1, 0, 0] : [0, 1, 0];
+  const u = unit(cross(n, a)), v = cross(n, u);
+  const lines = [[]];
+  let prev = null;
+  for (let k = 0; k <= samples; k++) {
+    const t = (2 * Math.PI * k) / samples;
+    const p = bearingToPixel([u[0] * Math.cos(t) + v[0] * Math.sin(t), u[1] * Math.cos(t) + v[1] * Math.sin(t),
+      u[2] * Math.cos(t) + v[2] * Math.sin(t)], W, H);
+    if (prev && Math.abs(p[0] - prev[0]) > W / 2) lines.push([]);
+    lines[lines.length - 1].push(p);
+    prev = p;
+  }
+  return lines;
+}
+
+// ------------------------------------------------------------------------------------------------ data
+let state = null;
+const cams = new Map();   // name -> camera entry of the model
+const imageSize = new Map();
+let clouds = {};          // kind -> {positions Float32Array (world), colors Uint8Array, count}
+
+async function getJSON(url) {
+  const r = await fetch(url);
+  const body = await r.json();
+  if (!r.ok) throw new Error(body.error || r.statusText);
+  return body;
+}
+async function getCloud(kind) {
+  if (clouds[kind]) return clouds[kind];
+  const buf = await (await fetch(`/api/points/${kind}`)).arrayBuffer();
+  const count = new Uint32Array(buf, 0, 1)[0];
+  const positions = new Float32Array(buf.slice(4, 4 + 12 * count));
+  const colors = new Uint8Array(buf.slice(4 + 12 * count, 4 + 15 * count));
+  return (clouds[kind] = { positions, colors, count });
+}
+
+function showMessage(text, id = 'message') {
+  const el = document.getElementById(id);
+  el.hidden = !text;
+  if (text && id === 'message') el.textContent = text;
+}
+
+// ------------------------------------------------------------------------------------------------ 3-D scene
+const scene3d = { renderer: null, camera: null, controls: null, group: null, points: null, cameraMeshes: [],
+  highlight: null };
+
+function initScene() {
+  const canvas = document.getElementById('scene3d');
+  const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
+  renderer.setPixelRatio(window.devicePixelRatio);
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(0x15171a);
+  const camera = new THREE.PerspectiveCamera(60, 1, 0.001, 1000);
+  const controls = new OrbitControls(camera, canvas);
+  const group = new THREE.Group();
+  scene.add(group);
+  Object.assign(scene3d, { renderer, scene, camera, controls, group });
+  const resize = () => {
+    const w = canvas.clientWidth, h = canvas.clientHeight;
+    if (!w || !h) return;
+    renderer.setSize(w, h, false);
+    camera.aspect = w / h;
+    camera.updateProjectionMatrix();
+  };
+  new ResizeObserver(resize).observe(canvas);
+  canvas.addEventListener('click', onSceneClick);
+  renderer.setAnimationLoop(() => { controls.update(); renderer.render(scene, camera); });
+}
+
+function buildScene(model) {
+  const { group } = scene3d;
+  group.clear();
+  const R = model.R_display_from_world;
+  const m = new THREE.Matrix4().set(R[0][0], R[0][1], R[0][2], 0, R[1][0], R[1][1], R[1][2], 0,
+    R[2][0], R[2][1], R[2][2], 0, 0, 0, 0, 1);
+  group.matrixAutoUpdate = false;
+  group.matrix.copy(m);
+  const centres = model.cameras.filter((c) => c.registered).map((c) => c.center);
+  const mean = centres.reduce((s, c) => [s[0] + c[0], s[1] + c[1], s[2] + c[2]], [0, 0, 0])
+    .map((v) => v / Math.max(centres.length, 1));
+  const extent = Math.max(1e-6, ...centres.map((c) => norm(sub(c, mean))));
+  const radius = 0.04 * extent;
+  scene3d.cameraMeshes = [];
+  for (const cam of model.cameras.filter((c) => c.registered)) {
+    const sphere = new THREE.Mesh(new THREE.SphereGeometry(radius, 16, 12),
+      new THREE.MeshBasicMaterial({ color: 0xffcc33 }));
+    sphere.position.set(...cam.center);
+    sphere.userData.name = cam.name;
+    group.add(sphere);
+    scene3d.cameraMeshes.push(sphere);
+    const forward = mulT(cam.R_cam_from_world, [0, 0, 1]);  // heading: the panorama's centre direction
+    const tip = cam.center.map((v, i) => v + 3 * radius * forward[i]);
+    group.add(line([cam.center, tip], 0xff6633));
+  }
+  group.add(line(centres, 0x66aaff));  // the capture's track, in image order
+  const world = new THREE.Vector3(...mean).applyMatrix4(m);
+  const up = new THREE.Vector3(0, 1, 0);
+  scene3d.controls.target.copy(world);
+  scene3d.camera.position.copy(world).add(new THREE.Vector3(extent * 1.5, extent * 1.2, extent * 1.5));
+  scene3d.camera.near = extent * 1e-3;
+  scene3d.camera.far = extent * 1e3;
+  scene3d.camera.up.copy(up);
+  scene3d.camera.updateProjectionMatrix();
+  scene3d.extent = extent;
+}
+
+function line(points, color) {
+  const geometry = new THREE.BufferGeometry().setFromPoints(points.map((p) => new THREE.Vector3(...p)));
+  return new THREE.Line(geometry, new THREE.LineBasicMaterial({ color }));
+}
+
+async function showCloud(kind) {
+  if (kind === 'dense' && !state.model.has_dense) kind = 'sparse';
+  if (kind === 'sparse' && !state.model.has_sparse) return;
+  const cloud = await getCloud(kind);
+  if (scene3d.points) scene3d.group.remove(scene3d.points);
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute('position', new THREE.BufferAttribute(cloud.positions, 3));
+  geometry.setAttribute('color', new THREE.BufferAttribute(cloud.colors, 3, true));
+  const material = new THREE.PointsMaterial({ size: kind === 'sparse' ? 3 : 1.5, sizeAttenuation: false,
+    vertexColors: true });
+  scene3d.points = new THREE.Points(geometry, material);
+  scene3d.group.add(scene3d.points);
+  const slider = document.getElementById('budget');
+  slider.max = Math.max(1000, cloud.count);
+  applyBudget();
+}
+
+function applyBudget() {
+  const slider = document.getElementById('budget');
+  const n = Math.min(Number(slider.value), Number(slider.max));
+  if (scene3d.points) scene3d.points.geometry.setDrawRange(0, n);  // clouds come shuffled: a prefix is a subsample
+  document.getElementById('budget-label').textContent = `${n.toLocaleString()} points`;
+}
+
+function onSceneClick(event) {
+  const rect = event.target.getBoundingClientRect();
+  const ndc = new THREE.Vector2(((event.clientX - rect.left) / rect.width) * 2 - 1,
+    -((event.clientY - rect.top) / rect.height) * 2 + 1);
+  const ray = new THREE.Raycaster();
+  ray.setFromCamera(ndc, scene3d.camera);
+  const hit = ray.intersectObjects(scene3d.cameraMeshes)[0];
+  if (hit) openTour(hit.object.userData.name);
+}
+
+function highlightPoint(p) {
+  if (scene3d.highlight) scene3d.group.remove(scene3d.highlight);
+  scene3d.highlight = null;
+  if (!p) return;
+  const mesh = new THREE.Mesh(new THREE.SphereGeometry(0.015 * scene3d.extent, 12, 8),
+    new THREE.MeshBasicMaterial({ color: 0xff2222 }));
+  mesh.position.set(...p);
+  scene3d.group.add(mesh);
+  scene3d.highlight = mesh;
+}
+
+// Screen position of a camera sphere (tests click it).
+hooks.cameraScreenPosition = (name) => {
+  const mesh = scene3d.cameraMeshes.find((m) => m.userData.name === name);
+  if (!mesh) return null;
+  const v = new THREE.Vector3();
+  mesh.getWorldPosition(v).project(scene3d.camera);
+  const rect = scene3d.renderer.domElement.getBoundingClientRect();
+  return [rect.left + (v.x + 1) / 2 * rect.width, rect.top + (1 - v.y) / 2 * rect.height];
+};
+
+// ------------------------------------------------------------------------------------------------ tour
+let tour = null, markers = null;
+
+function initTour() {
+  tour = new Viewer({ container: 'tour', navbar: ['zoom', 'move', 'caption', 'fullscreen'], loadingTxt: 'loading',
+    plugins: [[MarkersPlugin, {}]], defaultZoomLvl: 0 });
+  markers = tour.getPlugin(MarkersPlugin);
+  markers.addEventListener('select-marker', ({ marker }) => moveTo(marker.data.target));
+}
+
+async function openTour(name, position = null) {
+  selectTab('tour');
+  const cam = cams.get(name);
+  hooks.tour = { name, ready: false };
+  await tour.setPanorama(`/pano/${encodeURIComponent(name)}?width=${TOUR_WIDTH}`,
+    { position: position || { yaw: 0, pitch: 0 }, caption: name, transition: false, showLoader: false });
+  markers.clearMarkers();
+  const info = document.getElementById('tour-info');
+  if (!cam || !cam.registered) {
+    info.textContent = `${name} is not registered: no neighbours to walk to`;
+  } else {
+    info.textContent = `${name}: ${cam.neighbours.length} neighbour(s); click a label to walk there`;
+    for (const nb of cam.neighbours) {
+      markers.addMarker({ id: `to-${nb.name}`, position: { yaw: nb.yaw, pitch: nb.pitch }, anchor: 'center center',
+        html: `<div class="hotspot">→ ${nb.name}</div>`, data: { target: nb.name }, tooltip: nb.name });
+    }
+  }
+  hooks.tour = { name, ready: true, neighbours: cam ? cam.neighbours : [] };
+}
+
+// Walk to a neighbour keeping the world direction of the view.
+async function moveTo(target) {
+  const from = cams.get(hooks.tour.name), to = cams.get(target);
+  const world = mulT(from.R_cam_from_world, fromYawPitch(tour.getPosition()));
+  await openTour(target, yawPitch(mul(to.R_cam_from_world, world)));
+}
+hooks.moveTo = moveTo;
+hooks.tourPosition = () => tour.getPosition();
+
+// ------------------------------------------------------------------------------------------------ correlated views
+const corr = { views: [], tracks: [], current: -1 };
+
+function initCorr() {
+  const list = document.getElementById('corr-pick-list');
+  const names = state.images.map((i) => i.name);
+  const chosen = names.slice(0, Math.min(4, names.length));
+  list.innerHTML = '';
+  for (const name of names) {
+    const label = document.createElement('label');
+    label.innerHTML = `<input type="checkbox" value="${name}" ${chosen.includes(name) ? 'checked' : ''}> ${name}`;
+    label.querySelector('input').addEventListener('change', () => {
+      const on = [...list.querySelectorAll('input:checked')].map((i) => i.value);
+      if (on.length > 4) { label.querySelector('input').checked = false; return; }
+      buildCorrViews(on);
+    });
+    list.appendChild(label);
+  }
+  buildCorrViews(chosen);
+  document.getElementById('show-matches').addEventListener('change', redrawAll);
+  document.getElementById('show-depth').addEventListener('change', redrawAll);
+  document.getElementById('pick-mode').addEventListener('change', (e) => {
+    document.getElementById('picker').hidden = !e.target.checked;
+    redrawAll();
+  });
+  document.getElementById('new-track').addEventListener('click', newTrack);
+  document.getElementById('save-tracks').addEventListener('click', saveTracks);
+  document.getElementById('rerun').addEventListener('click', rerun);
+}
+
+function buildCorrViews(names) {
+  const box = document.getElementById('corr-views');
+  box.innerHTML = '';
+  corr.views = names.map((name) => {
+    const div = document.createElement('div');
+    div.className = 'corr';
+    const canvas = document.createElement('canvas');
+    div.appendChild(canvas);
+    const label = document.createElement('span');
+    label.className = 'label';
+    label.textContent = name + (cams.get(name)?.registered ? '' : ' (not registered)');
+    div.appendChild(label);
+    box.appendChild(div);
+    const view = { name, canvas, image: new Image(), depth: null, overlay: null };
+    [view.W, view.H] = imageSize.get(name);
+    view.image.onload = () => { canvas.width = view.image.width; canvas.height = view.image.height; redraw(view); };
+    view.image.src = `/pano/${encodeURIComponent(name)}?width=${CORR_WIDTH}`;
+    canvas.addEventListener('click', (e) => onCorrClick(view, e));
+    return view;
+  });
+  corr.matches = null;
+}
+
+// Full-size pixel of a click on a view's canvas.
+function clickPixel(view, event) {
+  const rect = view.canvas.getBoundingClientRect();
+  return [(event.clientX - rect.left) / rect.width * view.W, (event.clientY - rect.top) / rect.height * view.H];
+}
+// Page position of a full-size pixel of a view (tests click there).
+hooks.viewPagePosition = (name, x, y) => {
+  const view = corr.views.find((v) => v.name === name);
+  view.canvas.scrollIntoView({ block: 'nearest' });
+  const rect = view.canvas.getBoundingClientRect();
+  return [rect.left + x / view.W * rect.width, rect.top + y / view.H * rect.height];
+};
+
+async function onCorrClick(view, event) {
+  const px = clickPixel(view, event);
+  if (document.getElementById('pick-mode').checked) return pick(view, px);
+  const cam = cams.get(view.name);
+  if (!cam || !cam.registered) return;
+  const w = mulT(cam.R_cam_from_world, pixelToBearing(px[0], px[1], view.W, view.H));  // world direction of the ray
+  const point = await pointOnRay(cam.center, w);
+  const result = { view: view.name, pixel: px, circles: {}, markers: {}, point };
+  for (const other of corr.views) {
+    const oc = cams.get(other.name);
+    other.overlay = null;
+    if (other === view || !oc || !oc.registered) continue;
+    const normal = mul(oc.R_cam_from_world, cross(w, sub(oc.center, cam.center)));
+    const circle = greatCircle(normal, other.W, other.H);
+    const marker = point ? bearingToPixel(mul(oc.R_cam_from_world, sub(point, oc.center)), other.W, other.H) : null;
+    other.overlay = { circle, marker };
+    result.circles[other.name] = circle;
+    if (marker) result.markers[other.name] = marker;
+  }
+  view.overlay = { clicked: px };
+  highlightPoint(point);
+  hooks.lastClick = result;
+  redrawAll();
+}
+
+// The sparse (or dense) point closest in angle to a ray, when within RAY_TOLERANCE.
+async function pointOnRay(origin, w) {
+  if (!state.model.has_sparse) return null;
+  let best = null, bestAngle = RAY_TOLERANCE;
+  for (const kind of state.model.has_dense ? ['sparse', 'dense'] : ['sparse']) {
+    const { positions, count } = await getCloud(kind);
+    for (let k = 0; k < count; k++) {
+      const d = [positions[3 * k] - origin[0], positions[3 * k + 1] - origin[1], positions[3 * k + 2] - origin[2]];
+      const t = dot(d, w);
+      if (t <= 0) continue;
+      const angle = Math.atan2(norm(cross(d, w)), t);
+      if (angle < bestAngle) { bestAngle = angle; best = [positions[3 * k], positions[3 * k + 1], positions[3 * k + 2]]; }
+    }
+    if (best) break;  // a sparse point is the better-supported answer
+  }
+  return best;
+}
+
+function redrawAll() { corr.views.forEach(redraw); maybeLoadMatches(); }
+
+function redraw(view) {
+  const ctx = view.canvas.getContext('2d');
+  if (!view.image.complete || !view.canvas.width) return;
+  const sx = view.canvas.width / view.W, sy = view.canvas.height / view.H;
+  ctx.drawImage(view.image, 0, 0);
+  if (document.getElementById('show-depth').checked) drawDepth(view, ctx);
+  if (document.getElementById('show-matches').checked && corr.matches) drawMatches(view, ctx, sx, sy);
+  ctx.lineWidth = Math.max(2, view.canvas.width / 800);
+  if (view.overlay?.circle) {
+    ctx.strokeStyle = '#00ff66';
+    for (const seg of view.overlay.circle) {
+      ctx.beginPath();
+      seg.forEach(([x, y], k) => (k ? ctx.lineTo(x * sx, y * sy) : ctx.moveTo(x * sx, y * sy)));
+      ctx.stroke();
+    }
+  }
+  if (view.overlay?.marker) dot2d(ctx, view.overlay.marker[0] * sx, view.overlay.marker[1] * sy, '#ff2222', 8);
+  if (view.overlay?.clicked) dot2d(ctx, view.overlay.clicked[0] * sx, view.overlay.clicked[1] * sy, '#ffff00', 6);
+  if (document.getElementById('pick-mode').checked) drawTracks(view, ctx, sx, sy);
+}
+
+function dot2d(ctx, x, y, color, r) {
+  ctx.fillStyle = color;
+  ctx.beginPath();
+  ctx.arc(x, y, r, 0, 2 * Math.PI);
+  ctx.fill();
+}
+
+function drawDepth(view, ctx) {
+  if (!view.depth) {
+    view.depth = new Image();
+    view.depth.onload = () => redraw(view);
+    view.depth.onerror = () => { view.depth.failed = true; };
+    view.depth.src = `/depth/${encodeURIComponent(view.name)}`;
+    return;
+  }
+  if (view.depth.complete && !view.depth.failed) {
+    ctx.globalAlpha = 0.6;
+    ctx.drawImage(view.depth, 0, 0, view.canvas.width, view.canvas.height);
+    ctx.globalAlpha = 1;
+  }
+}
+
+async function maybeLoadMatches() {
+  if (!document.getElementById('show-matches').checked || corr.views.length < 2) return;
+  const [a, b] = corr.views;
+  const key = `${a.name}|${b.name}`;
+  if (corr.matchesKey === key) return;
+  corr.matchesKey = key;
+  corr.matches = await getJSON(`/api/matches?a=${encodeURIComponent(a.name)}&b=${encodeURIComponent(b.name)}`);
+  redraw(a); redraw(b);
+}
+
+function drawMatches(view, ctx, sx, sy) {
+  const index = corr.views.indexOf(view);
+  if (index > 1) return;
+  corr.matches.forEach((m, k) => {
+    const hue = (k * 47) % 360;
+    dot2d(ctx, m[2 * index] * sx, m[2 * index + 1] * sy, `hsl(${hue} 90% 55%)`, 3);
+  });
+}
+
+// ------------------------------------------------------------------------------------------------ hand points
+async function loadTracks() {
+  corr.tracks = (await getJSON('/api/hand_points')).map((t) => ({ name: t.name, observations: t.observations }));
+  corr.current = corr.tracks.length - 1;
+  renderTracks();
+}
+
+function newTrack() {
+  const used = new Set(corr.tracks.map((t) => t.name));
+  let k = corr.tracks.length;
+  while (used.has(`point_${k}`)) k++;
+  corr.tracks.push({ name: `point_${k}`, observations: {} });
+  corr.current = corr.tracks.length - 1;
+  renderTracks();
+}
+
+function pick(view, px) {
+  if (corr.current < 0) newTrack();
+  corr.tracks[corr.current].observations[view.name] = [Math.round(px[0] * 100) / 100, Math.round(px[1] * 100) / 100];
+  renderTracks();
+  redrawAll();
+}
+
+function renderTracks() {
+  const list = document.getElementById('tracks');
+  list.innerHTML = '';
+  corr.tracks.forEach((t, k) => {
+    const li = document.createElement('li');
+    li.className = k === corr.current ? 'current' : '';
+    const input = document.createElement('input');
+    input.value = t.name;
+    input.addEventListener('change', () => { t.name = input.value; });
+    const count = document.createElement('span');
+    count.textContent = ` ${Object.keys(t.observations).length} observation(s) `;
+    const select = document.createElement('button');
+    select.textContent = 'edit';
+    select.addEventListener('click', () => { corr.current = k; renderTracks(); });
+    const del = document.createElement('button');
+    del.textContent = 'delete';
+    del.addEventListener('click', () => { corr.tracks.splice(k, 1); corr.current = corr.tracks.length - 1;
+      renderTracks(); redrawAll(); });
+    li.append(input, count, select, del);
+    list.appendChild(li);
+  });
+}
+
+function drawTracks(view, ctx, sx, sy) {
+  corr.tracks.forEach((t, k) => {
+    const xy = t.observations[view.name];
+    if (!xy) return;
+    dot2d(ctx, xy[0] * sx, xy[1] * sy, k === corr.current ? '#ffd58a' : '#ff66ff', 6);
+    ctx.fillStyle = '#fff';
+    ctx.font = `${Math.max(12, view.canvas.width / 120)}px sans-serif`;
+    ctx.fillText(t.name, xy[0] * sx + 8, xy[1] * sy - 8);
+  });
+}
+
+async function saveTracks() {
+  const status = document.getElementById('picker-status');
+  const points = corr.tracks.filter((t) => Object.keys(t.observations).length >= 2);
+  const r = await fetch('/api/hand_points', { method: 'POST', headers: { 'Content-Type': 'application/json' },
+    body: JSON.stringify({ points }) });
+  const body = await r.json();
+  status.textContent = r.ok ? `saved ${points.length} track(s) to ${body.saved}` +
+    (body.backup ? ` (previous file kept as ${body.backup})` : '') + `; rerun: ${body.command}` : `not saved: ${body.error}`;
+  hooks.saved = r.ok;
+}
+
+async function rerun() {
+  const body = await (await fetch('/api/rerun', { method: 'POST' })).json();
+  document.getElementById('picker-status').textContent = `pipeline run ${body.rerun}; the page notices when it is done`;
+}
+
+// ------------------------------------------------------------------------------------------------ page
+function selectTab(name) {
+  document.querySelectorAll('.tab').forEach((b) => b.classList.toggle('active', b.dataset.tab === name));
+  document.querySelectorAll('.tabpage').forEach((p) => p.classList.toggle('active', p.id === `tab-${name}`));
+  if (name === 'tour' && tour) tour.autoSize();
+}
+
+async function poll() {
+  try {
+    const now = await getJSON('/api/state');
+    showMessage(now.generation !== state.generation, 'changed');
+    if (now.rerun) document.getElementById('picker-status').textContent = now.rerun;
+  } catch (e) {
+    showMessage(`lost the viewer server: ${e.message}`);
+  }
+}
+
+async function main() {
+  state = await getJSON('/api/state');
+  document.getElementById('title').textContent = `fullview · ${state.dataset}`;
+  document.getElementById('stages').textContent = Object.entries(state.stages)
+    .map(([s, st]) => `${s}: ${st.state}`).join(' · ');
+  state.images.forEach((i) => imageSize.set(i.name, i.size));
+  const messages = [state.message];
+  document.querySelectorAll('.tab').forEach((b) => b.addEventListener('click', () => selectTab(b.dataset.tab)));
+  document.getElementById('reload').addEventListener('click', () => location.reload());
+  if (state.model) {
+    state.model.cameras.forEach((c) => cams.set(c.name, c));
+    if (state.model.unregistered.length) messages.push(`not registered: ${state.model.unregistered.join(', ')}`);
+    initScene();
+    buildScene(state.model);
+    document.getElementById('cloud').value = state.model.has_dense ? 'dense' : 'sparse';
+    await showCloud(document.getElementById('cloud').value);
+    document.getElementById('cloud').addEventListener('change', (e) => showCloud(e.target.value));
+    document.getElementById('budget').addEventListener('input', applyBudget);
+  }
+  showMessage(messages.filter(Boolean).join(' — '));
+  initTour();
+  initCorr();
+  await loadTracks();
+  setInterval(poll, 3000);
+  hooks.ready = true;
+}
+
+main().catch((e) => { showMessage(`the viewer failed to start: ${e.message}`); hooks.errors.push(String(e)); });
