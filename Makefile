@@ -44,8 +44,10 @@ ifeq ($(DATASET),)
 	@$(MAKE) --no-print-directory $(SYNTH)/images
 	$(PY) -m fullview run $(SYNTH) -c $(CONFIG) -w $(WORKSPACE)
 	$(PY) -m fullview eval $(SYNTH) -c $(CONFIG) -w $(WORKSPACE)
+	@echo "report: $$($(PY) -m fullview report $(SYNTH) -c $(CONFIG) -w $(WORKSPACE))"
 else
 	$(PY) -m fullview run $(DATASET) -c $(CONFIG) -w $(WORKSPACE)
+	@echo "report: $$($(PY) -m fullview report $(DATASET) -c $(CONFIG) -w $(WORKSPACE))"
 endif
 
 stage: setup

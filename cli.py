@@ -97,6 +97,12 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_report(args) -> int:
+    from fullview.commands.report import report
+    print(report(_pipeline(args)))
+    return 0
+
+
 def cmd_view(args) -> int:
     from fullview.commands.view import view
     pipeline = _pipeline(args)
@@ -155,6 +161,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", required=True, help="colmap | colmap-bin | nerfstudio | ply")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: WORKSPACE/DATASET/export_FORMAT)")
     p.set_defaults(func=cmd_export)
+    p = sub.add_parser("report", help="a static HTML report of the run: workspace/<dataset>/report/index.html")
+    _common(p)
+    p.set_defaults(func=cmd_report)
     p = sub.add_parser("view", help="the viewer: 3-D scene, virtual tour, correlated views, hand-point picker")
     _common(p)
     p.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: a free one, printed)")

@@ -18,6 +18,7 @@ Layout (``FILES`` is the single table of names; nothing else in fullview spells 
         colmap_check/check.json, check.md, database.db, faces/       (fullview colmap-check)
         export_<format>/...                                  (fullview export)
         view_cache/<stem>_<width>_<image hash>.jpg           (fullview view: panoramas at display width)
+        report/index.html, *.png                             (fullview report)
 
 Reading goes through `Workspace` (``load_*``); writing only through a `StageWriter` (``save_*``), which exists only
 inside `Workspace.transaction` and is bound to that run's temporary folder: no code path can write into a live
@@ -83,6 +84,8 @@ FILES: dict[str, tuple[str, str]] = {
     "check_face": ("colmap_check", "faces/{face}.png"),
     "export_dir": ("export_{format}", ""),
     "view_cache": ("view_cache", "{stem}.jpg"),
+    "report_page": ("report", "index.html"),
+    "report_asset": ("report", "{file}"),
 }
 
 FEATURES_VERSION = 1

@@ -241,3 +241,24 @@ def _ignore_errors(fn, *args):
         fn(*args)
     except OSError:
         pass
+
+
+# ------------------------------------------------------------------------------------------------ report
+def test_report_opens_from_disk_with_every_section(reconstructed, browser):
+    from fullview.commands.report import report
+    pipeline = reconstructed[0]
+    path = Path(report(pipeline))
+    assert path == pipeline.ws.path("report_page") and path.exists()
+    page = browser.new_page(viewport=VIEWPORT)
+    problems, requests = [], []
+    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    page.on("request", lambda r: requests.append(r.url))
+    page.goto(path.as_uri())
+    page.wait_for_load_state("load")
+    text = page.inner_text("body")
+    for heading in ("Stages", "Verified pairs", "Cameras", "Sparse model", "Depth maps", "Metrics", "Viewer"):
+        assert heading in text
+    assert page.evaluate("[...document.images].every(i => i.complete && i.naturalWidth > 0)")
+    assert page.evaluate("document.images.length") >= 3 + len(pipeline.dataset.image_names)
+    assert not problems and all(u.startswith("file://") for u in requests), (problems, requests)
+    page.close()
