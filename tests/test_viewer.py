@@ -262,3 +262,53 @@ def test_report_opens_from_disk_with_every_section(reconstructed, browser):
     assert page.evaluate("document.images.length") >= 3 + len(pipeline.dataset.image_names)
     assert not problems and all(u.startswith("file://") for u in requests), (problems, requests)
     page.close()
+
+
+def test_hand_check_flags_the_point_far_from_its_epipolar_circle(reconstructed, server):
+    pipeline = reconstructed[0]
+    names, sparse = _poses(pipeline)
+    R, c, points = sparse["R_cam_from_world"], sparse["centers"], sparse["points"]
+    W, H = pipeline.dataset.image_sizes[names[0]]
+    tracks = []
+    for k in np.random.default_rng(0).choice(len(points), 12, replace=False):
+        obs = {}
+        for j in (0, 1):
+            b = R[j] @ (points[k] - c[j])
+            obs[names[j]] = bearings_to_pixels((b / np.linalg.norm(b))[None], W, H)[0].tolist()
+        tracks.append({"name": f"t{k}", "observations": obs})
+    tracks[3]["observations"][names[1]][1] += 25.0  # a wrong click: 25 px off its true position
+    request = urllib.request.Request(server + "api/hand_check", data=json.dumps({"points": tracks}).encode(),
+                                     method="POST", headers={"Content-Type": "application/json"})
+    result = json.loads(urllib.request.urlopen(request).read())
+    (pair,) = result["pairs"]
+    assert {pair["a"], pair["b"]} == {names[0], names[1]}
+    assert pair["flagged"] == [tracks[3]["name"]]
+
+
+
+# ------------------------------------------------------------------------------------------------ bad states
+def test_a_dataset_never_run_gets_a_message_not_a_blank_page(reconstructed, browser, tmp_path):
+    pipeline, config = reconstructed
+    fresh = Pipeline(pipeline.dataset, Workspace(tmp_path / "empty", pipeline.dataset.name), config)
+    httpd = make_server(ViewerApp(fresh, config))
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    page = browser.new_page(viewport=VIEWPORT)
+    problems = []
+    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda e: problems.append(str(e)))
+    try:
+        page.goto(f"http://127.0.0.1:{httpd.server_address[1]}/")
+        page.wait_for_function("window.fullview && window.fullview.ready", timeout=30000)
+        assert "not been reconstructed yet" in page.inner_text("#message") and page.is_visible("#message")
+        assert not problems, problems
+    finally:
+        page.close()
+        httpd.shutdown()
+        httpd.server_close()
+
+
+def test_a_workspace_that_changes_is_announced(page, reconstructed):
+    pipeline = reconstructed[0]
+    assert not page.is_visible("#changed")
+    pipeline.run_stage("registration")  # a run commits a new registration while the page is open
+    page.wait_for_selector("#changed", state="visible", timeout=10000)

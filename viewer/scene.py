@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 
 from fullview.io.artifacts import ArtifactError
-from fullview.sfm.camera import bearings_to_lonlat, camera_up
+from fullview.sfm import two_view
+from fullview.sfm.camera import bearings_to_lonlat, camera_up, pixels_to_bearings
 from fullview.stages import PIPELINE
 from fullview.stages.runner import Pipeline
 
@@ -32,8 +33,8 @@ class SceneData:
     # ---------------------------------------------------------------------------------------------- state
     def generation(self) -> str:
         """Changes whenever a stage is committed: the page polls it to notice a workspace that changed."""
-        fps = {s: (self.ws.read_manifest(s) or {}).get("fingerprint") for s in PIPELINE}
-        return hashlib.sha256(json.dumps(fps, sort_keys=True).encode()).hexdigest()[:12]
+        stamps = {s: _mtime(self.ws.path("manifest", folder=s)) for s in PIPELINE}  # a rerun commits a new one
+        return hashlib.sha256(json.dumps(stamps, sort_keys=True).encode()).hexdigest()[:12]
 
     def state(self) -> dict:
         self.pipeline._fingerprints.clear()  # inputs or config may have changed since the last poll
@@ -118,6 +119,31 @@ class SceneData:
         px = np.column_stack([obs[i]["pixels"][m[:, 0]], obs[j]["pixels"][m[:, 1]]])
         return (px[:, [2, 3, 0, 1]] if flip else px).round(2).tolist()
 
+    # ---------------------------------------------------------------------------------------------- hand points
+    def hand_check(self, points: list, threshold_deg: float) -> list[dict]:
+        """For every pair of images sharing >= 8 hand tracks: the F those tracks give (b_aᵀ F b_b = 0, bearings)
+        and each track's angular distance to its epipolar circle; tracks beyond `threshold_deg` are flagged."""
+        sizes = self.dataset.image_sizes
+        names = [n for n in self.dataset.image_names]
+        obs = {}
+        for point in points if isinstance(points, list) else []:
+            for image, xy in (point.get("observations") or {}).items():
+                if image in sizes and isinstance(xy, (list, tuple)) and len(xy) == 2:
+                    obs.setdefault(image, {})[str(point.get("name"))] = (float(xy[0]), float(xy[1]))
+        out = []
+        for a_idx, a in enumerate(names):
+            for b in names[a_idx + 1:]:
+                shared = sorted(set(obs.get(a, {})) & set(obs.get(b, {})))
+                if len(shared) < 8:
+                    continue
+                b_a = pixels_to_bearings(np.array([obs[a][t] for t in shared]), *sizes[a])
+                b_b = pixels_to_bearings(np.array([obs[b][t] for t in shared]), *sizes[b])
+                F = _hand_f(b_a, b_b, np.radians(threshold_deg))
+                errors = np.degrees(two_view.epipolar_angular_errors(F, b_a, b_b))
+                out.append({"a": a, "b": b, "F": F.tolist(), "errors_deg": dict(zip(shared, errors.tolist())),
+                            "flagged": [t for t, e in zip(shared, errors) if e > threshold_deg]})
+        return out
+
     # ---------------------------------------------------------------------------------------------- images
     def panorama_jpeg(self, name: str, width: int) -> bytes:
         """The panorama at a display width (never above native), from the workspace's cache."""
@@ -144,6 +170,23 @@ def _cloud_bytes(root, kind: str, generation: str, scene: SceneData) -> bytes:
     order = np.random.default_rng(POINT_SEED).permutation(len(points))
     head = np.array([len(points)], "<u4").tobytes()
     return head + points[order].astype("<f4").tobytes() + colors[order].astype(np.uint8).tobytes()
+
+
+def _hand_f(b_a: np.ndarray, b_b: np.ndarray, threshold_rad: float) -> np.ndarray:
+    """F of a pair's hand correspondences: exact through 8; beyond, robust, so one wrong click cannot bend it."""
+    if len(b_a) > 8:
+        try:
+            return two_view.ransac_f(b_a, b_b, two_view.RansacOptions(threshold_rad=threshold_rad, seed=0)).F
+        except ValueError:
+            pass
+    return two_view.estimate_f_linear(b_a, b_b)
+
+
+def _mtime(path) -> int | None:
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return None
 
 
 def _stem(name: str) -> str:

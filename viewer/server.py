@@ -24,6 +24,7 @@ WEB = Path(__file__).resolve().parent / "web"
 VENDOR = WEB / "node_modules"
 VENDORED = ("three", "@photo-sphere-viewer")  # the only packages the page may load
 MAX_BODY = 8 << 20  # bytes of a POSTed hand_points document
+HAND_CHECK_FACTOR = 4.0  # a hand point farther than this many filter thresholds from its epipolar circle is flagged
 
 
 class ViewerApp:
@@ -116,16 +117,18 @@ class _Handler(BaseHTTPRequestHandler):
         path = urlparse(self.path).path
         try:
             if path == "/api/hand_points":
-                length = int(self.headers.get("Content-Length", 0))
-                if length > MAX_BODY:
-                    return self._error(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, "hand points document too large")
-                body = json.loads(self.rfile.read(length) or b"null")
+                body = self._body()
                 backup = self.app.pipeline.dataset.save_hand_points(body.get("points") if isinstance(body, dict)
                                                                     else None)
                 return self._json({"saved": str(self.app.pipeline.dataset.hand_points_path),
                                    "backup": str(backup) if backup else None,
                                    "command": f"fullview run {self.app.pipeline.dataset.root} "
                                               f"-w {self.app.pipeline.ws.root.parent}"})
+            if path == "/api/hand_check":
+                body = self._body()
+                threshold = HAND_CHECK_FACTOR * self.app.config["filter"].threshold_deg
+                return self._json({"threshold_deg": threshold, "pairs": self.app.scene.hand_check(
+                    body.get("points") if isinstance(body, dict) else None, threshold)})
             if path == "/api/rerun":
                 return self._json({"rerun": self.app.rerun()})
             return self._error(HTTPStatus.NOT_FOUND, "no such endpoint")
@@ -133,6 +136,12 @@ class _Handler(BaseHTTPRequestHandler):
             return self._error(HTTPStatus.BAD_REQUEST, str(e))
 
     # ---------------------------------------------------------------------------------------------- helpers
+    def _body(self):
+        length = int(self.headers.get("Content-Length", 0))
+        if length > MAX_BODY:
+            raise ValueError("request too large")
+        return json.loads(self.rfile.read(length) or b"null")
+
     def _image(self, name: str) -> str:
         if name not in self.app.pipeline.dataset.image_names:
             raise ValueError(f"unknown image {name!r}")

@@ -418,6 +418,7 @@ async function loadTracks() {
   corr.tracks = (await getJSON('/api/hand_points')).map((t) => ({ name: t.name, observations: t.observations }));
   corr.current = corr.tracks.length - 1;
   renderTracks();
+  await checkTracks();
 }
 
 function newTrack() {
@@ -434,6 +435,36 @@ function pick(view, px) {
   corr.tracks[corr.current].observations[view.name] = [Math.round(px[0] * 100) / 100, Math.round(px[1] * 100) / 100];
   renderTracks();
   redrawAll();
+  checkTracks();
+}
+
+// Pairs with >= 8 shared tracks: the F they give (server-side geometry), its epipolar circles for the current
+// track, and the tracks far from their circles.
+async function checkTracks() {
+  const r = await fetch('/api/hand_check', { method: 'POST', headers: { 'Content-Type': 'application/json' },
+    body: JSON.stringify({ points: corr.tracks }) });
+  const body = await r.json();
+  corr.check = r.ok ? body : null;
+  hooks.handCheck = corr.check;
+  renderTracks();
+  redrawAll();
+}
+
+function handCircles(view) {
+  const t = corr.tracks[corr.current];
+  if (!corr.check || !t) return [];
+  const circles = [];
+  for (const pair of corr.check.pairs) {
+    const other = pair.a === view.name ? pair.b : pair.b === view.name ? pair.a : null;
+    const xy = other && t.observations[other];
+    if (!xy) continue;
+    const [W, H] = imageSize.get(other);
+    const b = pixelToBearing(xy[0], xy[1], W, H);
+    const F = pair.F;  // b_aᵀ F b_b = 0
+    const normal = pair.a === other ? mulT(F, b) : mul(F, b);
+    circles.push(greatCircle(normal, view.W, view.H));
+  }
+  return circles;
 }
 
 function renderTracks() {
@@ -441,7 +472,10 @@ function renderTracks() {
   list.innerHTML = '';
   corr.tracks.forEach((t, k) => {
     const li = document.createElement('li');
-    li.className = k === corr.current ? 'current' : '';
+    const flagged = corr.check ? corr.check.pairs.filter((p) => p.flagged.includes(t.name)) : [];
+    li.className = (k === corr.current ? 'current ' : '') + (flagged.length ? 'flagged' : '');
+    li.title = flagged.map((p) => `${p.a}–${p.b}: ${p.errors_deg[t.name].toFixed(2)}° from its epipolar circle`)
+      .join('\n');
     const input = document.createElement('input');
     input.value = t.name;
     input.addEventListener('change', () => { t.name = input.value; });
@@ -453,13 +487,23 @@ function renderTracks() {
     const del = document.createElement('button');
     del.textContent = 'delete';
     del.addEventListener('click', () => { corr.tracks.splice(k, 1); corr.current = corr.tracks.length - 1;
-      renderTracks(); redrawAll(); });
+      renderTracks(); redrawAll(); checkTracks(); });
     li.append(input, count, select, del);
     list.appendChild(li);
   });
 }
 
 function drawTracks(view, ctx, sx, sy) {
+  ctx.strokeStyle = '#ff9933';
+  ctx.setLineDash([8, 6]);
+  for (const circle of handCircles(view)) {
+    for (const seg of circle) {
+      ctx.beginPath();
+      seg.forEach(([x, y], k) => (k ? ctx.lineTo(x * sx, y * sy) : ctx.moveTo(x * sx, y * sy)));
+      ctx.stroke();
+    }
+  }
+  ctx.setLineDash([]);
   corr.tracks.forEach((t, k) => {
     const xy = t.observations[view.name];
     if (!xy) return;
