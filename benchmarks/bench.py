@@ -114,6 +114,40 @@ def colmap_worker(dataset: Path, work: Path) -> None:
     print(json.dumps(out))
 
 
+def viewer_timing(dataset: Path, ws: Path) -> dict:
+    """Seconds from opening the viewer page until it is interactive, and from clicking a camera until its panorama
+    is shown in the tour (first visit: cold panorama cache), in headless chromium; {} without chromium/Playwright."""
+    import shutil
+    chromium = shutil.which("chromium")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        return {}
+    if chromium is None:
+        return {}
+    proc = subprocess.Popen([sys.executable, "-m", "fullview", "view", str(dataset), "-w", str(ws), "-c",
+                             str(ROOT / "pipeline.yaml"), "--no-browser"], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        url = proc.stdout.readline().split()[-4]
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium, args=["--use-gl=swiftshader"])
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            t0 = time.perf_counter()
+            page.goto(url)
+            page.wait_for_function("window.fullview && window.fullview.ready", timeout=120000)
+            ready = time.perf_counter() - t0
+            name = page.evaluate("window.fullview.registeredNames()[0]")
+            t0 = time.perf_counter()
+            page.mouse.click(*page.evaluate(f"window.fullview.cameraScreenPosition({json.dumps(name)})"))
+            page.wait_for_function("window.fullview.tour && window.fullview.tour.ready", timeout=120000)
+            tour = time.perf_counter() - t0
+            browser.close()
+        return {"page_ready_s": round(ready, 2), "tour_open_s": round(tour, 2)}
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 def fmt(x, spec=".2f"):
     return "—" if x is None else format(x, spec)
 
@@ -209,6 +243,8 @@ def main() -> int:
         if SHARED.exists():
             for name in ("360_Flat", "360_school"):
                 row = {"scene": name, "ours": ours(SHARED / name, args.work, name, [], dense=name == "360_Flat")}
+                if name == "360_Flat":
+                    row["viewer"] = viewer_timing(SHARED / name, args.work / "ws" / name)
                 if not args.no_colmap:
                     row["colmap"] = colmap(SHARED / name, args.work, name)
                 rows.append(row)
@@ -224,6 +260,10 @@ def main() -> int:
     print(table(rows))
     print()
     print(dense_table(rows))
+    viewer = next((r["viewer"] for r in rows if r.get("viewer")), None)
+    if viewer:
+        print(f"\nviewer on 360_Flat (5376x2688, cold cache): interactive after {viewer['page_ready_s']} s, "
+              f"a panorama in the tour {viewer['tour_open_s']} s after clicking its camera")
     print(f"\nratio = ours sparse-pipeline wall time / COLMAP wall time, same run. Results: {out}")
     return 0
 

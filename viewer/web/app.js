@@ -238,6 +238,7 @@ async function moveTo(target) {
   await openTour(target, yawPitch(mul(to.R_cam_from_world, world)));
 }
 hooks.moveTo = moveTo;
+hooks.registeredNames = () => [...cams.values()].filter((c) => c.registered).map((c) => c.name);
 hooks.tourPosition = () => tour.getPosition();
 
 // ------------------------------------------------------------------------------------------------ correlated views
