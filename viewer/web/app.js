@@ -215,8 +215,10 @@ async function openTour(name, position = null) {
   selectTab('tour');
   const cam = cams.get(name);
   hooks.tour = { name, ready: false };
+  // Opened from the scene or a list: face the nearest neighbour, so the first hotspot is in view.
+  const facing = cam && cam.neighbours.length ? { yaw: cam.neighbours[0].yaw, pitch: 0 } : { yaw: 0, pitch: 0 };
   await tour.setPanorama(`/pano/${encodeURIComponent(name)}?width=${TOUR_WIDTH}`,
-    { position: position || { yaw: 0, pitch: 0 }, caption: name, transition: false, showLoader: false });
+    { position: position || facing, caption: name, transition: false, showLoader: false });
   markers.clearMarkers();
   const info = document.getElementById('tour-info');
   if (!cam || !cam.registered) {
