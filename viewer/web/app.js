@@ -9,6 +9,8 @@ import { MarkersPlugin } from '@photo-sphere-viewer/markers-plugin';
 const TOUR_WIDTH = 4096;      // display width of tour panoramas (served downscaled, cached by the server)
 const CORR_WIDTH = 2048;      // display width of the correlated views
 const RAY_TOLERANCE = 0.01;   // rad: a point this close to a clicked ray counts as lying on it
+const TARGET_FPS = 30;        // the point budget is lowered until the 3-D scene renders this fast
+const MIN_BUDGET = 20000;     // ... but never below this many points
 const hooks = window.fullview = { ready: false, lastClick: null, tour: null, errors: [] };
 
 // ------------------------------------------------------------------------------------------------ small math
@@ -161,6 +163,31 @@ async function showCloud(kind) {
   const slider = document.getElementById('budget');
   slider.max = Math.max(1000, cloud.count);
   applyBudget();
+  fitBudgetToFrameRate();
+}
+
+// Halve the point budget until the scene renders at 30 fps or more (the slider can raise it again).
+async function fitBudgetToFrameRate() {
+  const slider = document.getElementById('budget');
+  for (let round = 0; round < 6 && Number(slider.value) > MIN_BUDGET; round++) {
+    const fps = await measureFps();
+    hooks.fps = fps;
+    if (fps >= TARGET_FPS) break;
+    slider.value = Math.max(MIN_BUDGET, Math.floor(Math.min(Number(slider.value), Number(slider.max)) / 2));
+    applyBudget();
+  }
+}
+
+function measureFps(ms = 700) {
+  return new Promise((resolve) => {
+    let frames = 0;
+    const start = performance.now();
+    const tick = (now) => {
+      frames++;
+      if (now - start < ms) requestAnimationFrame(tick); else resolve((1000 * frames) / (now - start));
+    };
+    requestAnimationFrame(tick);
+  });
 }
 
 function applyBudget() {
