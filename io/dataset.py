@@ -134,6 +134,46 @@ class Dataset:
     def image_hash(self, name: str) -> str:
         return hashlib.sha256(_read_bytes(self.image_path(name), "image")).hexdigest()
 
+    # ------------------------------------------------------------------------------------------------- masks
+    @property
+    def masks_dir(self) -> Path:
+        return self.root / "masks"
+
+    def mask_path(self, name: str) -> Path:
+        """COLMAP's convention: masks/<image name>.png, white = keep."""
+        return self.masks_dir / f"{name}.png"
+
+    def mask_hashes(self) -> dict[str, str]:
+        """sha256 of every image's mask ('none' where it has none): the fingerprint input of masked stages."""
+        return {name: hashlib.sha256(_read_bytes(self.mask_path(name), "mask")).hexdigest()
+                if self.mask_path(name).exists() else "none" for name in self.image_names}
+
+    def load_mask(self, name: str) -> np.ndarray | None:
+        """(H, W) bool, True where the image is kept, at the image's own size; None when it has no mask. A mask of
+        another size than its image, or an unreadable one, is an error naming the file."""
+        path = self.mask_path(name)
+        if not path.exists():
+            return None
+        data = _read_bytes(path, "mask")
+        mask = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        if mask is None:
+            raise DatasetError(f"{path}: not a readable image (a mask is a PNG, white = keep)")
+        w, h = self.image_sizes[name]
+        if mask.shape != (h, w):
+            raise DatasetError(f"{path}: mask is {mask.shape[1]}x{mask.shape[0]}, its image {name} is {w}x{h}")
+        return mask > 127
+
+    def check_masks(self) -> None:
+        """Validate every mask (and refuse masks of no image) before any stage runs."""
+        if not self.masks_dir.is_dir():
+            return
+        known = {f"{n}.png" for n in self.image_names}
+        stray = sorted(p.name for p in self.masks_dir.iterdir() if p.name not in known)
+        if stray:
+            raise DatasetError(f"{self.masks_dir}: {stray[0]} names no image of images/ (expected <image name>.png)")
+        for name in self.image_names:
+            self.load_mask(name)
+
     def hand_points_hash(self) -> str:
         p = self.hand_points_path
         return hashlib.sha256(_read_bytes(p, "file")).hexdigest() if p.exists() else "none"

@@ -51,6 +51,11 @@ class Features:
     scales: np.ndarray  # (N,) float32 keypoint size in face pixels
     faces: np.ndarray  # (N,) uint8 index into FACE_NAMES of the detecting face
 
+    def subset(self, keep: np.ndarray) -> "Features":
+        """The features where `keep` (N,) bool is True."""
+        return Features(pixels=self.pixels[keep], bearings=self.bearings[keep], descriptors=self.descriptors[keep],
+                        scales=self.scales[keep], faces=self.faces[keep])
+
 
 @lru_cache(maxsize=4)
 def face_maps(face_size: int, margin_deg: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray, float]:

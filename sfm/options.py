@@ -36,8 +36,9 @@ class FeaturesOptions:
                                 ge=0.0, le=30.0)
     max_features_per_face: int = setting(1500, "SIFT nfeatures per face", ge=1, le=1_000_000, zero_means="unlimited")
     contrast_threshold: float = setting(0.02, "SIFT contrast threshold (OpenCV's default is 0.04)", gt=0.0, le=1.0)
-    min_latitude_deg: float = setting(-90.0, "drop features below this latitude (tripod, hand)", ge=-90.0, le=90.0)
-    max_latitude_deg: float = setting(90.0, "drop features above this latitude", ge=-90.0, le=90.0)
+    min_latitude_deg: float = setting(-90.0, "drop features below this latitude (nadir cap: tripod, hand)",
+                                      ge=-90.0, le=90.0)
+    max_latitude_deg: float = setting(90.0, "drop features above this latitude (zenith cap)", ge=-90.0, le=90.0)
     root_sift: bool = setting(True, "Hellinger-normalised descriptors (RootSIFT)")
     RULES: ClassVar[list[Rule]] = [
         ("min_latitude_deg < max_latitude_deg", lambda o: o.min_latitude_deg < o.max_latitude_deg)]
@@ -117,8 +118,10 @@ class DensifyOptions:
     block_size: int = setting(5, "SGBM matching window side", ge=1, le=31, odd=True)
     min_texture_std: float = setting(2.0, "grey-level std below which a pixel counts as untextured (not matched)",
                                      ge=0.0, le=255.0)
-    min_latitude_deg: float = setting(-90.0, "range maps are invalid below this latitude (tripod, hand)",
+    min_latitude_deg: float = setting(-90.0, "range maps are invalid below this latitude (nadir cap: tripod, hand)",
                                       ge=-90.0, le=90.0)
+    max_latitude_deg: float = setting(90.0, "range maps are invalid above this latitude (zenith cap)", ge=-90.0,
+                                      le=90.0)
     combine_tolerance: float = setting(0.02, "relative agreement of a panorama's pair estimates (conflicting ones "
                                        "are dropped)", gt=0.0, le=1.0)
     min_consistent: int = setting(1, "other depth maps that must agree for a fused point", ge=0, le=64)
@@ -133,7 +136,8 @@ class DensifyOptions:
     RULES: ClassVar[list[Rule]] = [
         ("min_triangulation_angle_deg < max_triangulation_angle_deg",
          lambda o: o.min_triangulation_angle_deg < o.max_triangulation_angle_deg),
-        ("fusion_views >= min_consistent", lambda o: o.fusion_views >= o.min_consistent)]
+        ("fusion_views >= min_consistent", lambda o: o.fusion_views >= o.min_consistent),
+        ("min_latitude_deg < max_latitude_deg", lambda o: o.min_latitude_deg < o.max_latitude_deg)]
 
 
 # pipeline.yaml's sections; the stage order itself is declared once, in fullview.stages.PIPELINE.

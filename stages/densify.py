@@ -25,8 +25,8 @@ from fullview.io.config import ConfigError
 from fullview.io.render import colorize_range, render_point_cloud
 from fullview.sfm import dense
 from fullview.sfm.camera import camera_center, camera_up
-from fullview.sfm.dense import (camera_depths, combine_range_estimates, fusion_neighbours, mask_below_latitude,
-                                pair_min_depth_ratio, range_error_per_pixel, scene_size)
+from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimates, fusion_neighbours,
+                                mask_below_latitude, pair_min_depth_ratio, range_error_per_pixel, scene_size)
 from fullview.sfm.dense_metrics import voxel_downsample
 from fullview.sfm.options import DensifyOptions
 from fullview.stages.protocol import StageContext
@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 
 VERSION = 1
 UPSTREAM = ("triangulation",)
-INPUTS = ("images",)
+INPUTS = ("images", "masks")
 DEFAULT_VOXEL_SHARE = 0.002  # voxel size = this share of the scene size when densify.voxel_size is 0
 
 
@@ -136,7 +136,8 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
             remaining[cam] -= 1
             if remaining[cam] == 0:
                 combined = combine_range_estimates(estimates.pop(cam), config.combine_tolerance)
-                combined = mask_below_latitude(*combined, config.min_latitude_deg)
+                combined = mask_below_latitude(*combined, config.min_latitude_deg, config.max_latitude_deg)
+                combined = apply_mask(*combined, ctx.dataset.load_mask(names[cam]))
                 ctx.out.save_depth(names[cam], *combined, colorize_range(*combined))
                 maps[cam] = combined
     return maps, pair_log

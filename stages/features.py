@@ -10,14 +10,14 @@ import numpy as np
 from tqdm import tqdm
 
 from fullview.io.workspace import FEATURES_VERSION
-from fullview.sfm.features import detect_features
+from fullview.sfm.features import Features, detect_features
 from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
 
 VERSION = FEATURES_VERSION
 UPSTREAM: tuple[str, ...] = ()
-INPUTS = ("images",)
+INPUTS = ("images", "masks")
 
 
 def run(ctx: StageContext) -> dict:
@@ -38,10 +38,21 @@ def _extract(ctx: StageContext, name: str) -> tuple[str, int]:
     image = ctx.dataset.load_image(name, width=min(ctx.options.working_width or full_w, full_w))
     feats = detect_features(image, ctx.options)
     scale = full_w / image.shape[1]
+    feats = keep_unmasked(feats, ctx.dataset.load_mask(name), scale)
     colors = sample_colors(image, feats.pixels)  # detection pixels are working-image pixels
     ctx.out.save_features(name, pixels=feats.pixels * scale, bearings=feats.bearings, descriptors=feats.descriptors,
                           scales=feats.scales * scale, colors=colors, image_size=np.array([full_w, full_h]))
     return name, len(feats.bearings)
+
+
+def keep_unmasked(feats: Features, keep: np.ndarray | None, scale: float) -> Features:
+    """The features whose (full-size) pixel the image's mask keeps; all of them without a mask."""
+    if keep is None:
+        return feats
+    h, w = keep.shape
+    cols = np.clip(np.floor(feats.pixels[:, 0] * scale).astype(int), 0, w - 1)
+    rows = np.clip(np.floor(feats.pixels[:, 1] * scale).astype(int), 0, h - 1)
+    return feats.subset(keep[rows, cols])
 
 
 def sample_colors(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:

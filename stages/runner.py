@@ -130,6 +130,7 @@ class Pipeline:
         return {
             "images": {name: self.dataset.image_hash(name) for name in self.dataset.image_names},
             "hand_points": {"hand_points.yaml": self.dataset.hand_points_hash()},
+            "masks": self.dataset.mask_hashes(),
         }
 
     def fingerprint_record(self, stage: str) -> dict:
@@ -217,6 +218,7 @@ class Pipeline:
             raise RunnerError(f"--from {start} comes after --until {until}")
         # Bad images or hand points fail now, not after hours of matching.
         self.dataset.image_sizes, self.dataset.hand_observations  # noqa: B018 (validating reads)
+        self.dataset.check_masks()
         with self.ws.locked(wait=wait, command="fullview run"):
             return self._run_locked(start, until, only, force)
 

@@ -27,7 +27,7 @@ per-panorama range maps), ``fusion`` (4), ``pairs`` (which pairs, how deep to se
 
 from fullview.sfm.camera import camera_center
 from fullview.sfm.dense.depth import (PairDepth, combine_range_estimates, densify_pair, depth_from_disparity,
-                                      mask_below_latitude, range_error_per_pixel, range_map_to_panorama,
+                                      apply_mask, mask_below_latitude, range_error_per_pixel, range_map_to_panorama,
                                       rectified_range_maps, sample_edge_aware)
 from fullview.sfm.dense.disparity import DisparityResult, SgbmParams, compute_disparity, disparity_search_range, pad_theta
 from fullview.sfm.dense.fusion import clean_point_cloud, fuse_depth_maps, fusion_neighbours
@@ -40,7 +40,7 @@ __all__ = [
     "DisparityResult", "PairDepth", "RectifiedPair", "SCENE_PERCENTILES", "SgbmParams", "bearings_to_rectified",
     "camera_center", "camera_depths", "clean_point_cloud", "combine_range_estimates", "compute_disparity",
     "densify_pair", "depth_from_disparity", "disparity_search_range", "fuse_depth_maps", "fusion_neighbours",
-    "mask_below_latitude", "pad_theta", "pair_min_depth_ratio", "range_error_per_pixel", "range_map_to_panorama",
+    "apply_mask", "mask_below_latitude", "pad_theta", "pair_min_depth_ratio", "range_error_per_pixel", "range_map_to_panorama",
     "rectified_grid_bearings", "rectified_range_maps", "rectify_pair", "rectifying_rotation", "sample_edge_aware",
     "scene_size", "select_stereo_pairs", "theta_of_columns",
 ]

@@ -12,6 +12,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from fullview.sfm.options import DensifyOptions
@@ -216,11 +217,24 @@ def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float) -> tupl
     return np.where(valid, out, np.nan).astype(np.float32), valid
 
 
-def mask_below_latitude(rng: np.ndarray, valid: np.ndarray, min_latitude_deg: float):
-    """Invalidate the rows of an equirectangular map whose centre latitude is below ``min_latitude_deg``."""
-    if min_latitude_deg <= -90.0:
+def mask_below_latitude(rng: np.ndarray, valid: np.ndarray, min_latitude_deg: float,
+                        max_latitude_deg: float = 90.0):
+    """Invalidate the rows of an equirectangular map whose centre latitude is below ``min_latitude_deg`` (nadir
+    cap) or above ``max_latitude_deg`` (zenith cap)."""
+    if min_latitude_deg <= -90.0 and max_latitude_deg >= 90.0:
         return rng, valid
     height = rng.shape[0]
     lat = np.degrees(pixel_latitude(np.arange(height) + 0.5, height))
-    below = (lat < min_latitude_deg)[:, None]
-    return np.where(below, np.nan, rng).astype(np.float32), valid & ~below
+    outside = ((lat < min_latitude_deg) | (lat > max_latitude_deg))[:, None]
+    return np.where(outside, np.nan, rng).astype(np.float32), valid & ~outside
+
+
+def apply_mask(rng: np.ndarray, valid: np.ndarray, keep: np.ndarray | None):
+    """Invalidate a range map where an image mask (any size, True = keep) removes the pixel: the mask is resampled
+    to the map by area, and a map pixel counts as kept only when all of it is."""
+    if keep is None:
+        return rng, valid
+    height, width = rng.shape
+    share = cv2.resize(keep.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+    kept = share >= 1.0 - 1e-6
+    return np.where(kept, rng, np.nan).astype(np.float32), valid & kept
