@@ -129,7 +129,10 @@ def _cameras(pipeline: Pipeline, out: StageWriter) -> str:
     ax.set_title(f"cameras from above ({source} poses), arrows: panorama centre")
     _save_figure(out, "cameras.png", fig)
     missing = [str(n) for n, ok in zip(poses["image_names"], poses["registered"]) if not ok]
-    note = f"<p class='missing'>not registered: {html.escape(', '.join(missing))}</p>" if missing else ""
+    why = ((pipeline.ws.read_manifest("registration") or {}).get("summary") or {}).get("unregistered_reasons", {})
+    note = ("<p class='missing'>not registered:</p><ul>" + "".join(
+        f"<li>{html.escape(n)}: {html.escape(why.get(n, 'no reason recorded'))}</li>" for n in missing) + "</ul>"
+        if missing else "")
     return f"<h2>Cameras</h2>{note}<img src='cameras.png' alt='cameras from above'>"
 
 

@@ -10,6 +10,7 @@ from fullview.io.errors import FullviewError
 from fullview.sfm.attach import attach_cameras
 from fullview.sfm.options import RegistrationOptions
 from fullview.sfm.registration import register, relative_from_absolute
+from fullview.sfm.registration.diagnosis import unregistered_reasons
 from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
 from fullview.sfm.tracks import build_tracks
 from fullview.stages.protocol import StageContext
@@ -56,15 +57,30 @@ def run(ctx: StageContext) -> dict:
                         & (rot_res <= options.max_rotation_residual_deg)
                         & (dir_res <= options.max_direction_residual_deg))[touched]
     unregistered = [n for n, ok in zip(names, registered) if not ok]
-    if unregistered:
-        log.warning("could not register %d image(s): %s", len(unregistered), ", ".join(unregistered))
+    reasons = _reasons(ctx, epi, usable, registered)
+    for name, reason in reasons.items():
+        log.warning("%s is not registered: %s", name, reason)
     summary = {"registered": int(registered.sum()), "images": len(names), "unregistered": unregistered,
+               "unregistered_reasons": reasons,
                "attached_by_points": [names[k] for k in attached], "model": options.model,
                "inlier_pairs": int(pair_ok.sum()), "epipole_cost": float(reg.epipole_cost)}
     ctx.out.save_registration(report=summary, image_names=names, registered=registered, R_cam_from_world=R,
                               t_cam_from_world=t, pair_inlier_mask=pair_ok, rotation_residual_deg=rot_res,
                               direction_residual_deg=dir_res)
     return summary
+
+
+def _reasons(ctx: StageContext, epi, usable, registered) -> dict[str, str]:
+    """Why each unregistered image is out of the model (features, pairs, groups of the view graph)."""
+    if registered.all():
+        return {}
+    names = ctx.dataset.image_names
+    num_features = np.array([len(ctx.ws.load_features(n)["bearings"]) for n in names])
+    verified = ctx.ws.load_inliers()
+    no_baseline = verified.extra.get("no_baseline", np.zeros(len(verified.pairs), bool)).astype(bool)
+    return unregistered_reasons(names=names, registered=registered, num_features=num_features, pairs=epi["pairs"],
+                                num_inliers=epi["num_inliers"], usable=usable, no_baseline=no_baseline,
+                                min_features=8, min_inliers=ctx.options.min_inliers)
 
 
 def _attach(ctx: StageContext, epi, weights, R, C, registered):

@@ -102,6 +102,7 @@ def test_unrelated_image_is_reported_not_fatal(dataset_copy, tmp_path, capsys, t
     assert main(["run", str(dataset_copy), "-w", str(ws), "--until", SPARSE_UNTIL, *tiny_set_args]) == 0
     summary = json.loads((ws / "tiny" / "registration" / "manifest.json").read_text())["summary"]
     assert summary["registered"] == 3 and summary["unregistered"] == ["zz_unrelated.png"]
+    assert summary["unregistered_reasons"]["zz_unrelated.png"].startswith("no verified pair with >= 15 inliers")
     rec = pycolmap.Reconstruction(str(ws / "tiny" / "triangulation" / "colmap"))
     assert rec.num_reg_images() == 3
 

@@ -65,6 +65,8 @@ class SceneData:
         reg = registered.nonzero()[0]
         return {"poses_from": source, "cameras": cams,
                 "unregistered": [n for n, ok in zip(names, registered) if not ok],
+                "unregistered_reasons": ((self.ws.read_manifest("registration") or {}).get("summary") or {})
+                .get("unregistered_reasons", {}),
                 "R_display_from_world": display_rotation(R[reg], centers[reg]).tolist(),
                 "has_sparse": source == "triangulation", "has_dense": stages["densify"]["state"] == "fresh",
                 "pairs": self._pairs(names)}

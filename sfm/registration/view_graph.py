@@ -17,6 +17,14 @@ from fullview.sfm.rotations import rotation_angle_deg
 log = logging.getLogger(__name__)
 
 
+def component_labels(num_images: int, pairs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(N,) connected-component label of every image in the graph of ``pairs[mask]`` (isolated images get their
+    own label)."""
+    e = pairs[mask] if len(pairs) else np.zeros((0, 2), np.int64)
+    G = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(num_images, num_images))
+    return connected_components(G, directed=False)[1]
+
+
 def largest_component(num_images: int, pairs: np.ndarray, mask: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Sorted image ids of the largest component of the graph of ``pairs[mask]`` (ties: weight, low id)."""
     if not mask.any():

@@ -588,7 +588,11 @@ async function main() {
   document.getElementById('reload').addEventListener('click', () => location.reload());
   if (state.model) {
     state.model.cameras.forEach((c) => cams.set(c.name, c));
-    if (state.model.unregistered.length) messages.push(`not registered: ${state.model.unregistered.join(', ')}`);
+    const why = state.model.unregistered_reasons || {};
+    if (state.model.unregistered.length) {
+      messages.push('not registered: ' + state.model.unregistered.map((n) => (why[n] ? `${n} (${why[n]})` : n))
+        .join('; '));
+    }
     initScene();
     buildScene(state.model);
     document.getElementById('cloud').value = state.model.has_dense ? 'dense' : 'sparse';
