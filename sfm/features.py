@@ -98,16 +98,28 @@ def owned_by_face(bearings: np.ndarray, face: int) -> np.ndarray:
     return (local[:, 2] > 0) & (np.abs(local[:, 0]) <= local[:, 2]) & (np.abs(local[:, 1]) <= local[:, 2])
 
 
+def detect_on_face(face: np.ndarray, options: FeaturesOptions) -> tuple[list, np.ndarray | None]:
+    """SIFT keypoints and descriptors of one face. A face with fewer than `min_features_per_face` keypoints (a plain
+    wall) is detected again with the contrast threshold halved, down to `min_contrast_threshold`: low-contrast
+    texture is all a bare room offers, while textured faces keep the stricter threshold."""
+    threshold, floor, wanted = options.contrast_threshold, options.min_contrast_threshold, options.min_features_per_face
+    while True:
+        sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=threshold)
+        keypoints, desc = sift.detectAndCompute(face, None)
+        if len(keypoints) >= wanted or threshold / 2 < floor:
+            return keypoints, desc
+        threshold /= 2
+
+
 def detect_features(image: np.ndarray, options: FeaturesOptions) -> Features:
     """SIFT on the cube faces of an equirectangular image (grey or BGR uint8)."""
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     height, width = grey.shape
     face_size = options.face_size or native_face_size(width, options.margin_deg)
     faces, focal = render_faces(grey, face_size, options.margin_deg)
-    sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=options.contrast_threshold)
     parts = []
     for f, face in enumerate(faces):
-        keypoints, desc = sift.detectAndCompute(face, None)
+        keypoints, desc = detect_on_face(face, options)
         if not keypoints:
             continue
         pts = np.array([k.pt for k in keypoints], dtype=np.float64)
