@@ -22,12 +22,14 @@ def pair_list(num_images: int, mode: str = MatchesOptions.pairs, window: int = M
     raise ValueError(f"unknown pair mode {mode!r} (expected 'exhaustive' or 'sequential')")
 
 
-def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int):
+def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int, allowed=None):
     """One pass over the distance matrix, in row blocks.
 
     Returns for each row of a its nearest row of b and the squared distances to the two nearest, and for each row
     of b its smallest squared distance to a (for the mutual check: a's row r and its nearest c are mutual iff
-    d(r, c) is column c's minimum; column minima reduce fast, column argmins do not).
+    d(r, c) is column c's minimum; column minima reduce fast, column argmins do not). `allowed(start, stop)`, when
+    given, returns the (rows, len(b)) bool mask of the candidates each row may match (others count as infinitely
+    far).
     """
     a_sq = np.einsum("ij,ij->i", a, a)
     b_sq = np.einsum("ij,ij->i", b, b)
@@ -38,6 +40,8 @@ def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int):
         dist = (a[s:s + block] @ b.T) * np.float32(-2.0)
         dist += b_sq[None, :]
         dist += a_sq[s:s + block, None]
+        if allowed is not None:
+            dist[~allowed(s, s + len(dist))] = np.inf
         rows = np.arange(len(dist))
         first = dist.argmin(axis=1)
         d_first = dist[rows, first]
@@ -49,18 +53,29 @@ def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int):
 
 
 def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchesOptions, *,
-                      block_rows: int = BLOCK_ROWS) -> np.ndarray:
+                      block_rows: int = BLOCK_ROWS, allowed=None) -> np.ndarray:
     """(M, 2) int array of (feature in i, feature in j) passing the ratio test (and the mutual check), ordered from
-    the most distinctive match (smallest ratio) to the least."""
+    the most distinctive match (smallest ratio) to the least. With `allowed` (see `_nearest_both_ways`) the
+    neighbours, the ratio test and the mutual check are taken among the allowed candidates only."""
     if len(desc_i) < 2 or len(desc_j) < 2:
         return np.zeros((0, 2), np.int64)
     desc_i = np.ascontiguousarray(desc_i, np.float32)
     desc_j = np.ascontiguousarray(desc_j, np.float32)
-    nn_ij, d_ij, col_min = _nearest_both_ways(desc_i, desc_j, block_rows)
-    keep = d_ij[:, 0] < (options.ratio**2) * d_ij[:, 1]
+    nn_ij, d_ij, col_min = _nearest_both_ways(desc_i, desc_j, block_rows, allowed)
+    with np.errstate(invalid="ignore"):  # inf second distances: a single candidate passes the ratio test
+        keep = np.isfinite(d_ij[:, 0]) & (d_ij[:, 0] < (options.ratio**2) * d_ij[:, 1])
     if options.mutual:
         keep &= d_ij[:, 0] <= col_min[nn_ij]
     rows = np.flatnonzero(keep)
     # Most distinctive first (smallest distance ratio): robust estimation samples the head more often.
     rows = rows[np.argsort(d_ij[rows, 0] / np.maximum(d_ij[rows, 1], 1e-30), kind="stable")]
     return np.column_stack([rows, nn_ij[rows]])
+
+
+def epipolar_candidates(b_i: np.ndarray, b_j: np.ndarray, F: np.ndarray, threshold_rad: float):
+    """`allowed` for guided matching: feature k of i may match the features of j within `threshold_rad` of its
+    epipolar great circle (b_iᵀ F b_j = 0)."""
+    normals = (b_i @ F).astype(np.float32)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    b_j32, limit = b_j.astype(np.float32).T, np.float32(np.sin(threshold_rad))
+    return lambda start, stop: np.abs(normals[start:stop] @ b_j32) <= limit

@@ -67,6 +67,10 @@ class FilterOptions:
     confidence: float = setting(0.9999, "RANSAC adaptive stopping confidence", gt=0.0, lt=1.0)
     min_inliers: int = setting(30, "pairs with fewer inliers are dropped", ge=8, le=1_000_000)
     seed: int = setting(0, "RANSAC random seed (pair k uses seed + k)", ge=0, le=2**31)
+    guided_matching: bool = setting(False, "rematch a pair's features along the epipolar circles of its F estimate "
+                                    "(more inliers on weak pairs)")
+    guided_ratio: float = setting(0.9, "ratio test of guided matching, among the candidates near the circle",
+                                  gt=0.0, le=1.0)
     RULES: ClassVar[list[Rule]] = []
 
 

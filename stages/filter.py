@@ -16,7 +16,8 @@ from tqdm import tqdm
 from fullview.io.dataset import Dataset
 from fullview.sfm import two_view
 from fullview.sfm.baseline import has_no_baseline
-from fullview.sfm.options import FilterOptions
+from fullview.sfm.matching import epipolar_candidates, match_descriptors
+from fullview.sfm.options import FilterOptions, MatchesOptions
 from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
@@ -30,6 +31,10 @@ def run(ctx: StageContext) -> dict:
     options: FilterOptions = ctx.options
     obs = ctx.ws.load_observations(ctx.dataset)
     num_sift = [int(o["num_sift"]) for o in obs]
+    guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)
+    descriptors = ([ctx.ws.load_features(n)["descriptors"] for n in ctx.dataset.image_names]
+                   if options.guided_matching else None)
+    guided_counts = []
     raw = ctx.ws.load_matches()
     threshold = np.radians(options.threshold_deg)
     inliers, Fs, seeded, num_hand, no_baseline = [], [], [], [], []
@@ -39,6 +44,10 @@ def run(ctx: StageContext) -> dict:
         F, keep = _verify_pair(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], hand if use_seed else None,
                                threshold, options, seed=options.seed + k)
         good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
+        if descriptors is not None and len(good) >= 8:
+            good, added = _add_guided(good, descriptors[i], descriptors[j], obs[i]["bearings"], obs[j]["bearings"],
+                                      F, threshold, guided)
+            guided_counts.append(added)
         flat = len(good) >= options.min_inliers and has_no_baseline(
             obs[i]["bearings"][good[:, 0]], obs[j]["bearings"][good[:, 1]], threshold)
         if flat:
@@ -58,7 +67,24 @@ def run(ctx: StageContext) -> dict:
     names = ctx.dataset.image_names
     return {"pairs": len(raw.pairs), "verified_pairs": int((counts > 0).sum()), "seeded_pairs": int(sum(seeded)),
             "median_inliers": int(np.median(counts)) if len(counts) else 0,
-            "no_baseline_pairs": [[names[i], names[j]] for (i, j), f in zip(raw.pairs, no_baseline) if f]}
+            "no_baseline_pairs": [[names[i], names[j]] for (i, j), f in zip(raw.pairs, no_baseline) if f],
+            "guided_matches_added": int(sum(guided_counts))}
+
+
+def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, guided_options: MatchesOptions):
+    """The pair's inliers plus the SIFT matches found along the epipolar circles of F (looser ratio test among the
+    candidates near each circle, mutual check), kept when their symmetric epipolar error is within the threshold.
+    Returns (inliers, number added)."""
+    num_i, num_j = len(desc_i), len(desc_j)
+    allowed = epipolar_candidates(bear_i[:num_i], bear_j[:num_j], F, threshold)
+    guided = match_descriptors(desc_i, desc_j, guided_options, block_rows=1024, allowed=allowed)
+    if not len(guided):
+        return good, 0
+    errors = two_view.epipolar_angular_errors(F, bear_i[guided[:, 0]], bear_j[guided[:, 1]])
+    guided = guided[errors <= threshold]
+    known = {(int(a), int(b)) for a, b in good}
+    new = np.array([m for m in guided.tolist() if tuple(m) not in known], np.int64).reshape(-1, 2)
+    return (np.concatenate([good, new]) if len(new) else good), len(new)
 
 
 def hand_pair_matches(dataset: Dataset, num_sift: list[int], i: int, j: int) -> np.ndarray:

@@ -39,3 +39,35 @@ def test_empty_inputs():
 def test_unknown_pair_mode():
     with pytest.raises(ValueError, match="unknown pair mode 'random'"):
         pair_list(4, "random")
+
+
+def test_guided_matching_finds_the_match_the_epipolar_circle_allows():
+    """Feature 0 of i has an almost identical twin among j's features far from its epipolar circle: unguided, the
+    ratio test drops it; guided, only the candidate on the circle competes and it matches."""
+    from fullview.sfm.matching import epipolar_candidates
+    rng = np.random.default_rng(0)
+    d = rng.random((3, 128)).astype(np.float32)
+    desc_i = d[:1]
+    desc_j = np.stack([d[0] + 0.01, d[0] + 0.012, d[2]]).astype(np.float32)
+    b_i = np.array([[0.0, 0.0, 1.0]])
+    t = np.array([1.0, 0.0, 0.0])  # pure translation along x: F = [t]x, circles through the x axis
+    F = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    b_j = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [0.6, 0.0, 0.8]])  # j1 lies off the circle of b_i
+    opts = MatchesOptions(ratio=0.8, mutual=False)
+    assert len(match_descriptors(np.vstack([desc_i, desc_i]), desc_j, opts)) == 0  # twins: ambiguous
+    allowed = epipolar_candidates(np.vstack([b_i, b_i]), b_j, F, np.radians(1.0))
+    m = match_descriptors(np.vstack([desc_i, desc_i]), desc_j, opts, allowed=allowed)
+    assert m.tolist() == [[0, 0], [1, 0]]
+
+
+def test_guided_filter_adds_inliers_and_keeps_poses(tiny_dataset, make_pipeline, tmp_path):
+    base = make_pipeline(tiny_dataset, workspace=tmp_path / "a")
+    base.run(until="epipoles")
+    guided = make_pipeline(tiny_dataset, ["filter.guided_matching=true"], workspace=tmp_path / "b")
+    guided.run(until="epipoles")
+    a, b = base.ws.load_inliers(), guided.ws.load_inliers()
+    assert all(len(mb) >= len(ma) for ma, mb in zip(a.matches, b.matches))
+    assert guided.ws.read_manifest("filter")["summary"]["guided_matches_added"] > 0
+    from fullview.sfm.rotations import rotation_angle_deg
+    ea, eb = base.ws.load_epipoles(), guided.ws.load_epipoles()
+    assert rotation_angle_deg(ea["R_j_from_i"], eb["R_j_from_i"]).max() < 0.1
