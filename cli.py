@@ -52,9 +52,19 @@ def cmd_status(args) -> int:
 
 def cmd_synth(args) -> int:
     from fullview.synth import write_synthetic_dataset
+    from fullview.synth.home import check_closed_door, views_per_room
     if args.views < 2 or args.width < 64 or args.width % 2 or args.seed < 0:
         raise ConfigError("synth needs --views >= 2, an even --width >= 64 and --seed >= 0")
-    print(write_synthetic_dataset(args.out, views=args.views, width=args.width, seed=args.seed))
+    if args.scene == "home":
+        try:
+            views_per_room(args.views, args.rooms)
+            check_closed_door(args.closed_door, args.rooms)
+        except ValueError as e:
+            raise ConfigError(f"synth --scene home: {e}") from None
+    elif args.closed_door is not None:
+        raise ConfigError("synth: --closed-door needs --scene home")
+    print(write_synthetic_dataset(args.out, views=args.views, width=args.width, seed=args.seed, kind=args.scene,
+                                  rooms=args.rooms, closed_door=args.closed_door))
     return 0
 
 
@@ -139,6 +149,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--views", type=int, default=6)
     p.add_argument("--width", type=int, default=2048)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scene", choices=("room", "home"), default="room",
+                   help="room: one textured room; home: rooms with plain walls and doorways (hard case)")
+    p.add_argument("--rooms", type=int, default=4, help="rooms of the home (views must be 1-3 per room)")
+    p.add_argument("--closed-door", type=int, default=None, metavar="K",
+                   help="home: wall up the doorway between room K and K+1 (0-based), splitting the walk in two")
     p.set_defaults(func=cmd_synth)
     p = sub.add_parser("eval", help="metrics of the current reconstruction against ground_truth/")
     _common(p)

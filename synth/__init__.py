@@ -1,12 +1,14 @@
 """Synthetic 360° equirectangular scenes with exact ground truth, for tests and benchmarks.
 
 The scene is a textured room (an axis-aligned box seen from inside) with 3-6 furniture-like axis-aligned boxes
-standing on its floor. The world frame has y pointing DOWN like the camera frame (floor at ``y = +FLOOR_Y``, eye
+standing on its floor; ``render_scene(kind="home")`` instead renders a flat of several rooms with plain walls,
+doorways and a few textured objects per room (a hard case for matching; see ``home``). The world frame has y pointing DOWN like the camera frame (floor at ``y = +FLOOR_Y``, eye
 height at ``y ≈ 0``), so a level camera has a ``R_world_from_cam`` that is a rotation about y.
 
 Modules:
 - ``geometry``: boxes, face indexing, face frames and normals, the textured ``SceneGeometry``;
 - ``layout``: the seeded room, furniture, target markers and camera walk;
+- ``home``: the seeded multi-room home (shell, wall slabs with doorways, furniture, level camera walk);
 - ``textures``: procedural face textures and their mip-mapped atlas (``build_geometry``);
 - ``render``: ray casting and shading of one panorama (``render_view``, ``cast_rays``);
 - ``scene``: a whole scene (``render_scene``), hand-point tracks, visibility and surface samples;

@@ -26,17 +26,22 @@ class SynthError(FullviewError):
     """The output folder of `fullview synth` cannot be used."""
 
 
-def write_synthetic_dataset(out: Path, *, views: int, width: int, seed: int) -> Path:
-    """Render and write a scene; the folder appears complete or not at all. An existing folder is replaced only
-    when it is empty or a synthetic dataset written before (never a folder of other files)."""
+def write_synthetic_dataset(out: Path, *, views: int, width: int, seed: int, kind: str = "room", rooms: int = 4,
+                            closed_door: int | None = None) -> Path:
+    """Render and write a scene (``kind``, ``rooms``, ``closed_door``: see ``render_scene``); the folder appears
+    complete or not at all. An existing folder is replaced only when it is empty or a synthetic dataset written
+    before (never a folder of other files)."""
     out = Path(out).resolve()
     _check_replaceable(out)
-    scene = render_scene(views=views, width=width, seed=seed)
+    params = dict(views=views, width=width, seed=seed)
+    if kind == "home":  # the room scene's scene.npz keeps its original keys
+        params.update(rooms=rooms, closed_door=-1 if closed_door is None else closed_door)
+    scene = render_scene(views=views, width=width, seed=seed, kind=kind, rooms=rooms, closed_door=closed_door)
     make_dirs(out.parent)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     apply_umask(tmp, directory=True)
     try:
-        _write(tmp, scene, dict(views=views, width=width, seed=seed))
+        _write(tmp, scene, params, kind)
         if out.exists():
             shutil.rmtree(out)
         tmp.rename(out)
@@ -54,7 +59,7 @@ def _check_replaceable(out: Path) -> None:
         raise SynthError(f"{out}: exists and is not empty nor a synthetic dataset; choose a new folder")
 
 
-def _write(root: Path, scene: SynthScene, params: dict) -> None:
+def _write(root: Path, scene: SynthScene, params: dict, kind: str) -> None:
     (root / "images").mkdir()
     (root / "ground_truth" / "depth").mkdir(parents=True)
     for view in scene.views:
@@ -66,7 +71,8 @@ def _write(root: Path, scene: SynthScene, params: dict) -> None:
     (root / "ground_truth" / "poses.yaml").write_text(yaml.safe_dump({"cameras": cameras}, sort_keys=False))
     (root / "hand_points.yaml").write_text(yaml.safe_dump({"points": _plain(scene.hand_points)}, sort_keys=False, default_flow_style=None))
     save_npz(root / SCENE_FILE, SCENE_VERSION, boxes=scene.boxes,
-             scene_size=np.float64(scene.scene_size), **{k: np.int64(v) for k, v in params.items()})
+             scene_size=np.float64(scene.scene_size), **{k: np.int64(v) for k, v in params.items()},
+             **({"kind": np.str_(kind)} if kind != "room" else {}))
 
 
 def _plain(points: list[dict]) -> list[dict]:

@@ -29,14 +29,14 @@ def _room(rng: np.random.Generator) -> np.ndarray:
     return np.array([[-lx / 2, FLOOR_Y - h, -lz / 2], [lx / 2, FLOOR_Y, lz / 2]])
 
 
-def _rect_gap(a: np.ndarray, b: np.ndarray) -> float:
+def rect_gap(a: np.ndarray, b: np.ndarray) -> float:
     """Horizontal (x-z) gap between two boxes' footprints (0 if they overlap)."""
     dx = max(a[0, 0] - b[1, 0], b[0, 0] - a[1, 0], 0.0)
     dz = max(a[0, 2] - b[1, 2], b[0, 2] - a[1, 2], 0.0)
     return math.hypot(dx, dz)
 
 
-def _sample_box(rng: np.random.Generator, kind: str, room: np.ndarray) -> np.ndarray:
+def sample_box(rng: np.random.Generator, kind: str, room: np.ndarray) -> np.ndarray:
     (x0, ceil_y, z0), (x1, floor_y, z1) = room
     if kind == "cupboard":
         w, dep, h = rng.uniform(0.8, 1.6), rng.uniform(0.4, 0.6), rng.uniform(1.8, 2.2)
@@ -90,8 +90,8 @@ def layout_boxes(rng: np.random.Generator) -> np.ndarray:
         boxes = [room]
         for kind in kinds:
             for _try in range(50):
-                box = _sample_box(rng, kind, room)
-                if all(_rect_gap(box, other) >= 0.4 for other in boxes[1:]):
+                box = sample_box(rng, kind, room)
+                if all(rect_gap(box, other) >= 0.4 for other in boxes[1:]):
                     boxes.append(box)
                     break
         boxes = np.array(boxes)
@@ -134,7 +134,7 @@ def place_cameras(rng: np.random.Generator, boxes: np.ndarray, views: int) -> tu
         yaw = rng.uniform(0.0, 2 * np.pi)
         pitch, roll = np.deg2rad(rng.uniform(-MAX_TILT_DEG, MAX_TILT_DEG, 2))
         centers.append([pos[-1][0], y, pos[-1][1]])
-        rots.append(_rot_y(yaw) @ _rot_x(pitch) @ _rot_z(roll))
+        rots.append(rot_y(yaw) @ _rot_x(pitch) @ _rot_z(roll))
     return np.array(rots), np.array(centers)
 
 
@@ -143,7 +143,7 @@ def _rot_x(a: float) -> np.ndarray:
     return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
 
 
-def _rot_y(a: float) -> np.ndarray:
+def rot_y(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 

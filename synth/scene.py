@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 from fullview.sfm.camera import bearings_to_pixels
 from fullview.synth.geometry import SceneGeometry, face_frame, face_normal
+from fullview.synth.home import layout_home
 from fullview.synth.layout import layout_boxes, place_cameras, room_markers
 from fullview.synth.render import CHUNK_RAYS, SUPERSAMPLE, cast_rays, render_view
 from fullview.synth.textures import build_geometry, texel_for_width
@@ -36,7 +37,7 @@ class SynthScene:
     views: list[SynthView]  # rendered panoramas with their true poses
     hand_points: list[dict]  # [{"name": str, "observations": {image_name: [x, y]}}], each track in >= 2 views
     boxes: np.ndarray  # (K, 2, 3) axis-aligned boxes (min corner, max corner), room included as box 0
-    scene_size: float  # diagonal of the room (m), used to normalise errors
+    scene_size: float  # diagonal of the room (the home's shell) (m), used to normalise errors
     hand_point_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (P, 3) true point of hand_points[p]
     geometry: SceneGeometry | None = None  # textured geometry, to render further views with render_view
 
@@ -98,12 +99,18 @@ def _hand_points(geometry: SceneGeometry, views: list[SynthView], rng: np.random
 
 
 def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point_noise_px: float = 1.0,
-                 supersample: int = SUPERSAMPLE) -> SynthScene:
-    """Render a seeded synthetic room seen by ``views`` panoramas of ``width`` x ``width // 2``.
+                 supersample: int = SUPERSAMPLE, kind: str = "room", rooms: int = 4,
+                 closed_door: int | None = None) -> SynthScene:
+    """Render a seeded synthetic scene seen by ``views`` panoramas of ``width`` x ``width // 2``.
 
-    The same arguments give bit-identical output; the room, furniture and textures depend only on
-    ``seed`` (the texture resolution on ``width``) and camera k does not depend on ``views`` > k.
+    ``kind="room"`` (default): one textured room; the room, furniture and textures depend only on ``seed`` (the
+    texture resolution on ``width``) and camera k does not depend on ``views`` > k. ``kind="home"``: a flat of
+    ``rooms`` rooms with plain walls and doorways, 1-3 level cameras per room (``views`` in [rooms, 3 * rooms]);
+    ``closed_door=k`` walls up the doorway between room k and k + 1 (see ``fullview.synth.home``). The same
+    arguments give bit-identical output.
     """
+    if kind not in ("room", "home"):
+        raise ValueError(f"kind must be 'room' or 'home', got {kind!r}")
     if not isinstance(views, (int, np.integer)) or views < 1:
         raise ValueError(f"views must be a positive integer, got {views!r}")
     if not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -115,12 +122,20 @@ def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point
     t0 = time.perf_counter()
     s_layout, s_cam, s_tex, s_noise = np.random.SeedSequence(int(seed)).spawn(4)
     layout_rng = np.random.default_rng(s_layout)
-    boxes = layout_boxes(layout_rng)
-    markers, marker_names, marker_faces = room_markers(layout_rng, boxes)
-    geometry = build_geometry(boxes, texel=texel_for_width(width), seed=s_tex, markers=markers,
-                              marker_names=marker_names, marker_faces=marker_faces)
-    t1 = time.perf_counter()
-    rots, centers = place_cameras(np.random.default_rng(s_cam), boxes, views)
+    if kind == "home":
+        home = layout_home(layout_rng, views, rooms, closed_door)
+        boxes, rots, centers = home.boxes, home.R_world_from_cam, home.centers
+        geometry = build_geometry(boxes, texel=texel_for_width(width), seed=s_tex, markers=home.markers,
+                                  marker_names=home.marker_names, marker_faces=home.marker_faces,
+                                  plain_boxes=home.plain_boxes)
+        t1 = time.perf_counter()
+    else:
+        boxes = layout_boxes(layout_rng)
+        markers, marker_names, marker_faces = room_markers(layout_rng, boxes)
+        geometry = build_geometry(boxes, texel=texel_for_width(width), seed=s_tex, markers=markers,
+                                  marker_names=marker_names, marker_faces=marker_faces)
+        t1 = time.perf_counter()
+        rots, centers = place_cameras(np.random.default_rng(s_cam), boxes, views)
     out = []
     for k in tqdm(range(views), desc="render", disable=None, leave=False):
         image, depth = render_view(geometry, R_world_from_cam=rots[k], center=centers[k], width=width,
@@ -129,8 +144,8 @@ def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point
                              R_world_from_cam=rots[k], center=centers[k]))
     t2 = time.perf_counter()
     hand, hand_xyz = _hand_points(geometry, out, np.random.default_rng(s_noise), hand_point_noise_px)
-    log.info("synthetic scene seed=%d: %d boxes, textures %.2fs, %d views %dx%d %.2fs, %d hand tracks",
-             seed, len(boxes) - 1, t1 - t0, views, width, width // 2, t2 - t1, len(hand))
+    log.info("synthetic %s seed=%d: %d boxes, textures %.2fs, %d views %dx%d %.2fs, %d hand tracks",
+             kind, seed, len(boxes) - 1, t1 - t0, views, width, width // 2, t2 - t1, len(hand))
     return SynthScene(views=out, hand_points=hand, boxes=boxes, scene_size=float(np.linalg.norm(boxes[0, 1] - boxes[0, 0])),
                       hand_point_xyz=hand_xyz, geometry=geometry)
 

@@ -2,7 +2,8 @@
 
 Every face gets its own seeded texture: multi-octave colour noise, thresholded-noise blobs, random shapes and
 glyphs, and target markers on the room faces; textures are shaded per face orientation and packed with their
-pyrDown levels into one atlas (``build_geometry``), so detections are stable across views.
+pyrDown levels into one atlas (``build_geometry``), so detections are stable across views. Faces of "plain" boxes
+(the walls of the home scene) get a near-uniform light colour with only faint low-contrast noise instead.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ BLOB_CELLS = (0.25, 0.08, 0.03)
 # Random shape bands: (typical size m, fraction of the face area covered by the band).
 SHAPE_BANDS = ((0.45, 0.12), (0.22, 0.15), (0.11, 0.15), (0.055, 0.12), (0.028, 0.08))
 GOLDEN_HUE_STEP = 0.381966  # hue increment between consecutive faces (golden-ratio spread)
+# Faint colour noise of plain faces: (cell size m, relative amplitude); far below SIFT's contrast threshold.
+PLAIN_OCTAVES = ((1.0, 0.02), (0.15, 0.008))
 LIGHT_DIR = np.array([0.35, -1.0, 0.55]) / np.linalg.norm([0.35, -1.0, 0.55])  # towards the light
 
 
@@ -78,6 +81,22 @@ def _face_texture(rng: np.random.Generator, size_uv: np.ndarray, texel: float, s
             img += alpha * (colour.astype(np.float32) - img)
     img8 = np.clip(img, 0, 255).astype(np.uint8)
     _draw_shapes(img8, rng, size_uv, texel, palette)
+    for uv in markers_uv:
+        _draw_marker(img8, uv / texel, MARKER_RADIUS / texel)
+    return np.clip(img8.astype(np.float32) * shade, 0, 255).astype(np.uint8)
+
+
+def _plain_texture(rng: np.random.Generator, size_uv: np.ndarray, texel: float, shade: float,
+                   markers_uv: np.ndarray) -> np.ndarray:
+    """(n_v, n_u, 3) uint8 BGR texture of a plain (painted) face: light, unsaturated, faint noise, markers."""
+    nu, nv = (int(math.ceil(s / texel)) + 1 for s in size_uv)
+    img = np.empty((nv, nu, 3), np.float32)
+    img[:] = _hsv_bgr(rng.uniform(), rng.uniform(0.03, 0.15), rng.uniform(0.7, 0.9))
+    for cell, amp in PLAIN_OCTAVES:
+        n = _noise_field(rng, size_uv, (nv, nu), texel, cell, 1)
+        if n is not None:
+            img *= 1.0 + amp * n
+    img8 = np.clip(img, 0, 255).astype(np.uint8)
     for uv in markers_uv:
         _draw_marker(img8, uv / texel, MARKER_RADIUS / texel)
     return np.clip(img8.astype(np.float32) * shade, 0, 255).astype(np.uint8)
@@ -201,8 +220,9 @@ def _build_atlas(textures: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 
 def build_geometry(boxes: np.ndarray, *, texel: float, seed: np.random.SeedSequence | int,
                    markers: np.ndarray | None = None, marker_names: list[str] | None = None,
-                   marker_faces: list[int] | None = None) -> SceneGeometry:
-    """Procedural textures (one per face, seeded) and their mip-mapped atlas for ``boxes``."""
+                   marker_faces: list[int] | None = None, plain_boxes: tuple[int, ...] = ()) -> SceneGeometry:
+    """Procedural textures (one per face, seeded) and their mip-mapped atlas for ``boxes``; the faces of the
+    boxes in ``plain_boxes`` get plain textures (see ``_plain_texture``)."""
     boxes = np.asarray(boxes, dtype=np.float64)
     if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or np.any(boxes[:, 1] <= boxes[:, 0]):
         raise ValueError(f"boxes must be (K, 2, 3) with min < max, got shape {boxes.shape}")
@@ -218,7 +238,10 @@ def build_geometry(boxes: np.ndarray, *, texel: float, seed: np.random.SeedSeque
         on_face = [m for m, f in zip(markers, marker_faces) if f == face]
         muv = np.array([[m[uax], m[vax]] for m in on_face]).reshape(-1, 2) - uv0
         hue = hue0 + GOLDEN_HUE_STEP * face  # neighbouring face indices get well separated hues
-        textures.append(_face_texture(np.random.default_rng(child), size, texel, _face_shade(face), hue, muv))
+        if face // 6 in plain_boxes:
+            textures.append(_plain_texture(np.random.default_rng(child), size, texel, _face_shade(face), muv))
+        else:
+            textures.append(_face_texture(np.random.default_rng(child), size, texel, _face_shade(face), hue, muv))
     atlas, offset = _build_atlas(textures)
     return SceneGeometry(boxes=boxes, texel=texel, atlas=atlas, tile_offset=offset,
                          markers=markers, marker_names=list(marker_names or []))
