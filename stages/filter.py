@@ -44,7 +44,7 @@ def run(ctx: StageContext) -> dict:
         F, keep = _verify_pair(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], hand if use_seed else None,
                                threshold, options, seed=options.seed + k)
         good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
-        if descriptors is not None and len(good) >= 8:
+        if descriptors is not None and len(good) >= options.min_inliers:
             good, added = _add_guided(good, descriptors[i], descriptors[j], obs[i]["bearings"], obs[j]["bearings"],
                                       F, threshold, guided)
             guided_counts.append(added)
@@ -72,9 +72,11 @@ def run(ctx: StageContext) -> dict:
 
 
 def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, guided_options: MatchesOptions):
-    """The pair's inliers plus the SIFT matches found along the epipolar circles of F (looser ratio test among the
-    candidates near each circle, mutual check), kept when their symmetric epipolar error is within the threshold.
-    Returns (inliers, number added)."""
+    """A verified pair's inliers plus the SIFT matches found along the epipolar circles of F (looser ratio test among
+    the candidates near each circle, mutual check), kept when their symmetric epipolar error is within the threshold
+    and they lie in front of both cameras under the pair's relative pose (the epipolar constraint alone cannot reject
+    a match on the wrong side of the baseline). Only verified pairs are extended: a weak pair's F is too uncertain
+    to guide (measured: promoting weak pairs broke registration on the synthetic home). Returns (inliers, added)."""
     num_i, num_j = len(desc_i), len(desc_j)
     allowed = epipolar_candidates(bear_i[:num_i], bear_j[:num_j], F, threshold)
     guided = match_descriptors(desc_i, desc_j, guided_options, block_rows=1024, allowed=allowed)
@@ -82,6 +84,13 @@ def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, 
         return good, 0
     errors = two_view.epipolar_angular_errors(F, bear_i[guided[:, 0]], bear_j[guided[:, 1]])
     guided = guided[errors <= threshold]
+    try:
+        pose = two_view.relative_pose_from_f(F, bear_i[good[:, 0]], bear_j[good[:, 1]])
+    except ValueError:
+        return good, 0
+    depth_i, depth_j = two_view.ray_depths(bear_i[guided[:, 0]], bear_j[guided[:, 1]], pose.R_j_from_i,
+                                           pose.t_j_from_i)
+    guided = guided[(depth_i > 0) & (depth_j > 0)]
     known = {(int(a), int(b)) for a, b in good}
     new = np.array([m for m in guided.tolist() if tuple(m) not in known], np.int64).reshape(-1, 2)
     return (np.concatenate([good, new]) if len(new) else good), len(new)

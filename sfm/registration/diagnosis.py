@@ -33,5 +33,9 @@ def unregistered_reasons(*, names: list[str], registered: np.ndarray, num_featur
 def _no_pair_reason(touching: np.ndarray, num_inliers: np.ndarray, no_baseline: np.ndarray, min_inliers: int) -> str:
     if (no_baseline & touching).any() and not (num_inliers[touching & ~no_baseline] >= min_inliers).any():
         return "no verified pair: its matching images show it from the same place (no baseline)"
+    strong = int((touching & (num_inliers >= min_inliers)).sum())
+    if strong:
+        return (f"its {strong} verified pair(s) give no valid relative pose (too few inliers in front of both "
+                "cameras: epipoles.min_cheiral_ratio)")
     best = int(num_inliers[touching].max()) if touching.any() else 0
     return f"no verified pair with >= {min_inliers} inliers (best: {best})"
