@@ -114,6 +114,29 @@ def colmap_worker(dataset: Path, work: Path) -> None:
     print(json.dumps(out))
 
 
+HOME = dict(rooms=12, views=30, width=1024)  # the hard scene: plain walls, doorways, 1-3 panoramas per room
+
+
+def home_row(args) -> dict:
+    """The hard synthetic home: ours (registered share, verified pairs, time, AUC) next to COLMAP's."""
+    path = args.work / "datasets" / f"home{HOME['views']}_r{HOME['rooms']}_w{HOME['width']}_s{args.seed}"
+    if not (path / "images").exists():
+        proc = run([sys.executable, "-m", "fullview", "synth", str(path), "--scene", "home", "--rooms",
+                    str(HOME["rooms"]), "--views", str(HOME["views"]), "--width", str(HOME["width"]), "--seed",
+                    str(args.seed)])
+        if proc.returncode:
+            raise RuntimeError(proc.stderr[-2000:])
+    label = f"home{HOME['views']}"
+    row = {"scene": label, "views": HOME["views"], "ours": ours(path, args.work, label, [])}
+    from fullview.io.workspace import Workspace
+    manifest = Workspace(args.work / "ws" / label, path.name).read_manifest("filter") or {}
+    row["ours"]["verified_pairs"] = (manifest.get("summary") or {}).get("verified_pairs")
+    if not args.no_colmap:
+        row["colmap"] = colmap(path, args.work, label)
+    log.info("%s: %s", label, json.dumps(row)[:400])
+    return row
+
+
 def viewer_timing(dataset: Path, ws: Path) -> dict:
     """Seconds from opening the viewer page until it is interactive, and from clicking a camera until its panorama
     is shown in the tour (first visit: cold panorama cache), in headless chromium; {} without chromium/Playwright."""
@@ -218,6 +241,7 @@ def main() -> int:
     parser.add_argument("--dense-views", type=int, default=6, help="synthetic scene that also runs densify")
     parser.add_argument("--no-colmap", action="store_true")
     parser.add_argument("--no-real", action="store_true")
+    parser.add_argument("--no-home", action="store_true", help="skip the hard synthetic home (30 views, 12 rooms)")
     parser.add_argument("--work", type=Path, default=ROOT / "workspace" / "bench")
     parser.add_argument("--colmap-worker", nargs=2, type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -239,6 +263,8 @@ def main() -> int:
                 row["colmap"] = rows[-1]["colmap"]  # same images: COLMAP has no hand points to use
             rows.append(row)
             log.info("%s: %s", label, json.dumps(row)[:400])
+    if not args.no_home:
+        rows.append(home_row(args))
     if not args.no_real:
         if SHARED.exists():
             for name in ("360_Flat", "360_school"):
