@@ -91,3 +91,18 @@ def test_too_few_points_is_a_clear_error():
     b_i, b_j, *_ = _scene(0, n=7)
     with pytest.raises(ValueError, match="at least 8"):
         tv.ransac_f(b_i, b_j, tv.RansacOptions(threshold_rad=0.01))
+
+
+def test_seeded_fit_keeps_the_hand_points_model_on_a_doorway_pair():
+    """A doorway pair of the synthetic home (`fullview synth --scene home --rooms 12 --views 30 --width 1024`,
+    pano_018/019: 59 hand points, 190 raw matches): re-fitting on all matches used to leave the hand points behind
+    and rotate the pose by 40°; the seeded fit must keep the hand points' model."""
+    from pathlib import Path
+
+    from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
+    data = np.load(Path(__file__).parent / "data" / "seeded_doorway_pair.npz")
+    res = tv.fit_f_seeded(data["hand_i"], data["hand_j"], data["match_i"], data["match_j"], np.radians(0.35))
+    pose = tv.relative_pose_from_f(res.F, data["hand_i"], data["hand_j"])
+    assert rotation_angle_deg(pose.R_j_from_i, data["R_j_from_i"]) < 1.0
+    assert angle_between_deg(pose.t_j_from_i, data["t_j_from_i"]) < 1.0
+    assert res.inliers.sum() >= 100
