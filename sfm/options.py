@@ -36,7 +36,7 @@ class FeaturesOptions:
                                 ge=0.0, le=30.0)
     max_features_per_face: int = setting(1500, "SIFT nfeatures per face", ge=1, le=1_000_000, zero_means="unlimited")
     contrast_threshold: float = setting(0.02, "SIFT contrast threshold (OpenCV's default is 0.04)", gt=0.0, le=1.0)
-    min_features_per_face: int = setting(0, "a face with fewer keypoints is detected again with half the contrast "
+    min_features_per_face: int = setting(300, "a face with fewer keypoints is detected again with half the contrast "
                                          "threshold (plain walls)", ge=0, le=1_000_000, zero_means="never")
     min_contrast_threshold: float = setting(0.0025, "... but never below this contrast threshold", gt=0.0, le=1.0)
     min_latitude_deg: float = setting(-90.0, "drop features below this latitude (nadir cap: tripod, hand)",
