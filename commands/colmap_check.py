@@ -131,9 +131,10 @@ def _check(dataset: Dataset, ws: Workspace, pipeline: Pipeline, out: StageWriter
     bearings, descriptors, colmap_counts = [], [], {}
     for name in names:
         face_size, focal = geometry[name]
-        parts = [(*extracted.get(_face_file(name, f), (np.zeros((0, 2)), np.zeros((0, 128)))), f) for f in range(6)]
-        b, d, _ = colmap_features([(xy, f, desc) for xy, desc, f in parts], face_size, focal, fcfg.min_latitude_deg,
-                                  fcfg.max_latitude_deg)
+        empty = (np.zeros((0, 2)), np.zeros((0, 128)))
+        faces = [extracted.get(_face_file(name, f), empty) for f in range(6)]
+        parts = [(xy, f, desc) for f, (xy, desc) in enumerate(faces)]
+        b, d, _ = colmap_features(parts, face_size, focal, fcfg.min_latitude_deg, fcfg.max_latitude_deg)
         bearings.append(b)
         descriptors.append(d)
         colmap_counts[name] = len(b)

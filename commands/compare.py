@@ -83,8 +83,7 @@ def colmap_reference(dataset: Dataset, ws: Workspace, *, render_type: str = "sph
 # --------------------------------------------------------------------------------------------- both models
 def our_model(dataset: Dataset, ws: Workspace) -> dict:
     """Our bundle-adjusted poses, points and observations (bearings from the features + hand points)."""
-    _, source = ws.load_poses()
-    if source != "triangulation":
+    if ws.poses_source() != "triangulation":
         raise RunnerError(f"{ws.root}: triangulation is not current; run the pipeline until triangulation")
     sparse = ws.load_sparse()
     poses = sparse

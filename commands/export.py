@@ -41,7 +41,7 @@ def export(pipeline: Pipeline, fmt: str, out: Path | None = None) -> Path:
     if out is not None:  # nothing is written in the workspace: reading under the commit lock is enough
         return _export_outside(pipeline, fmt, Path(out))
     with ws.locked(command="fullview export"), ws.transaction(folder_of("export_dir", format=fmt)) as writer:
-        _write(pipeline, fmt, writer.path("export_dir", format=fmt), writer)
+        _write(pipeline, fmt, writer)
     return ws.path("export_dir", format=fmt)
 
 
@@ -58,7 +58,7 @@ def _export_outside(pipeline: Pipeline, fmt: str, out: Path) -> Path:
         raise ConfigError(f"--out {out}: exists and is not empty nor a previous fullview export; choose a new folder")
     make_dirs(out.parent)
     with folder_transaction(out) as writer:
-        _write(pipeline, fmt, writer.dir, writer)
+        _write(pipeline, fmt, writer)
     return out
 
 
@@ -68,7 +68,8 @@ def _is_export(folder: Path) -> bool:
     return manifest is not None and manifest.get("summary", {}).get("kind") == EXPORT_KIND
 
 
-def _write(pipeline: Pipeline, fmt: str, folder: Path, writer: StageWriter) -> None:
+def _write(pipeline: Pipeline, fmt: str, writer: StageWriter) -> None:
+    folder = writer.dir  # the export's files go straight into the transaction's folder
     ws, dataset = pipeline.ws, pipeline.dataset
     model = sparse_model(pipeline)
     if fmt in ("colmap", "colmap-bin"):

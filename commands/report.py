@@ -16,7 +16,7 @@ import numpy as np
 
 from fullview.io.artifacts import ArtifactError
 from fullview.io.config import params_of
-from fullview.io.workspace import StageWriter, folder_of
+from fullview.io.workspace import StageWriter, folder_of, image_stem
 from fullview.sfm.camera import camera_up
 from fullview.sfm.compare import top_view_basis
 from fullview.stages import PIPELINE
@@ -124,7 +124,7 @@ def _cameras(pipeline: Pipeline, out: StageWriter) -> str:
     ax.quiver(xy[:, 0], xy[:, 1], heading[:, 0], heading[:, 1], color="#ff6633", angles="xy", width=0.004)
     ax.plot(xy[:, 0], xy[:, 1], "o", color="#ffcc33", mec="k")
     for name, p in zip(names, xy):
-        ax.annotate(name.rsplit(".", 1)[0], p, textcoords="offset points", xytext=(5, 5), fontsize=7)
+        ax.annotate(image_stem(name), p, textcoords="offset points", xytext=(5, 5), fontsize=7)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_title(f"cameras from above ({source} poses), arrows: panorama centre")
     _save_figure(out, "cameras.png", fig)
@@ -165,14 +165,14 @@ def _depth(pipeline: Pipeline, out: StageWriter) -> str:
     shares = manifest.get("summary", {}).get("valid_share", {})
     cells = []
     for name in pipeline.dataset.image_names:
-        path = pipeline.ws.path("depth_image", stem=name.rsplit(".", 1)[0])
+        path = pipeline.ws.path("depth_image", stem=image_stem(name))
         if not path.exists():
             cells.append(f"<figure><figcaption>{html.escape(name)}: no depth map</figcaption></figure>")
             continue
         picture = cv2.imread(str(path))
         if picture.shape[1] > THUMB_WIDTH:
             picture = cv2.resize(picture, (THUMB_WIDTH, THUMB_WIDTH // 2), interpolation=cv2.INTER_AREA)
-        file = f"depth_{name.rsplit('.', 1)[0]}.png"
+        file = f"depth_{image_stem(name)}.png"
         _save_png(out, file, picture)
         cells.append(f"<figure><img src='{html.escape(file)}' alt='depth of {html.escape(name)}'><figcaption>"
                      f"{html.escape(name)}: {100 * shares.get(name, 0):.0f}% of pixels have a depth</figcaption>"

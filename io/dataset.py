@@ -163,6 +163,13 @@ class Dataset:
             raise DatasetError(f"{path}: mask is {mask.shape[1]}x{mask.shape[0]}, its image {name} is {w}x{h}")
         return mask > 127
 
+    def validate_inputs(self) -> None:
+        """Check every input a run reads (image files, hand points, masks); a DatasetError names the first bad
+        file."""
+        self.image_sizes  # noqa: B018 (validates every image)
+        self.hand_observations  # noqa: B018 (validates hand_points.yaml)
+        self.check_masks()
+
     def check_masks(self) -> None:
         """Validate every mask (and refuse masks of no image) before any stage runs."""
         if not self.masks_dir.is_dir():

@@ -119,7 +119,8 @@ def _relative(artifact: str, **fields) -> str:
     return FILES[artifact][1].format(**fields)
 
 
-def _stem(name: str) -> str:
+def image_stem(name: str) -> str:
+    """The name an image's per-image artifacts are filed under (its file name without the suffix)."""
     return Path(name).stem
 
 
@@ -174,7 +175,7 @@ class Workspace:
 
     # ---- typed readers, one per artifact
     def load_features(self, image_name: str) -> dict[str, np.ndarray]:
-        return load_npz(self.path("features", stem=_stem(image_name)), FEATURES_VERSION, FEATURE_KEYS)
+        return load_npz(self.path("features", stem=image_stem(image_name)), FEATURES_VERSION, FEATURE_KEYS)
 
     def load_matches(self) -> PairData:
         return _load_pair_data(self.path("matches"))
@@ -195,7 +196,7 @@ class Workspace:
 
     def load_depth(self, image_name: str) -> dict[str, np.ndarray] | None:
         """A panorama's range map (``range``, ``valid``), or None if densify gave it none."""
-        path = self.path("depth", stem=_stem(image_name))
+        path = self.path("depth", stem=image_stem(image_name))
         return load_npz(path, DEPTH_VERSION, ("range", "valid")) if path.exists() else None
 
     def load_dense_cloud(self) -> dict[str, np.ndarray] | None:
@@ -232,13 +233,21 @@ class Workspace:
             })
         return out
 
-    def load_poses(self) -> tuple[dict[str, np.ndarray], str]:
-        """The most refined poses: bundle-adjusted if triangulation ran on the current registration."""
+    def poses_source(self) -> str | None:
+        """Which stage holds the most refined poses: triangulation if it ran on the registration on disk, else
+        registration, else None."""
         tri, reg = self.read_manifest("triangulation"), self.read_manifest("registration")
         if tri and reg and tri["upstream"].get("registration") == reg["fingerprint"]:
-            return load_npz(self.path("sparse"), SPARSE_VERSION, POSE_KEYS), "triangulation"
-        if reg:
-            return load_npz(self.path("registration"), REGISTRATION_VERSION, POSE_KEYS), "registration"
+            return "triangulation"
+        return "registration" if reg else None
+
+    def load_poses(self) -> tuple[dict[str, np.ndarray], str]:
+        """The most refined poses (see `poses_source`) and the stage they come from."""
+        source = self.poses_source()
+        if source == "triangulation":
+            return load_npz(self.path("sparse"), SPARSE_VERSION, POSE_KEYS), source
+        if source == "registration":
+            return load_npz(self.path("registration"), REGISTRATION_VERSION, POSE_KEYS), source
         raise ArtifactError(f"{self.root}: no registration or triangulation results; run the pipeline first")
 
     def cached_bytes(self, artifact: str, produce, **fields) -> bytes:
@@ -347,7 +356,7 @@ class StageWriter:
         missing = [k for k in FEATURE_KEYS if k not in arrays]
         if missing:
             raise ValueError(f"features of {image_name} lack {missing}")
-        return save_npz(self.path("features", stem=_stem(image_name)), FEATURES_VERSION, **arrays)
+        return save_npz(self.path("features", stem=image_stem(image_name)), FEATURES_VERSION, **arrays)
 
     def save_matches(self, pairs, matches) -> Path:
         return _save_pair_data(self.path("matches"), pairs, matches)
@@ -373,8 +382,8 @@ class StageWriter:
 
     def save_depth(self, image_name: str, rng: np.ndarray, valid: np.ndarray, picture: np.ndarray) -> None:
         """A panorama's range map and its colour-mapped picture (BGR uint8)."""
-        save_npz(self.path("depth", stem=_stem(image_name)), DEPTH_VERSION, range=rng, valid=valid)
-        save_png(self.path("depth_image", stem=_stem(image_name)), picture)
+        save_npz(self.path("depth", stem=image_stem(image_name)), DEPTH_VERSION, range=rng, valid=valid)
+        save_png(self.path("depth_image", stem=image_stem(image_name)), picture)
 
     def save_dense(self, *, points, colors, normals, summary: dict) -> None:
         save_ply(self.path("dense_cloud"), points, colors, normals)

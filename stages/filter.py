@@ -91,8 +91,8 @@ def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, 
     depth_i, depth_j = two_view.ray_depths(bear_i[guided[:, 0]], bear_j[guided[:, 1]], pose.R_j_from_i,
                                            pose.t_j_from_i)
     guided = guided[(depth_i > 0) & (depth_j > 0)]
-    known = {(int(a), int(b)) for a, b in good}
-    new = np.array([m for m in guided.tolist() if tuple(m) not in known], np.int64).reshape(-1, 2)
+    width = max(int(good[:, 1].max(initial=0)), int(guided[:, 1].max(initial=0))) + 1
+    new = guided[~np.isin(guided[:, 0] * width + guided[:, 1], good[:, 0] * width + good[:, 1])]
     return (np.concatenate([good, new]) if len(new) else good), len(new)
 
 

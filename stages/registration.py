@@ -45,8 +45,11 @@ def run(ctx: StageContext) -> dict:
     R = np.where(reg.registered[:, None, None], reg.R_cam_from_world, np.eye(3))
     C = np.where(reg.registered[:, None], reg.centers, 0.0)
     registered, attached = reg.registered, []
+    # Both attaching cameras and explaining the ones left out need the observations and inliers: read them once.
+    obs = ctx.ws.load_observations(ctx.dataset) if not registered.all() else None
+    verified = ctx.ws.load_inliers() if not registered.all() else None
     if not registered.all():
-        result = _attach(ctx, epi, weights, R, C, registered)
+        result = _attach(obs, verified, epi, weights, R, C, registered)
         R, C, registered, attached = result.R_cam_from_world, result.centers, result.registered, result.attached
     t = -np.einsum("nab,nb->na", R, C)
     rot_res, dir_res = _pair_residuals(epi, R, t)
@@ -57,7 +60,7 @@ def run(ctx: StageContext) -> dict:
                         & (rot_res <= options.max_rotation_residual_deg)
                         & (dir_res <= options.max_direction_residual_deg))[touched]
     unregistered = [n for n, ok in zip(names, registered) if not ok]
-    reasons = _reasons(ctx, epi, usable, registered)
+    reasons = _reasons(ctx, obs, verified, epi, usable, registered)
     for name, reason in reasons.items():
         log.warning("%s is not registered: %s", name, reason)
     summary = {"registered": int(registered.sum()), "images": len(names), "unregistered": unregistered,
@@ -70,23 +73,20 @@ def run(ctx: StageContext) -> dict:
     return summary
 
 
-def _reasons(ctx: StageContext, epi, usable, registered) -> dict[str, str]:
+def _reasons(ctx: StageContext, obs, verified, epi, usable, registered) -> dict[str, str]:
     """Why each unregistered image is out of the model (features, pairs, groups of the view graph)."""
     if registered.all():
         return {}
     names = ctx.dataset.image_names
-    num_features = np.array([len(ctx.ws.load_features(n)["bearings"]) for n in names])
-    verified = ctx.ws.load_inliers()
+    num_features = np.array([int(o["num_sift"]) for o in obs])
     no_baseline = verified.extra.get("no_baseline", np.zeros(len(verified.pairs), bool)).astype(bool)
     return unregistered_reasons(names=names, registered=registered, num_features=num_features, pairs=epi["pairs"],
                                 num_inliers=epi["num_inliers"], usable=usable, no_baseline=no_baseline,
                                 min_features=8, min_inliers=ctx.options.min_inliers)
 
 
-def _attach(ctx: StageContext, epi, weights, R, C, registered):
+def _attach(obs, verified, epi, weights, R, C, registered):
     """Place the cameras averaging left out (single-pair links) from their pair and the model's points."""
-    obs = ctx.ws.load_observations(ctx.dataset)
-    verified = ctx.ws.load_inliers()
     tracks, _ = build_tracks({p: m for p, m, w in zip(verified.pairs, verified.matches, weights) if w > 0 and len(m)},
                              [len(o["bearings"]) for o in obs])
     return attach_cameras(R_cam_from_world=R, centers=C, registered=registered, pairs=epi["pairs"],

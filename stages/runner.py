@@ -145,6 +145,12 @@ class Pipeline:
             "libraries": LIBRARY_VERSIONS,
         }
 
+    def refresh(self) -> None:
+        """Forget memoised fingerprints and input hashes (a long-lived reader such as the viewer calls this when
+        the dataset may have changed)."""
+        self._fingerprints.clear()
+        self.__dict__.pop("_input_hashes", None)
+
     def fingerprint(self, stage: str) -> str:
         # Memoised: the chain asks for every upstream fingerprint again, and the inputs cannot change meanwhile.
         if stage not in self._fingerprints:
@@ -216,9 +222,7 @@ class Pipeline:
             raise RunnerError("--force reruns every stage; it cannot be combined with --from or --only")
         if start is not None and until is not None and PIPELINE.index(start) > PIPELINE.index(until):
             raise RunnerError(f"--from {start} comes after --until {until}")
-        # Bad images or hand points fail now, not after hours of matching.
-        self.dataset.image_sizes, self.dataset.hand_observations  # noqa: B018 (validating reads)
-        self.dataset.check_masks()
+        self.dataset.validate_inputs()  # bad images, hand points or masks fail now, not after hours of matching
         with self.ws.locked(wait=wait, command="fullview run"):
             return self._run_locked(start, until, only, force)
 

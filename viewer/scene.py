@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from fullview.io.artifacts import ArtifactError
+from fullview.io.workspace import image_stem
 from fullview.sfm import two_view
 from fullview.sfm.camera import bearings_to_lonlat, camera_up, pixels_to_bearings
 from fullview.stages import PIPELINE
@@ -37,7 +38,7 @@ class SceneData:
         return hashlib.sha256(json.dumps(stamps, sort_keys=True).encode()).hexdigest()[:12]
 
     def state(self) -> dict:
-        self.pipeline._fingerprints.clear()  # inputs or config may have changed since the last poll
+        self.pipeline.refresh()  # images, hand points or masks may have changed since the page last asked
         with self.ws.reading():
             stages = {s: _status(self.pipeline, s) for s in PIPELINE}
             out = {"dataset": self.dataset.name, "generation": self.generation(), "stages": stages,
@@ -159,10 +160,10 @@ class SceneData:
                 raise ArtifactError(f"cannot encode {name} for display")
             return jpg.tobytes()
 
-        return self.ws.cached_bytes("view_cache", encode, stem=f"{_stem(name)}_{width}_{key}")
+        return self.ws.cached_bytes("view_cache", encode, stem=f"{image_stem(name)}_{width}_{key}")
 
     def depth_png(self, name: str) -> bytes | None:
-        path = self.ws.path("depth_image", stem=_stem(name))
+        path = self.ws.path("depth_image", stem=image_stem(name))
         return path.read_bytes() if path.exists() else None
 
 
@@ -189,10 +190,6 @@ def _mtime(path) -> int | None:
         return path.stat().st_mtime_ns
     except OSError:
         return None
-
-
-def _stem(name: str) -> str:
-    return name.rsplit(".", 1)[0]
 
 
 def _status(pipeline: Pipeline, stage: str) -> dict:

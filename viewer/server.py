@@ -86,6 +86,8 @@ class _Handler(BaseHTTPRequestHandler):
                 if not rel.startswith(VENDORED):
                     return self._error(HTTPStatus.NOT_FOUND, "not a vendored package")
                 return self._file(_inside(VENDOR, rel))
+            if path == "/api/generation":  # polled every few seconds: cheap, no status computation
+                return self._json({"generation": self.app.scene.generation(), "rerun": self.app.rerun_message})
             if path == "/api/state":
                 state = self.app.scene.state()
                 state["rerun"] = self.app.rerun_message

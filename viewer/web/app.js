@@ -569,7 +569,7 @@ function selectTab(name) {
 
 async function poll() {
   try {
-    const now = await getJSON('/api/state');
+    const now = await getJSON('/api/generation');
     showMessage(now.generation !== state.generation, 'changed');
     if (now.rerun) document.getElementById('picker-status').textContent = now.rerun;
   } catch (e) {
