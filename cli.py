@@ -47,7 +47,29 @@ def cmd_status(args) -> int:
             st = pipeline.status(stage, deep=args.verify)
             why = f" ({'; '.join(st.reasons)})" if st.state != "fresh" else ""
             print(f"{stage:<14}{st.state}{why}")
+        line = _models_line(pipeline)
+    if line:
+        print(line)
     return 0
+
+
+def _models_line(pipeline) -> str | None:
+    """The models of the fresh reconstruction, largest first, e.g. "models: 0: 28 images, 4012 points; 1: 2 images"."""
+    for stage in ("triangulation", "registration"):
+        if pipeline.status(stage).state != "fresh":
+            continue
+        summary = (pipeline.ws.read_manifest(stage) or {}).get("summary", {})
+        models = summary.get("models")
+        if models is None:
+            return None
+        parts = [f"{k}: {m['images']} images, {m['points']} points" if isinstance(m, dict) else f"{k}: {m} images"
+                 for k, m in enumerate(models)]
+        total = int(summary.get("images", 0)) or None
+        placed = sum(m["images"] if isinstance(m, dict) else m for m in models)
+        rest = f"; {total - placed} image(s) in no model (reasons: registration/registration.json)" \
+            if total and placed < total else ""
+        return f"models: {'; '.join(parts) or 'none'}{rest}"
+    return None
 
 
 def cmd_synth(args) -> int:
@@ -64,7 +86,7 @@ def cmd_synth(args) -> int:
     elif args.closed_door is not None:
         raise ConfigError("synth: --closed-door needs --scene home")
     print(write_synthetic_dataset(args.out, views=args.views, width=args.width, seed=args.seed, kind=args.scene,
-                                  rooms=args.rooms, closed_door=args.closed_door))
+                                  rooms=args.rooms, closed_door=args.closed_door, hand_points=args.hand_points))
     return 0
 
 
@@ -154,6 +176,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rooms", type=int, default=4, help="rooms of the home (views must be 1-3 per room)")
     p.add_argument("--closed-door", type=int, default=None, metavar="K",
                    help="home: wall up the doorway between room K and K+1 (0-based), splitting the walk in two")
+    p.add_argument("--hand-points", choices=("all", "crossing", "none"), default="all",
+                   help="hand_points.yaml: every track, the 8 joining the sides of --closed-door, or no file")
     p.set_defaults(func=cmd_synth)
     p = sub.add_parser("eval", help="metrics of the current reconstruction against ground_truth/")
     _common(p)

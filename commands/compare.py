@@ -85,7 +85,7 @@ def our_model(dataset: Dataset, ws: Workspace) -> dict:
     """Our bundle-adjusted poses, points and observations (bearings from the features + hand points)."""
     if ws.poses_source() != "triangulation":
         raise RunnerError(f"{ws.root}: triangulation is not current; run the pipeline until triangulation")
-    sparse = ws.load_sparse()
+    sparse = ws.load_sparse_model(0)
     poses = sparse
     obs = ws.load_observations(dataset)
     offsets = np.cumsum([0] + [len(o["bearings"]) for o in obs])

@@ -33,12 +33,22 @@ def evaluate(pipeline: Pipeline) -> dict:
         c_gt = np.stack([gt[n].center for n in dataset.image_names])
         metrics = {"dataset": dataset.name, "poses_from": source}
         metrics.update(pose_metrics(est["R_cam_from_world"], est["centers"], R_gt, c_gt, est["registered"]))
+        metrics["models"] = _model_metrics(est, R_gt, c_gt)
+        metrics["in_models"] = int((est["model_id"] >= 0).sum())
         if source == "triangulation" and pipeline.status("densify", deep=True).state == "fresh":
             dense = evaluate_dense(dataset, ws, est, R_gt, c_gt)
             if dense is not None:
                 metrics["dense"] = dense
     _save(pipeline, metrics)
     return metrics
+
+
+def _model_metrics(est: dict, R_gt: np.ndarray, c_gt: np.ndarray) -> list[dict]:
+    """Pose metrics of every model on its own (model 0's are also the top-level figures); pairs of images in
+    different models count as failures, so a model's AUC says how much of the whole scene it covers well."""
+    model_id = est["model_id"]
+    return [pose_metrics(est["R_cam_from_world"], est["centers"], R_gt, c_gt, model_id == k)
+            for k in range(int(model_id.max(initial=-1)) + 1)]
 
 
 def _current_model(pipeline: Pipeline) -> str:

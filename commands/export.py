@@ -4,7 +4,8 @@
 - ``nerfstudio``: ``transforms.json`` (``camera_model: EQUIRECTANGULAR``) plus the sparse points for splatting;
 - ``ply``: the sparse and dense clouds as binary PLY with colours and normals.
 
-The export goes to the workspace's ``export_<format>/`` folder, or to ``--out DIR`` (a new or empty folder, or one a
+Every model is written to its own subfolder, ``<k>/`` (model 0 is the largest; COLMAP's ``sparse/<k>`` convention);
+the dense cloud belongs to model 0 (``0/dense.ply``). The export goes to the workspace's ``export_<format>/`` folder, or to ``--out DIR`` (a new or empty folder, or one a
 previous export wrote), in a transaction either way: an interrupted export leaves the previous one intact.
 """
 
@@ -17,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from fullview.io.config import ConfigError
-from fullview.io.exports import (SparseModel, sparse_point_normals, write_colmap_model, write_nerfstudio,
-                                 write_point_cloud)
+from fullview.io.exports import (SparseModel, sparse_point_normals, split_models, write_colmap_model,
+                                 write_nerfstudio, write_point_cloud)
 from fullview.io.workspace import (RUN_LOCK, StageWriter, folder_of, folder_transaction, make_dirs,
                                    read_manifest_file)
 from fullview.stages.runner import Pipeline, RunnerError, record_fingerprint
@@ -69,42 +70,56 @@ def _is_export(folder: Path) -> bool:
 
 
 def _write(pipeline: Pipeline, fmt: str, writer: StageWriter) -> None:
-    folder = writer.dir  # the export's files go straight into the transaction's folder
-    ws, dataset = pipeline.ws, pipeline.dataset
-    model = sparse_model(pipeline)
+    ws = pipeline.ws
+    models = sparse_models(pipeline)
+    for k, model in enumerate(models):
+        _write_model(pipeline, fmt, model, writer, str(k), dense=k == 0)
+    writer.commit_manifest({"fingerprint": record_fingerprint({"triangulation": pipeline.fingerprint("triangulation"),
+                                                               "format": fmt}),
+                            "upstream": {"triangulation": pipeline.fingerprint("triangulation")},
+                            "summary": {"kind": EXPORT_KIND, "format": fmt,
+                                        "models": [{"images": int(m.registered.sum()), "points": int(len(m.points))}
+                                                   for m in models]}})
+    log.info("exported %s: %d model(s) of %s registered images to %s", fmt, len(models),
+             "+".join(str(int(m.registered.sum())) for m in models), ws.root)
+
+
+def _write_model(pipeline: Pipeline, fmt: str, model: SparseModel, writer: StageWriter, sub: str,
+                 dense: bool) -> None:
+    """One model into the subfolder `sub` of the export (the dense cloud too when `dense`)."""
+    folder = writer.dir / sub  # the export's files go straight into the transaction's folder
+    make_dirs(folder)
     if fmt in ("colmap", "colmap-bin"):
         write_colmap_model(model, folder, binary=fmt == "colmap-bin")
     elif fmt == "nerfstudio":
-        final = writer.dir.parent / writer.folder  # where the export lives once committed
-        paths = [os.path.relpath(dataset.image_path(n).resolve(), final.resolve()) for n in model.image_names]
+        final = writer.dir.parent / writer.folder / sub  # where the export lives once committed
+        paths = [os.path.relpath(pipeline.dataset.image_path(n).resolve(), final.resolve())
+                 for n in model.image_names]
         write_nerfstudio(model, folder, image_paths=paths)
     else:
         normals = sparse_point_normals(model.points, model.centers, track_point3d=model.track_point3d,
                                        track_image=model.track_image)
         write_point_cloud(folder / "sparse.ply", model.points, model.colors, normals)
-        dense = ws.load_dense_cloud() if pipeline.status("densify", deep=True).state == "fresh" else None
-        if dense is not None:
-            xyz = np.column_stack([dense["x"], dense["y"], dense["z"]])
-            normals = np.column_stack([dense["nx"], dense["ny"], dense["nz"]]) if "nx" in dense else None
-            write_point_cloud(folder / "dense.ply", xyz, np.column_stack([dense["red"], dense["green"], dense["blue"]]),
+        cloud = pipeline.ws.load_dense_cloud() if dense and pipeline.status("densify", deep=True).state == "fresh" \
+            else None
+        if cloud is not None:
+            xyz = np.column_stack([cloud["x"], cloud["y"], cloud["z"]])
+            normals = np.column_stack([cloud["nx"], cloud["ny"], cloud["nz"]]) if "nx" in cloud else None
+            write_point_cloud(folder / "dense.ply", xyz, np.column_stack([cloud["red"], cloud["green"], cloud["blue"]]),
                               normals)
-    writer.commit_manifest({"fingerprint": record_fingerprint({"triangulation": pipeline.fingerprint("triangulation"),
-                                                               "format": fmt}),
-                            "upstream": {"triangulation": pipeline.fingerprint("triangulation")},
-                            "summary": {"kind": EXPORT_KIND, "format": fmt, "images": int(model.registered.sum()),
-                                        "points": int(len(model.points))}})
-    log.info("exported %s: %d registered images, %d points", fmt, int(model.registered.sum()), len(model.points))
 
 
-def sparse_model(pipeline: Pipeline) -> SparseModel:
-    """The bundle-adjusted sparse model with every observation's pixel, as the exporters take it."""
+def sparse_models(pipeline: Pipeline) -> list[SparseModel]:
+    """Every bundle-adjusted sparse model (model 0 first) with every observation's pixel, as the exporters take
+    them."""
     ws, dataset = pipeline.ws, pipeline.dataset
     with ws.reading():
         sparse = ws.load_sparse()
         obs = ws.load_observations(dataset)
-    return SparseModel(
+    whole = SparseModel(
         image_names=list(dataset.image_names), image_sizes=[tuple(int(v) for v in o["image_size"]) for o in obs],
-        registered=sparse["registered"].astype(bool), R_cam_from_world=sparse["R_cam_from_world"],
+        registered=sparse["model_id"] >= 0, R_cam_from_world=sparse["R_cam_from_world"],
         t_cam_from_world=sparse["t_cam_from_world"], points=sparse["points"], colors=sparse["colors"],
         point_errors_rad=sparse["point_error_rad"], track_point3d=sparse["track_ids"],
         track_image=sparse["image_ids"], track_point2d=sparse["feature_ids"], pixels=[o["pixels"] for o in obs])
+    return split_models(whole, sparse["model_id"])

@@ -138,7 +138,7 @@ def _cameras(pipeline: Pipeline, out: StageWriter) -> str:
 
 def _errors(pipeline: Pipeline, out: StageWriter) -> str:
     try:
-        sparse = pipeline.ws.load_sparse()
+        sparse = pipeline.ws.load_sparse_model(0)
     except ArtifactError:
         return "<h2>Sparse model</h2><p class='missing'>no triangulation yet</p>"
     import matplotlib

@@ -5,6 +5,7 @@ Pure functions over arrays: they get an output folder or path and know nothing o
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -71,6 +72,25 @@ class SparseModel:
         counts = np.array([len(px) for px in self.pixels], np.int64)
         if np.any((feature < 0) | (feature >= counts[image])):
             raise ValueError("SparseModel.track_point2d holds indices beyond their image's pixels")
+
+
+def split_models(model: SparseModel, model_id: np.ndarray) -> list[SparseModel]:
+    """One SparseModel per model k = 0, 1, ... of `model_id` (N,) (-1: in none): its images registered, its points
+    (a point belongs to the model of its first observation's image) with their observations, rows renumbered."""
+    model_id = np.asarray(model_id)
+    count = int(model_id.max(initial=-1)) + 1
+    first = np.searchsorted(model.track_point3d, np.arange(len(model.points)))
+    point_model = model_id[model.track_image[first]] if len(model.points) else np.zeros(0, np.int64)
+    out = []
+    for k in range(count):
+        keep = point_model == k
+        row = np.cumsum(keep) - 1
+        obs = keep[model.track_point3d]
+        out.append(dataclasses.replace(
+            model, registered=model_id == k, points=model.points[keep], colors=model.colors[keep],
+            point_errors_rad=model.point_errors_rad[keep], track_point3d=row[model.track_point3d[obs]],
+            track_image=model.track_image[obs], track_point2d=model.track_point2d[obs]))
+    return out
 
 
 # ------------------------------------------------------------------------------------------------------------------

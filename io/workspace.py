@@ -10,7 +10,7 @@ Layout (``FILES`` is the single table of names; nothing else in fullview spells 
         filter/inliers.npz                   F and epipolar inliers of every pair
         epipoles/epipoles.npz                relative poses of every pair
         registration/registration.npz, registration.json
-        triangulation/sparse.npz, sparse.ply, summary.json, colmap/{cameras,images,points3D,...}.txt
+        triangulation/sparse.npz, sparse.ply (model 0), summary.json, models/<k>/{cameras,images,points3D,...}.txt
         densify/dense.ply, dense_preview.png, summary.json, depth/<stem>.npz, depth/<stem>.png
         eval/metrics.json                                    (fullview eval)
         colmap_<render type>/model/                          (fullview compare: cached COLMAP reference)
@@ -66,7 +66,7 @@ FILES: dict[str, tuple[str, str]] = {
     "sparse": ("triangulation", "sparse.npz"),
     "sparse_cloud": ("triangulation", "sparse.ply"),
     "sparse_summary": ("triangulation", "summary.json"),
-    "sparse_colmap": ("triangulation", "colmap"),
+    "sparse_model": ("triangulation", "models/{model}"),
     "depth": ("densify", "depth/{stem}.npz"),
     "depth_image": ("densify", "depth/{stem}.png"),
     "dense_cloud": ("densify", "dense.ply"),
@@ -91,11 +91,12 @@ FILES: dict[str, tuple[str, str]] = {
 FEATURES_VERSION = 1
 PAIRS_VERSION = 1
 EPIPOLES_VERSION = 1
-REGISTRATION_VERSION = 1
-SPARSE_VERSION = 1
+REGISTRATION_VERSION = 2  # 2: model_id (N,) (several models; `registered` = in model 0)
+SPARSE_VERSION = 2  # 2: model_id (N,), point_model (P,)
 DEPTH_VERSION = 1  # range (H, W) float32 (NaN invalid), valid (H, W) bool
 FEATURE_KEYS = ("pixels", "bearings", "descriptors", "scales", "colors", "image_size")
-POSE_KEYS = ("image_names", "registered", "R_cam_from_world", "t_cam_from_world", "centers")
+# `registered`: the image is in model 0, the main model; `model_id`: its model (-1: none), poses in that model's frame
+POSE_KEYS = ("image_names", "registered", "model_id", "R_cam_from_world", "t_cam_from_world", "centers")
 HAND_COLOR = (255, 0, 0)  # hand points are drawn red in the sparse cloud
 MANIFEST_KEYS = {"fingerprint": str, "upstream": dict, "outputs": dict}
 
@@ -192,7 +193,14 @@ class Workspace:
 
     def load_sparse(self) -> dict[str, np.ndarray]:
         return load_npz(self.path("sparse"), SPARSE_VERSION,
-                        POSE_KEYS + ("points", "colors", "track_ids", "image_ids", "feature_ids", "obs_error_rad"))
+                        POSE_KEYS + ("points", "colors", "point_model", "track_ids", "image_ids", "feature_ids",
+                                     "obs_error_rad"))
+
+    def load_sparse_model(self, model: int = 0) -> dict[str, np.ndarray]:
+        """The sparse arrays of one model, in its own frame: its points and their observations (point rows
+        renumbered), the poses of every image with ``registered`` marking the model's images."""
+        sparse = self.load_sparse()
+        return select_model(sparse, model)
 
     def load_depth(self, image_name: str) -> dict[str, np.ndarray] | None:
         """A panorama's range map (``range``, ``valid``), or None if densify gave it none."""
@@ -371,14 +379,13 @@ class StageWriter:
         _save_poses(self.path("registration"), REGISTRATION_VERSION, **poses)
         save_json(self.path("registration_report"), report)
 
-    def save_sparse(self, *, points, colors, summary: dict, **poses_and_tracks) -> None:
-        _save_poses(self.path("sparse"), SPARSE_VERSION, points=points, colors=colors, **poses_and_tracks)
-        save_ply(self.path("sparse_cloud"), points, colors)
+    def save_sparse(self, *, points, colors, point_model, summary: dict, **poses_and_tracks) -> None:
+        """The sparse arrays of every model, and the PLY cloud of model 0 (the main model)."""
+        _save_poses(self.path("sparse"), SPARSE_VERSION, points=points, colors=colors, point_model=point_model,
+                    **poses_and_tracks)
+        main = np.asarray(point_model) == 0
+        save_ply(self.path("sparse_cloud"), points[main], colors[main])
         save_json(self.path("sparse_summary"), summary)
-
-    def sparse_colmap_dir(self) -> Path:
-        """Folder for the COLMAP text model of the sparse reconstruction (written by io.colmap)."""
-        return self.path("sparse_colmap")
 
     def save_depth(self, image_name: str, rng: np.ndarray, valid: np.ndarray, picture: np.ndarray) -> None:
         """A panorama's range map and its colour-mapped picture (BGR uint8)."""
@@ -551,6 +558,22 @@ def _load_pair_data(path: Path) -> PairData:
     if len(offsets) != len(pairs) + 1 or (len(offsets) and offsets[-1] != len(flat)):
         raise ArtifactError(f"{path}: inconsistent pair offsets; rerun its stage")
     return PairData(pairs=pairs, matches=[flat[offsets[k]:offsets[k + 1]] for k in range(len(pairs))], extra=data)
+
+
+def select_model(sparse: dict[str, np.ndarray], model: int) -> dict[str, np.ndarray]:
+    """`sparse` (as `Workspace.load_sparse` returns it) restricted to one model's points and observations."""
+    keep = sparse["point_model"] == model
+    row = np.cumsum(keep) - 1
+    obs = keep[sparse["track_ids"]]
+    out = dict(sparse)
+    for key in ("points", "colors", "point_error_rad", "point_model"):
+        if key in sparse:
+            out[key] = sparse[key][keep]
+    out["track_ids"] = row[sparse["track_ids"][obs]]
+    for key in ("image_ids", "feature_ids", "obs_error_rad"):
+        out[key] = sparse[key][obs]
+    out["registered"] = sparse["model_id"] == model
+    return out
 
 
 def _save_poses(path: Path, version: int, *, image_names: list[str], registered: np.ndarray,

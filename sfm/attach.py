@@ -34,9 +34,13 @@ class Attachment:
 def attach_cameras(*, R_cam_from_world: np.ndarray, centers: np.ndarray, registered: np.ndarray, pairs: np.ndarray,
                    R_j_from_i: np.ndarray, t_j_from_i: np.ndarray, weights: np.ndarray, tracks: Tracks,
                    bearings_per_image: Sequence[np.ndarray], max_error_rad: float, min_angle_rad: float,
-                   min_points: int = 10) -> Attachment:
-    """Grow the registered set one camera at a time over pairs with weight > 0 until nothing more attaches."""
+                   min_points: int = 6, allowed: np.ndarray | None = None) -> Attachment:
+    """Grow the registered set one camera at a time over pairs with weight > 0 until nothing more attaches.
+
+    ``allowed`` (N,) bool limits which cameras may be attached (default: every unregistered one); cameras of other
+    models are excluded this way."""
     R, C, reg = R_cam_from_world.copy(), centers.copy(), registered.astype(bool).copy()
+    allowed = ~reg if allowed is None else np.asarray(allowed, bool) & ~reg
     seeded = False
     if not reg.any():
         if not (weights > 0).any():
@@ -49,14 +53,15 @@ def attach_cameras(*, R_cam_from_world: np.ndarray, centers: np.ndarray, registe
         seeded = True
     attached = []
     while True:
-        X, point_of_track = _model_points(tracks, bearings_per_image, R, C, reg, max_error_rad, min_angle_rad)
+        X, point_of_track = model_points(tracks, bearings_per_image, R, C, reg, max_error_rad, min_angle_rad)
         placed = False
-        for b in _candidates(pairs, weights, reg):
+        for b in _candidates(pairs, weights, reg, allowed):
             pose = _attach_one(b, R, C, reg, pairs, R_j_from_i, t_j_from_i, weights, tracks, bearings_per_image,
                                X, point_of_track, max_error_rad, min_points)
             if pose is not None:
                 R[b], C[b] = pose
                 reg[b] = True
+                allowed[b] = False
                 attached.append(int(b))
                 placed = True
                 break  # re-triangulate with the new camera before placing the next
@@ -68,17 +73,19 @@ def attach_cameras(*, R_cam_from_world: np.ndarray, centers: np.ndarray, registe
     return Attachment(R_cam_from_world=R, centers=C, registered=reg, attached=attached, seeded=seeded)
 
 
-def _candidates(pairs, weights, reg) -> list[int]:
-    """Unregistered cameras with a usable pair to a registered one, strongest link first."""
+def _candidates(pairs, weights, reg, allowed) -> list[int]:
+    """Allowed unregistered cameras with a usable pair to a registered one, strongest link first."""
     strength: dict[int, float] = {}
     for (i, j), w in zip(pairs.tolist(), weights.tolist()):
         if w > 0 and reg[i] != reg[j]:
             b = j if reg[i] else i
+            if not allowed[b]:
+                continue
             strength[b] = max(strength.get(b, 0.0), w)
     return sorted(strength, key=lambda b: (-strength[b], b))
 
 
-def _model_points(tracks: Tracks, bearings, R, C, reg, max_error_rad, min_angle_rad):
+def model_points(tracks: Tracks, bearings, R, C, reg, max_error_rad, min_angle_rad):
     """Points of the tracks seen by >= 2 registered cameras, and each track's row in them (-1: none)."""
     point_of_track = np.full(tracks.num_tracks, -1)
     in_model = reg[tracks.image_ids]

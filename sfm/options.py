@@ -71,6 +71,9 @@ class FilterOptions:
                                     "(more inliers on weak pairs)")
     guided_ratio: float = setting(0.9, "ratio test of guided matching, among the candidates near the circle",
                                   gt=0.0, le=1.0)
+    upright: str = setting("none", "levelled panoramas: yaw-only relative rotations, 3-point solver. level: gravity is "
+                           "each image's down axis; vanishing: gravity from vertical lines (none where none found)",
+                           choices=("none", "level", "vanishing"))
     RULES: ClassVar[list[Rule]] = []
 
 
@@ -90,6 +93,14 @@ class RegistrationOptions:
                                                gt=0.0, le=180.0)
     max_direction_residual_deg: float = setting(10.0, "pairs whose baseline direction disagrees more are rejected",
                                                 gt=0.0, le=180.0)
+    resection: bool = setting(True, "grow every model by absolute pose (P3P on bearings) of the images left out")
+    min_resection_points: int = setting(15, "model points an image must see (inliers) to be added by resection",
+                                        ge=6, le=1_000_000)
+    resection_threshold_deg: float = setting(1.0, "angular error of a resection inlier", gt=0.0, le=90.0)
+    merge_models: bool = setting(True, "merge two models by a similarity when they share enough points")
+    min_merge_points: int = setting(8, "points triangulated in both models (inliers) needed to merge them",
+                                    ge=4, le=1_000_000)
+    seed: int = setting(0, "random seed of resection and merging (RANSAC)", ge=0, le=2**31)
     RULES: ClassVar[list[Rule]] = []
 
 

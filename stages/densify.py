@@ -42,7 +42,7 @@ DEFAULT_VOXEL_SHARE = 0.002  # voxel size = this share of the scene size when de
 def run(ctx: StageContext) -> dict:
     t_start = time.perf_counter()
     config: DensifyOptions = ctx.options
-    sparse = ctx.ws.load_sparse()
+    sparse = ctx.ws.load_sparse_model(0)
     names = ctx.dataset.image_names
     R, t, centers = sparse["R_cam_from_world"], sparse["t_cam_from_world"], sparse["centers"]
     registered = sparse["registered"].astype(bool)

@@ -1,7 +1,9 @@
-"""Stage 6 — tracks, multi-view triangulation, filtering and bundle adjustment; npz, PLY and COLMAP text model.
+"""Stage 6 — tracks, multi-view triangulation, filtering and bundle adjustment; npz, PLY and COLMAP text models.
 
 Two rounds: triangulate with the registration's poses and keep tracks under a loose error bound, bundle-adjust,
 then re-triangulate every track with the refined poses, apply the configured bounds and bundle-adjust again.
+Every model of the registration is adjusted in its own frame (one problem, its first camera fixed per model: tracks
+never span two models, since only pairs inside one model are consistent) and written as ``models/<k>/``.
 """
 
 from __future__ import annotations
@@ -9,7 +11,7 @@ from __future__ import annotations
 import logging
 import numpy as np
 
-from fullview.io.colmap import write_text_model
+from fullview.io.exports import SparseModel, split_models, write_colmap_model
 from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.tracks import Tracks, build_tracks
 from fullview.sfm.options import TriangulationOptions
@@ -18,7 +20,7 @@ from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
 
-VERSION = 1
+VERSION = 2
 UPSTREAM = ("registration",)
 INPUTS: tuple[str, ...] = ()
 LOOSE_FACTOR = 4.0  # first round keeps tracks up to this multiple of the final error bound
@@ -28,7 +30,7 @@ def run(ctx: StageContext) -> dict:
     config: TriangulationOptions = ctx.options
     obs = ctx.ws.load_observations(ctx.dataset)
     reg = ctx.ws.load_registration()
-    registered = reg["registered"]
+    model_id = reg["model_id"]
     verified = ctx.ws.load_inliers()
     usable = {p: m for p, m, ok in zip(verified.pairs, verified.matches, reg["pair_inlier_mask"]) if ok and len(m)}
     tracks, _ = build_tracks(usable, [len(o["bearings"]) for o in obs])
@@ -40,19 +42,19 @@ def run(ctx: StageContext) -> dict:
     keep = _triangulate_and_filter(tracks, bearings, R, t, LOOSE_FACTOR * max_err, min_angle)
     tracks_kept, points = tracks.subset(keep[0]), keep[1]
     if config.bundle_adjust and tracks_kept.num_tracks:
-        R, t, points, _ = _bundle(tracks_kept, bearings, R, t, points, registered, config)
+        R, t, points, _ = _bundle(tracks_kept, bearings, R, t, points, model_id, config)
     mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
     final = tracks.subset(mask)
     errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     if config.bundle_adjust and final.num_tracks:
-        R, t, points, errors = _bundle(final, bearings, R, t, points, registered, config)
+        R, t, points, errors = _bundle(final, bearings, R, t, points, model_id, config)
         # The last adjustment moved the points: drop the few tracks it left beyond the bound, so the stored
         # errors describe the stored points.
         worst = np.full(final.num_tracks, 0.0)
         np.maximum.at(worst, final.track_ids, errors)
         good = worst <= max_err
         final, points, errors = final.subset(good), points[good], errors[good[final.track_ids]]
-    return _write(ctx, obs, registered, R, t, final, points, errors)
+    return _write(ctx, obs, model_id, R, t, final, points, errors)
 
 
 def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
@@ -61,18 +63,19 @@ def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
     return mask, tri.points[mask]
 
 
-def _bundle(tracks: Tracks, bearings, R, t, points, registered, config):
-    """Bundle adjustment over the registered cameras (reindexed), the first one fixed.
+def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config):
+    """Bundle adjustment over the cameras of every model (reindexed), the first camera of each model fixed.
 
     Returns refined (R, t) of every camera, the points and the final angular error of every observation."""
-    cams = np.flatnonzero(registered)
-    local = np.full(len(registered), -1)
+    cams = np.flatnonzero(model_id >= 0)
+    local = np.full(len(model_id), -1)
     local[cams] = np.arange(len(cams))
+    _, first = np.unique(model_id[cams], return_index=True)
     result = bundle_adjust(
         R_cam_from_world=R[cams], t_cam_from_world=t[cams], points=points,
         obs_camera=local[tracks.image_ids], obs_point=tracks.track_ids,
         obs_bearings=gather_bearings(bearings, tracks.image_ids, tracks.feature_ids),
-        fixed_cameras=(0,), loss="soft_l1", loss_scale_rad=np.radians(config.ba_loss_scale_deg),
+        fixed_cameras=tuple(first.tolist()), loss="soft_l1", loss_scale_rad=np.radians(config.ba_loss_scale_deg),
         max_nfev=config.ba_max_iterations)
     log.info("bundle adjustment: %d cameras, %d points, cost %.4g -> %.4g, median error %.4f deg",
              len(cams), len(points), result.initial_cost, result.final_cost,
@@ -82,24 +85,29 @@ def _bundle(tracks: Tracks, bearings, R, t, points, registered, config):
     return R, t, result.points, result.obs_error_rad
 
 
-def _write(ctx: StageContext, obs, registered, R, t, tracks: Tracks, points, errors) -> dict:
+def _write(ctx: StageContext, obs, model_id, R, t, tracks: Tracks, points, errors) -> dict:
     colors = _mean_colors(tracks, obs)
     point_error = np.zeros(len(points))
     np.maximum.at(point_error, tracks.track_ids, errors)
+    point_model = model_id[tracks.image_ids[tracks.offsets[:-1]]] if len(points) else np.zeros(0, np.int64)
     names = ctx.dataset.image_names
     lengths = np.diff(tracks.offsets)
-    summary = {"points": int(len(points)), "registered": int(registered.sum()),
+    sizes = np.bincount(model_id[model_id >= 0], minlength=int(model_id.max(initial=-1)) + 1)
+    summary = {"points": int((point_model == 0).sum()), "registered": int((model_id == 0).sum()), "images": len(names),
+               "models": [{"images": int(n), "points": int((point_model == k).sum())} for k, n in enumerate(sizes)],
                "mean_track_length": float(lengths.mean()) if len(lengths) else 0.0,
                "median_error_deg": float(np.degrees(np.median(errors))) if len(errors) else 0.0}
-    ctx.out.save_sparse(points=points, colors=colors, summary=summary, image_names=names, registered=registered,
-                        R_cam_from_world=R, t_cam_from_world=t, point_error_rad=point_error,
-                        track_ids=tracks.track_ids, image_ids=tracks.image_ids, feature_ids=tracks.feature_ids,
-                        obs_error_rad=errors)
-    sizes = [tuple(int(v) for v in o["image_size"]) for o in obs]
-    write_text_model(ctx.out.sparse_colmap_dir(), image_sizes=sizes, image_names=names, registered=registered,
-                     R_cam_from_world=R, t_cam_from_world=t, points=points, colors=colors,
-                     errors_rad=point_error, track_image=tracks.image_ids, track_point2d=tracks.feature_ids,
-                     track_point3d=tracks.track_ids, pixels=[o["pixels"] for o in obs])
+    ctx.out.save_sparse(points=points, colors=colors, summary=summary, image_names=names, registered=model_id == 0,
+                        model_id=model_id, point_model=point_model, R_cam_from_world=R, t_cam_from_world=t,
+                        point_error_rad=point_error, track_ids=tracks.track_ids, image_ids=tracks.image_ids,
+                        feature_ids=tracks.feature_ids, obs_error_rad=errors)
+    whole = SparseModel(image_names=list(names), image_sizes=[tuple(int(v) for v in o["image_size"]) for o in obs],
+                        registered=model_id >= 0, R_cam_from_world=R, t_cam_from_world=t, points=points,
+                        colors=colors, point_errors_rad=point_error, track_point3d=tracks.track_ids,
+                        track_image=tracks.image_ids, track_point2d=tracks.feature_ids,
+                        pixels=[o["pixels"] for o in obs])
+    for k, model in enumerate(split_models(whole, model_id)):
+        write_colmap_model(model, ctx.out.path("sparse_model", model=k), binary=False)
     return summary
 
 

@@ -32,7 +32,7 @@ def test_eval_metrics(reconstructed, capsys, tiny_set_args):
 
 def test_colmap_model_is_readable(reconstructed):
     _, ws = reconstructed
-    rec = pycolmap.Reconstruction(str(ws / "tiny" / "triangulation" / "colmap"))
+    rec = pycolmap.Reconstruction(str(ws / "tiny" / "triangulation" / "models" / "0"))
     assert rec.num_reg_images() == 3 and rec.num_points3D() > 100
     cam = next(iter(rec.cameras.values()))
     assert cam.model.name == "EQUIRECTANGULAR" and (cam.width, cam.height) == (512, 256)
@@ -46,7 +46,7 @@ def test_colmap_model_is_readable(reconstructed):
 def test_colmap_model_reprojects_with_colmap_camera(reconstructed):
     """COLMAP's own EQUIRECTANGULAR projection of our points lands on our stored 2-D observations."""
     _, ws = reconstructed
-    rec = pycolmap.Reconstruction(str(ws / "tiny" / "triangulation" / "colmap"))
+    rec = pycolmap.Reconstruction(str(ws / "tiny" / "triangulation" / "models" / "0"))
     residuals = []
     for image in rec.images.values():
         cam = rec.cameras[image.camera_id]
@@ -103,7 +103,7 @@ def test_unrelated_image_is_reported_not_fatal(dataset_copy, tmp_path, capsys, t
     summary = json.loads((ws / "tiny" / "registration" / "manifest.json").read_text())["summary"]
     assert summary["registered"] == 3 and summary["unregistered"] == ["zz_unrelated.png"]
     assert summary["unregistered_reasons"]["zz_unrelated.png"].startswith("no verified pair with >= 15 inliers")
-    rec = pycolmap.Reconstruction(str(ws / "tiny" / "triangulation" / "colmap"))
+    rec = pycolmap.Reconstruction(str(ws / "tiny" / "triangulation" / "models" / "0"))
     assert rec.num_reg_images() == 3
 
 

@@ -33,8 +33,9 @@ def _export(reconstructed, fmt, *extra):
 def test_colmap_export_has_our_poses_and_points(reconstructed, fmt, suffix):
     _, ws, _ = reconstructed
     assert _export(reconstructed, fmt) == 0
-    folder = ws / "tiny" / f"export_{fmt}"
+    folder = ws / "tiny" / f"export_{fmt}" / "0"  # model 0, the only one
     assert (folder / f"images{suffix}").exists()
+    assert sorted(p.name for p in folder.parent.iterdir() if p.is_dir()) == ["0"]
     rec = pycolmap.Reconstruction(str(folder))
     sparse = np.load(ws / "tiny" / "triangulation" / "sparse.npz")
     names = [str(n) for n in sparse["image_names"]]
@@ -52,7 +53,7 @@ def test_colmap_export_has_our_poses_and_points(reconstructed, fmt, suffix):
 def test_nerfstudio_export_round_trips_to_our_cameras(reconstructed):
     dataset, ws, _ = reconstructed
     assert _export(reconstructed, "nerfstudio") == 0
-    folder = ws / "tiny" / "export_nerfstudio"
+    folder = ws / "tiny" / "export_nerfstudio" / "0"
     meta = json.loads((folder / "transforms.json").read_text())
     assert meta["camera_model"] == "EQUIRECTANGULAR" and (folder / meta["ply_file_path"]).exists()
     for frame in meta["frames"]:
@@ -69,7 +70,7 @@ def test_ply_export_has_colours_and_normals(reconstructed):
     _, ws, _ = reconstructed
     assert _export(reconstructed, "ply") == 0
     for name in ("sparse.ply", "dense.ply"):
-        cloud = load_ply(ws / "tiny" / "export_ply" / name)
+        cloud = load_ply(ws / "tiny" / "export_ply" / "0" / name)
         normals = np.column_stack([cloud["nx"], cloud["ny"], cloud["nz"]])
         assert len(cloud["x"]) > 100 and cloud["red"].dtype == np.uint8
         assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)
@@ -78,7 +79,7 @@ def test_ply_export_has_colours_and_normals(reconstructed):
 def test_export_to_a_chosen_folder_and_refusals(reconstructed, tmp_path, capsys):
     out = tmp_path / "mine"
     assert _export(reconstructed, "colmap", "--out", str(out)) == 0
-    assert (out / "points3D.txt").exists()
+    assert (out / "0" / "points3D.txt").exists()
     assert _export(reconstructed, "colmap", "--out", str(out)) == 0  # a previous export may be replaced
     other = tmp_path / "photos"
     other.mkdir()

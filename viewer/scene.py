@@ -100,7 +100,7 @@ class SceneData:
     def load_cloud(self, kind: str) -> tuple[np.ndarray, np.ndarray]:
         with self.ws.reading():
             if kind == "sparse":
-                sparse = self.ws.load_sparse()
+                sparse = self.ws.load_sparse_model(0)
                 return sparse["points"], sparse["colors"]
             cloud = self.ws.load_dense_cloud()
         if cloud is None:

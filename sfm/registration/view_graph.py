@@ -94,6 +94,8 @@ def triangle_support(num_images, pairs, R_j_from_i, weights, mask, *, threshold_
     y = start[low[x]] + np.arange(len(x)) - np.repeat(np.cumsum(rep) - rep, rep)
     keep = high[x] < high[y]
     x, y = x[keep], y[keep]
+    if len(x) == 0:  # no two edges share a lower endpoint: no triangle (and scipy's empty lookup would be sparse)
+        return support
     e_bc = np.asarray(lookup[high[x], high[y]]).ravel() - 1
     tri = e_bc >= 0
     e_ab, e_ac, e_bc = eid[x[tri]], eid[y[tri]], e_bc[tri]

@@ -1,0 +1,306 @@
+"""Every model the verified pairs support: global registration per group, growth by resection, merging.
+
+1. **Global models.** ``register`` (rotation and translation averaging) places the largest group of images joined
+   by usable pairs as a model, which then grows (step 2); the next model starts from the largest group of the
+   images still outside, until no group of two images or more remains. Each model has its own gauge (its first
+   image at R = I, centre 0).
+2. **Growth.** A model takes the images outside every model that it can hold: a camera tied by a
+   single pair is attached along that pair's baseline (``attach_cameras``); an image that sees enough of the
+   model's points is placed by resection (P3P on bearings inside LO-RANSAC, refined on its inliers; see
+   ``fullview.sfm.resection``). After each round the model is bundle-adjusted and its points re-triangulated, so the
+   next round sees the points the new cameras add; growth stops when no image can be added.
+3. **Merging.** Two models whose tracks triangulate in both are merged into the larger one by the similarity those
+   points agree on (3-point Umeyama samples in RANSAC; a point agrees when, carried into the larger model, it
+   reprojects within the threshold in every camera of that model that observes it), then the merged model grows
+   again.
+
+Models are numbered by size, largest first (ties: lowest image id). Pure geometry: no file access.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from fullview.sfm.attach import attach_cameras, model_points
+from fullview.sfm.bundle import bundle_adjust
+from fullview.sfm.metrics import umeyama
+from fullview.sfm.options import RegistrationOptions
+from fullview.sfm.registration.driver import register
+from fullview.sfm.registration.view_graph import largest_component
+from fullview.sfm.resection import ResectionOptions, resect
+from fullview.sfm.tracks import Tracks
+from fullview.sfm.triangulation import angular_errors, gather_bearings
+
+log = logging.getLogger(__name__)
+
+POINT_ERROR_DEG = 1.0  # model points used for resection and merging: angular error bound before bundle adjustment
+MIN_POINT_ANGLE_DEG = 1.0  # ... and smallest triangulation angle
+MERGE_ITERATIONS = 500  # RANSAC samples of the similarity between two models
+GROWTH_BA_ITERATIONS = 30  # function evaluations of the bundle adjustment after each growth round
+
+
+@dataclass(kw_only=True)
+class PairLinks:
+    """The relative poses of the image pairs, as registration takes them."""
+
+    pairs: np.ndarray  # (P, 2) image indices
+    R_j_from_i: np.ndarray  # (P, 3, 3)
+    t_j_from_i: np.ndarray  # (P, 3)
+    weights: np.ndarray  # (P,) inlier counts, 0 for pairs that must not be used (below registration.min_inliers
+    # and not verified by hand points)
+    e_i: np.ndarray | None = None  # (P, 3) epipoles in image i (signs aligned with t), optional
+    e_j: np.ndarray | None = None  # (P, 3) epipoles in image j, optional
+
+
+@dataclass(kw_only=True)
+class ModelSet:
+    model_id: np.ndarray  # (N,) model of each image, -1 for none; model 0 is the largest
+    R_cam_from_world: np.ndarray  # (N, 3, 3) rotation in its model's frame; identity outside every model
+    centers: np.ndarray  # (N, 3) centre in its model's frame; 0 outside every model
+    averaged_in: np.ndarray  # (N,) the global model that placed the image by averaging (-1: grown or none)
+    averaging_verdict: np.ndarray  # (P,) averaging's own judgement of pairs inside one of its models
+    epipole_cost: float  # the report's epipole cost summed over the global models
+    attached: list[int] = field(default_factory=list)  # images attached along a single pair's baseline
+    resected: list[int] = field(default_factory=list)  # images placed by resection
+    merges: list[dict] = field(default_factory=list)  # {"images": [...], "points": n}: models merged into another
+
+    @property
+    def num_models(self) -> int:
+        return int(self.model_id.max(initial=-1)) + 1
+
+    def sizes(self) -> list[int]:
+        return np.bincount(self.model_id[self.model_id >= 0], minlength=self.num_models).tolist()
+
+
+def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndarray], options: RegistrationOptions
+                 ) -> ModelSet:
+    """Global models, grown by attachment and resection, merged where they overlap (see the module doc)."""
+    state = _empty_state(len(bearings), len(links.pairs))
+    open_pairs = links.weights > 0
+    while (m := _next_global_model(state, open_pairs, links, options)) is not None:
+        # grow before the next model starts, so images a model can hold never start tiny models of their own
+        _grow(state, m, links, tracks, bearings, options)
+    merge_points = options.min_merge_points if options.merge_models else None
+    while merge_points is not None and _merge_once(state, links, tracks, bearings, options, merge_points):
+        pass
+    _renumber(state)
+    log.info("models: sizes %s; %d attached, %d resected, %d merge(s)", state.sizes(), len(state.attached),
+             len(state.resected), len(state.merges))
+    return state
+
+
+# --------------------------------------------------------------------------------------------- global models
+def _empty_state(num_images: int, num_pairs: int) -> ModelSet:
+    return ModelSet(model_id=np.full(num_images, -1), R_cam_from_world=np.tile(np.eye(3), (num_images, 1, 1)),
+                    centers=np.zeros((num_images, 3)), averaged_in=np.full(num_images, -1),
+                    averaging_verdict=np.zeros(num_pairs, bool), epipole_cost=0.0)
+
+
+def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks, options: RegistrationOptions
+                       ) -> int | None:
+    """Register the largest group of free images joined by open pairs as a new model; its id, or None when no group
+    of two images or more can be registered. Spends the group's pairs (`open_pairs` is updated in place), except
+    those among images averaging left out, which may still form a model of their own."""
+    pairs, w, num_images = links.pairs, links.weights, len(state.model_id)
+    while True:
+        free = state.model_id < 0
+        active = open_pairs & free[pairs].all(axis=1)
+        group = largest_component(num_images, pairs, active, w)
+        if len(group) < 2:
+            return None
+        inside = np.zeros(num_images, bool)
+        inside[group] = True
+        in_group = active & inside[pairs].all(axis=1)
+        reg = register(num_images=num_images, pairs=pairs, R_j_from_i=links.R_j_from_i, t_j_from_i=links.t_j_from_i,
+                       weights=np.where(in_group, w, 0.0), model=options.model, e_ij=links.e_i, e_ji=links.e_j,
+                       min_weight=0.0, max_rotation_residual_deg=options.max_rotation_residual_deg,
+                       max_direction_residual_deg=options.max_direction_residual_deg)
+        open_pairs &= ~in_group
+        m = state.num_models
+        if reg.num_registered < 2:
+            # Averaging cannot place a group it cannot scale (a chain of single pairs): start from its strongest
+            # pair at unit baseline and let growth attach the rest by points.
+            _seed_from_pair(state, m, int(np.argmax(np.where(in_group, w, -np.inf))), links)
+            return m
+        placed = reg.registered
+        open_pairs |= in_group & (inside & ~placed)[pairs].all(axis=1)
+        state.model_id[placed] = m
+        state.averaged_in[placed] = m
+        state.R_cam_from_world[placed] = reg.R_cam_from_world[placed]
+        state.centers[placed] = reg.centers[placed]
+        state.averaging_verdict |= reg.pair_inlier_mask
+        state.epipole_cost += reg.epipole_cost
+        return m
+
+
+def _seed_from_pair(state: ModelSet, m: int, k: int, links: PairLinks) -> None:
+    """Model m from pair k alone: its first image at R = I, centre 0, the second one unit baseline away."""
+    i, j = links.pairs[k]
+    R, t = links.R_j_from_i[k], links.t_j_from_i[k] / np.linalg.norm(links.t_j_from_i[k])
+    state.model_id[[i, j]] = m
+    state.R_cam_from_world[i], state.centers[i] = np.eye(3), np.zeros(3)
+    state.R_cam_from_world[j], state.centers[j] = R, -R.T @ t
+
+
+def _by_size(state: ModelSet) -> list[int]:
+    sizes = state.sizes()
+    return sorted(range(len(sizes)), key=lambda m: (-sizes[m], m))
+
+
+def _renumber(state: ModelSet) -> None:
+    """Model ids by size, largest first (ties: lowest image id), without gaps."""
+    ids = [m for m in range(state.num_models) if (state.model_id == m).any()]
+    first = {m: int(np.flatnonzero(state.model_id == m)[0]) for m in ids}
+    order = sorted(ids, key=lambda m: (-int((state.model_id == m).sum()), first[m]))
+    lookup = np.full(state.num_models + 1, -1)
+    lookup[order] = np.arange(len(order))
+    state.model_id = lookup[state.model_id]  # -1 indexes the last entry, which stays -1
+    state.averaged_in = np.where(state.averaged_in >= 0, state.averaged_in, -1)
+
+
+# --------------------------------------------------------------------------------------------- growth
+def _grow(state: ModelSet, m: int, links: PairLinks, tracks: Tracks, bearings, options: RegistrationOptions) -> None:
+    """Attach, then resect, the free images model m can hold; bundle-adjust after each round of resection."""
+    att = attach_cameras(R_cam_from_world=state.R_cam_from_world, centers=state.centers,
+                         registered=state.model_id == m, allowed=state.model_id < 0, pairs=links.pairs,
+                         R_j_from_i=links.R_j_from_i, t_j_from_i=links.t_j_from_i, weights=links.weights,
+                         tracks=tracks, bearings_per_image=bearings, max_error_rad=np.radians(POINT_ERROR_DEG),
+                         min_angle_rad=np.radians(MIN_POINT_ANGLE_DEG))
+    state.R_cam_from_world, state.centers = att.R_cam_from_world, att.centers
+    state.model_id[att.attached] = m
+    state.attached += att.attached
+    if not options.resection:
+        return
+    while True:
+        added = _resect_round(state, m, tracks, bearings, options)
+        if not added:
+            return
+        state.resected += added
+        _adjust_model(state, m, tracks, bearings, options)
+
+
+def _resect_round(state: ModelSet, m: int, tracks: Tracks, bearings, options: RegistrationOptions) -> list[int]:
+    """Every free image seeing >= min_resection_points of model m's points, placed if its resection holds."""
+    X, point_of_track = _points_of(state, m, tracks, bearings)
+    seen = (state.model_id[tracks.image_ids] < 0) & (point_of_track[tracks.track_ids] >= 0)
+    counts = np.bincount(tracks.image_ids[seen], minlength=len(state.model_id))
+    resect_options = ResectionOptions(threshold_rad=np.radians(options.resection_threshold_deg),
+                                      min_inliers=options.min_resection_points, seed=options.seed)
+    added = []
+    for b in np.argsort(-counts, kind="stable"):
+        if counts[b] < options.min_resection_points:
+            break
+        sel = seen & (tracks.image_ids == b)
+        result = resect(gather_bearings(bearings, tracks.image_ids[sel], tracks.feature_ids[sel]),
+                        X[point_of_track[tracks.track_ids[sel]]], resect_options)
+        if result is None:
+            continue
+        state.model_id[b] = m
+        state.R_cam_from_world[b] = result.R_cam_from_world
+        state.centers[b] = -result.R_cam_from_world.T @ result.t_cam_from_world
+        added.append(int(b))
+        log.debug("resected image %d into model %d: %d/%d inliers", b, m, result.num_inliers, int(sel.sum()))
+    return added
+
+
+def _points_of(state: ModelSet, m: int, tracks: Tracks, bearings) -> tuple[np.ndarray, np.ndarray]:
+    return model_points(tracks, bearings, state.R_cam_from_world, state.centers, state.model_id == m,
+                        np.radians(POINT_ERROR_DEG), np.radians(MIN_POINT_ANGLE_DEG))
+
+
+def _adjust_model(state: ModelSet, m: int, tracks: Tracks, bearings, options: RegistrationOptions) -> None:
+    """Bundle adjustment of model m's cameras and points (its first camera fixed), so new cameras and the points
+    they add settle before the next round."""
+    X, point_of_track = _points_of(state, m, tracks, bearings)
+    cams = np.flatnonzero(state.model_id == m)
+    obs = (state.model_id[tracks.image_ids] == m) & (point_of_track[tracks.track_ids] >= 0)
+    if len(X) < 3 or not obs.any():
+        return
+    local = np.full(len(state.model_id), -1)
+    local[cams] = np.arange(len(cams))
+    R = state.R_cam_from_world[cams]
+    t = -np.einsum("nab,nb->na", R, state.centers[cams])
+    result = bundle_adjust(R_cam_from_world=R, t_cam_from_world=t, points=X,
+                           obs_camera=local[tracks.image_ids[obs]], obs_point=point_of_track[tracks.track_ids[obs]],
+                           obs_bearings=gather_bearings(bearings, tracks.image_ids[obs], tracks.feature_ids[obs]),
+                           fixed_cameras=(0,), loss="soft_l1", loss_scale_rad=np.radians(0.2),
+                           max_nfev=GROWTH_BA_ITERATIONS)
+    state.R_cam_from_world[cams] = result.R_cam_from_world
+    state.centers[cams] = -np.einsum("nba,nb->na", result.R_cam_from_world, result.t_cam_from_world)
+
+
+# --------------------------------------------------------------------------------------------- merging
+def _merge_once(state: ModelSet, links: PairLinks, tracks: Tracks, bearings, options: RegistrationOptions,
+                min_points: int) -> bool:
+    """Merge the first pair of models (largest first) whose common points agree on a similarity; True if merged."""
+    order = _by_size(state)
+    points = {m: _points_of(state, m, tracks, bearings) for m in order}
+    for a_rank, a in enumerate(order):
+        for b in order[a_rank + 1:]:
+            common = np.flatnonzero((points[a][1] >= 0) & (points[b][1] >= 0))
+            if len(common) < min_points:
+                continue
+            X_a, X_b = points[a][0][points[a][1][common]], points[b][0][points[b][1][common]]
+            sim, agree = _ransac_similarity(state, a, X_b, X_a, common, tracks, bearings, options)
+            if agree < min_points:
+                log.info("models %d and %d share %d points but only %d agree on a similarity: not merged",
+                         a, b, len(common), agree)
+                continue
+            moved = np.flatnonzero(state.model_id == b)
+            state.centers[moved] = sim.apply(state.centers[moved])
+            state.R_cam_from_world[moved] = state.R_cam_from_world[moved] @ sim.R.T
+            state.model_id[moved] = a
+            state.merges.append({"images": moved.tolist(), "points": int(agree)})
+            log.info("merged model %d (%d images) into model %d: %d/%d common points agree", b, len(moved), a,
+                     agree, len(common))
+            _adjust_model(state, a, tracks, bearings, options)
+            _grow(state, a, links, tracks, bearings, options)
+            return True
+    return False
+
+
+def _ransac_similarity(state: ModelSet, a: int, X_b: np.ndarray, X_a: np.ndarray, common: np.ndarray,
+                       tracks: Tracks, bearings, options: RegistrationOptions):
+    """Similarity taking model b's points onto model a's, and how many common points agree with it."""
+    rng = np.random.default_rng(options.seed)
+    check = _agreement_check(state, a, common, tracks, bearings, np.radians(2 * options.resection_threshold_deg))
+    best, best_agree = None, np.zeros(len(common), bool)
+    for _ in range(MERGE_ITERATIONS):
+        sample = rng.choice(len(common), 3, replace=False)
+        try:
+            sim = umeyama(X_b[sample], X_a[sample])
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        if not np.isfinite(sim.scale) or sim.scale <= 0:
+            continue
+        agree = check(sim.apply(X_b))
+        if agree.sum() > best_agree.sum():
+            best, best_agree = sim, agree
+    if best is None or best_agree.sum() < 3:
+        return None, 0
+    refined = umeyama(X_b[best_agree], X_a[best_agree])
+    agree = check(refined.apply(X_b))
+    return (refined, int(agree.sum())) if agree.sum() >= best_agree.sum() else (best, int(best_agree.sum()))
+
+
+def _agreement_check(state: ModelSet, a: int, common: np.ndarray, tracks: Tracks, bearings, max_error_rad: float):
+    """A function: candidate positions (C, 3) of the common points in model a -> (C,) whether each reprojects
+    within ``max_error_rad`` in every camera of model a that observes it."""
+    row = np.full(tracks.num_tracks, -1)
+    row[common] = np.arange(len(common))
+    obs = (state.model_id[tracks.image_ids] == a) & (row[tracks.track_ids] >= 0)
+    images, which = tracks.image_ids[obs], row[tracks.track_ids[obs]]
+    z = gather_bearings(bearings, images, tracks.feature_ids[obs])
+    R, C = state.R_cam_from_world[images], state.centers[images]
+
+    def check(Y: np.ndarray) -> np.ndarray:
+        err = angular_errors(z, np.einsum("kab,kb->ka", R, Y[which] - C))
+        worst = np.zeros(len(common))
+        np.maximum.at(worst, which, err)
+        return worst <= max_error_rad
+
+    return check
