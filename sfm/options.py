@@ -66,6 +66,8 @@ class FilterOptions:
     max_iterations: int = setting(5000, "RANSAC hypotheses cap", ge=1, le=10_000_000)
     confidence: float = setting(0.9999, "RANSAC adaptive stopping confidence", gt=0.0, lt=1.0)
     min_inliers: int = setting(30, "pairs with fewer inliers are dropped", ge=8, le=1_000_000)
+    min_inliers_upright: int = setting(15, "pairs fitted by the upright model (3 unknowns, not 5) are kept from this "
+                                       "many inliers", ge=8, le=1_000_000)
     seed: int = setting(0, "RANSAC random seed (pair k uses seed + k)", ge=0, le=2**31)
     guided_matching: bool = setting(False, "rematch a pair's features along the epipolar circles of its F estimate "
                                     "(more inliers on weak pairs)")

@@ -40,8 +40,9 @@ def run(ctx: StageContext) -> dict:
     guided_counts = []
     raw = ctx.ws.load_matches()
     threshold = np.radians(options.threshold_deg)
-    inliers, Fs, seeded, num_hand, no_baseline = [], [], [], [], []
+    inliers, Fs, seeded, num_hand, no_baseline, weak = [], [], [], [], [], []
     gravity = _gravity(ctx, options.upright)
+    min_upright = options.min_inliers_upright
     for k, (i, j) in enumerate(tqdm(raw.pairs, desc="filter", unit="pair")):
         hand = hand_pair_matches(ctx.dataset, num_sift, i, j) if options.use_hand_points else np.zeros((0, 2), int)
         use_seed = len(hand) >= options.min_hand_points
@@ -52,17 +53,20 @@ def run(ctx: StageContext) -> dict:
             good, added = _add_guided(good, descriptors[i], descriptors[j], obs[i]["bearings"], obs[j]["bearings"],
                                       F, threshold, guided)
             guided_counts.append(added)
-        flat = len(good) >= options.min_inliers and has_no_baseline(
+        upright_pair = not use_seed and np.isfinite(gravity[[i, j]]).all()
+        minimum = min_upright if upright_pair else options.min_inliers
+        flat = len(good) >= min(minimum, options.min_inliers) and has_no_baseline(
             obs[i]["bearings"][good[:, 0]], obs[j]["bearings"][good[:, 1]], threshold)
         if flat:
             log.warning("pair %s-%s has no baseline (a rotation explains its matches); skipped",
                         ctx.dataset.image_names[i], ctx.dataset.image_names[j])
         # A pair the user joined by hand is verified by its hand points alone when they fix the relative pose (not
         # all on one plane): on a doorway pair SIFT may find almost nothing.
-        enough = len(good) >= options.min_inliers or (use_seed and two_view.points_determine_f(
+        enough = len(good) >= minimum or (use_seed and two_view.points_determine_f(
             obs[i]["bearings"][hand[:, 0]], obs[j]["bearings"][hand[:, 1]]))
         if not enough or flat:
             good = good[:0]
+        weak.append(0 < len(good) < options.min_inliers)
         inliers.append(good)
         Fs.append(F)
         seeded.append(use_seed)
@@ -70,7 +74,8 @@ def run(ctx: StageContext) -> dict:
         no_baseline.append(flat)
     ctx.out.save_inliers(raw.pairs, inliers, F=np.array(Fs).reshape(-1, 3, 3),
                          num_raw=np.array([len(m) for m in raw.matches]), seeded=np.array(seeded, bool),
-                         num_hand=np.array(num_hand), no_baseline=np.array(no_baseline, bool))
+                         num_hand=np.array(num_hand), no_baseline=np.array(no_baseline, bool),
+                         weak_verified=np.array(weak, bool))
     counts = np.array([len(m) for m in inliers])
     names = ctx.dataset.image_names
     return {"pairs": len(raw.pairs), "verified_pairs": int((counts > 0).sum()), "seeded_pairs": int(sum(seeded)),

@@ -30,8 +30,7 @@ def run(ctx: StageContext) -> dict:
     options: RegistrationOptions = ctx.options
     epi = ctx.ws.load_epipoles()
     verified = ctx.ws.load_inliers()
-    by_hand = _hand_verified(verified)
-    usable = epi["valid"] & ((epi["num_inliers"] >= options.min_inliers) | by_hand)
+    usable = epi["valid"] & ((epi["num_inliers"] >= options.min_inliers) | _weak_verified(verified))
     if not usable.any():
         raise NothingToRegister(f"{ctx.dataset.root}: no image pair has a usable relative pose (verified pairs with "
                                 f"a baseline and >= registration.min_inliers={options.min_inliers} inliers); "
@@ -68,10 +67,9 @@ def run(ctx: StageContext) -> dict:
     return summary
 
 
-def _hand_verified(verified) -> np.ndarray:
-    """(P,) pairs that hand points seeded and the filter kept (they may have fewer inliers than min_inliers)."""
-    seeded = verified.extra.get("seeded", np.zeros(len(verified.pairs), bool)).astype(bool)
-    return seeded & np.array([len(m) > 0 for m in verified.matches], bool)
+def _weak_verified(verified) -> np.ndarray:
+    """(P,) pairs the filter kept below its min_inliers (hand points or the upright model verified them)."""
+    return verified.extra.get("weak_verified", np.zeros(len(verified.pairs), bool)).astype(bool)
 
 
 def _judge_pairs(epi, weights, models: ModelSet, t, options: RegistrationOptions):

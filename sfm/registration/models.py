@@ -30,7 +30,7 @@ from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.metrics import umeyama
 from fullview.sfm.options import RegistrationOptions
 from fullview.sfm.registration.driver import register
-from fullview.sfm.registration.view_graph import largest_component
+from fullview.sfm.registration.view_graph import bridges, component_labels, largest_component
 from fullview.sfm.resection import ResectionOptions, resect
 from fullview.sfm.tracks import Tracks
 from fullview.sfm.triangulation import angular_errors, gather_bearings
@@ -126,7 +126,7 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
             # pair at unit baseline and let growth attach the rest by points.
             _seed_from_pair(state, m, int(np.argmax(np.where(in_group, w, -np.inf))), links)
             return m
-        placed = reg.registered
+        placed = reg.registered & ~_behind_contradicted_bridges(reg, in_group, pairs, num_images)
         open_pairs |= in_group & (inside & ~placed)[pairs].all(axis=1)
         state.model_id[placed] = m
         state.averaged_in[placed] = m
@@ -135,6 +135,32 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
         state.averaging_verdict |= reg.pair_inlier_mask
         state.epipole_cost += reg.epipole_cost
         return m
+
+
+def _behind_contradicted_bridges(reg, in_group: np.ndarray, pairs: np.ndarray, num_images: int) -> np.ndarray:
+    """(N,) images that averaging placed only through a contradicted bridge: the smaller side of a used pair whose
+    removal splits the used graph, when other pairs between the two sides exist and averaging rejected them.
+
+    No cycle passes through a bridge, so nothing checks its relative pose; one contradicted by the other pairs
+    between the same two groups is likely the wrong one of them (measured: two rooms joined by mutually
+    inconsistent pairs were fused through an arbitrary one of them). An uncontradicted bridge (a doorway pair) is
+    kept. The images cut off are placed again by points (attachment, resection, merging), which checks them."""
+    used = reg.pair_used_mask.copy()
+    cut = np.zeros(num_images, bool)
+    while True:
+        whole = component_labels(num_images, pairs, used)
+        for k in np.flatnonzero(bridges(num_images, pairs, used)):
+            labels = component_labels(num_images, pairs, used & (np.arange(len(pairs)) != k))
+            a, b = labels[pairs[k]]
+            side = labels == (a if (labels == a).sum() < (labels == b).sum() else b)
+            inside = whole == whole[pairs[k, 0]]  # the bridge's own component, both sides
+            between = in_group & inside[pairs].all(axis=1) & (side[pairs[:, 0]] != side[pairs[:, 1]])
+            if (between & ~used).any():
+                cut |= side
+                used &= ~side[pairs].any(axis=1)
+                break
+        else:
+            return cut
 
 
 def _seed_from_pair(state: ModelSet, m: int, k: int, links: PairLinks) -> None:

@@ -114,3 +114,46 @@ def triangle_support(num_images, pairs, R_j_from_i, weights, mask, *, threshold_
     counts = np.bincount(np.concatenate([e_ab[ok], e_ac[ok], e_bc[ok]]), minlength=E)
     support[idx] = counts
     return support
+
+
+def bridges(num_images: int, pairs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(P,) bool: pairs of ``pairs[mask]`` whose removal disconnects the graph (Tarjan's low-link, iterative DFS).
+
+    A loop over the graph's edges (not a per-point hot path): views and pairs number in the hundreds or thousands.
+    Parallel pairs between the same two images are never bridges."""
+    adjacency: list[list[tuple[int, int]]] = [[] for _ in range(num_images)]
+    for k in np.flatnonzero(mask):
+        i, j = int(pairs[k, 0]), int(pairs[k, 1])
+        adjacency[i].append((j, int(k)))
+        adjacency[j].append((i, int(k)))
+    order = np.full(num_images, -1)
+    low = np.zeros(num_images, np.int64)
+    out = np.zeros(len(pairs), bool)
+    counter = 0
+    for root in range(num_images):
+        if order[root] >= 0 or not adjacency[root]:
+            continue
+        order[root] = low[root] = counter
+        counter += 1
+        stack = [(root, -1, iter(adjacency[root]))]
+        while stack:
+            node, via, edges = stack[-1]
+            step = next(edges, None)
+            if step is None:
+                stack.pop()
+                if stack:
+                    parent = stack[-1][0]
+                    low[parent] = min(low[parent], low[node])
+                    if low[node] > order[parent]:
+                        out[via] = True
+                continue
+            other, edge = step
+            if edge == via:
+                continue
+            if order[other] < 0:
+                order[other] = low[other] = counter
+                counter += 1
+                stack.append((other, edge, iter(adjacency[other])))
+            else:
+                low[node] = min(low[node], order[other])
+    return out
