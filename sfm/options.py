@@ -73,7 +73,7 @@ class FilterOptions:
                                     "(more inliers on weak pairs)")
     guided_ratio: float = setting(0.9, "ratio test of guided matching, among the candidates near the circle",
                                   gt=0.0, le=1.0)
-    upright: str = setting("none", "levelled panoramas: yaw-only relative rotations, 3-point solver. level: gravity is "
+    upright: str = setting("vanishing", "levelled panoramas: yaw-only relative rotations, 3-point solver. level: gravity is "
                            "each image's down axis; vanishing: gravity from vertical lines (none where none found)",
                            choices=("none", "level", "vanishing"))
     RULES: ClassVar[list[Rule]] = []
