@@ -274,6 +274,14 @@ class Dataset:
                 out[image][1].append(xy)
         return {n: (np.array(t, np.int64), np.array(p, np.float64).reshape(-1, 2)) for n, (t, p) in out.items()}
 
+    def hand_pair_matches(self, num_sift: list[int], i: int, j: int) -> np.ndarray:
+        """(K, 2) hand correspondences of images i, j in the extended feature index space (SIFT features first, then
+        each image's hand observations; see `Workspace.load_observations`)."""
+        tracks_i, _ = self.hand_observations[self.image_names[i]]
+        tracks_j, _ = self.hand_observations[self.image_names[j]]
+        _, ki, kj = np.intersect1d(tracks_i, tracks_j, assume_unique=True, return_indices=True)
+        return np.column_stack([ki + num_sift[i], kj + num_sift[j]]).astype(np.int64)
+
     # ------------------------------------------------------------------------------------------ ground truth
     def has_ground_truth(self) -> bool:
         return (self.ground_truth_dir / "poses.yaml").exists()

@@ -13,7 +13,6 @@ import logging
 import numpy as np
 from tqdm import tqdm
 
-from fullview.io.dataset import Dataset
 from fullview.sfm import two_view, upright
 from fullview.sfm.baseline import has_no_baseline
 from fullview.sfm.matching import epipolar_candidates, match_descriptors
@@ -44,7 +43,7 @@ def run(ctx: StageContext) -> dict:
     gravity = _gravity(ctx, options.upright)
     min_upright = options.min_inliers_upright
     for k, (i, j) in enumerate(tqdm(raw.pairs, desc="filter", unit="pair")):
-        hand = hand_pair_matches(ctx.dataset, num_sift, i, j) if options.use_hand_points else np.zeros((0, 2), int)
+        hand = ctx.dataset.hand_pair_matches(num_sift, i, j) if options.use_hand_points else np.zeros((0, 2), int)
         use_seed = len(hand) >= options.min_hand_points
         F, keep = _verify_pair(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], hand if use_seed else None,
                                threshold, options, seed=options.seed + k, gravity=(gravity[i], gravity[j]))
@@ -142,15 +141,6 @@ def _fit_upright(b_i, b_j, gravity, opts: two_view.RansacOptions) -> two_view.FR
     res = upright.ransac_f_upright(b_i @ L_i.T, b_j @ L_j.T, opts)
     res.F = upright.unlevel_f(res.F, L_i, L_j)  # levelling rotates bearings: angular errors are unchanged
     return res
-
-
-def hand_pair_matches(dataset: Dataset, num_sift: list[int], i: int, j: int) -> np.ndarray:
-    """(K, 2) hand correspondences of images i, j in the extended feature index space."""
-    hand = dataset.hand_observations
-    tracks_i, _ = hand[dataset.image_names[i]]
-    tracks_j, _ = hand[dataset.image_names[j]]
-    _, ki, kj = np.intersect1d(tracks_i, tracks_j, assume_unique=True, return_indices=True)
-    return np.column_stack([ki + num_sift[i], kj + num_sift[j]]).astype(np.int64)
 
 
 def _verify_pair(bear_i, bear_j, matches, hand, threshold, options: FilterOptions, seed, gravity):

@@ -38,8 +38,7 @@ def run(ctx: StageContext) -> dict:
     weights = np.where(usable, epi["num_inliers"], 0).astype(np.float64)  # 0: not used
     names = ctx.dataset.image_names
     obs = ctx.ws.load_observations(ctx.dataset)
-    tracks, _ = build_tracks({p: m for p, m, w in zip(verified.pairs, verified.matches, weights) if w > 0 and len(m)},
-                             [len(o["bearings"]) for o in obs])
+    tracks, _ = build_tracks(track_matches(ctx.dataset, verified, obs, weights > 0), [len(o["bearings"]) for o in obs])
     links = PairLinks(pairs=epi["pairs"], R_j_from_i=epi["R_j_from_i"], t_j_from_i=epi["t_j_from_i"],
                       weights=weights, e_i=epi["e_i"], e_j=epi["e_j"])
     models = build_models(links=links, tracks=tracks, bearings=[o["bearings"] for o in obs], options=options)
@@ -65,6 +64,23 @@ def run(ctx: StageContext) -> dict:
                               R_cam_from_world=R, t_cam_from_world=t, pair_inlier_mask=pair_ok,
                               rotation_residual_deg=rot_res, direction_residual_deg=dir_res)
     return summary
+
+
+def track_matches(dataset, verified, obs, use: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+    """Matches tracks are built from: the inliers of the pairs in `use`, plus the hand correspondences of every
+    matched pair that has some (the filter records them only with filter.use_hand_points). Hand points are the
+    user's own correspondences: a hand point seen on both sides of a closed door joins the two models even where
+    no pair across it verifies."""
+    num_sift = [int(o["num_sift"]) for o in obs]
+    num_hand = verified.extra.get("num_hand", np.zeros(len(verified.pairs), np.int64))
+    out = {}
+    for k, (pair, m) in enumerate(zip(verified.pairs, verified.matches)):
+        parts = [m] if use[k] and len(m) else []
+        if num_hand[k] > 0:
+            parts.append(dataset.hand_pair_matches(num_sift, *pair))
+        if parts:
+            out[pair] = np.concatenate(parts)
+    return out
 
 
 def _weak_verified(verified) -> np.ndarray:

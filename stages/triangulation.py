@@ -17,6 +17,7 @@ from fullview.sfm.tracks import Tracks, build_tracks
 from fullview.sfm.options import TriangulationOptions
 from fullview.sfm.triangulation import filter_tracks, gather_bearings, triangulate_multiview
 from fullview.stages.protocol import StageContext
+from fullview.stages.registration import track_matches
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +33,12 @@ def run(ctx: StageContext) -> dict:
     reg = ctx.ws.load_registration()
     model_id = reg["model_id"]
     verified = ctx.ws.load_inliers()
-    usable = {p: m for p, m, ok in zip(verified.pairs, verified.matches, reg["pair_inlier_mask"]) if ok and len(m)}
-    tracks, _ = build_tracks(usable, [len(o["bearings"]) for o in obs])
+    pairs = np.array(verified.pairs).reshape(-1, 2)
+    same_model = (model_id[pairs[:, 0]] == model_id[pairs[:, 1]]) & (model_id[pairs[:, 0]] >= 0)
+    matches = track_matches(ctx.dataset, verified, obs, reg["pair_inlier_mask"])
+    row = {p: k for k, p in enumerate(verified.pairs)}
+    tracks, _ = build_tracks({p: m for p, m in matches.items() if same_model[row[p]]},
+                             [len(o["bearings"]) for o in obs])
     bearings = [o["bearings"] for o in obs]
     R, t = reg["R_cam_from_world"], reg["t_cam_from_world"]
     max_err = np.radians(config.max_reprojection_error_deg)
