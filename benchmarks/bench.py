@@ -68,6 +68,7 @@ def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = 
         "sparse_time_s": round(sum(m["wall_time_s"] for m in manifests.values()), 2),
         "peak_rss_mb": max(m["peak_rss_mb"] for m in manifests.values()),
         "registered": manifests["registration"]["summary"]["registered"],
+        "models": manifests["registration"]["summary"].get("models"),
         "points": manifests["triangulation"]["summary"]["points"],
     }
     if dense:
@@ -117,8 +118,9 @@ def colmap_worker(dataset: Path, work: Path) -> None:
 HOME = dict(rooms=12, views=30, width=1024)  # the hard scene: plain walls, doorways, 1-3 panoramas per room
 
 
-def home_row(args) -> dict:
-    """The hard synthetic home: ours (registered share, verified pairs, time, AUC) next to COLMAP's."""
+def home_rows(args) -> list[dict]:
+    """The hard synthetic home, with and without its hand points: ours (registered share, models, verified pairs,
+    time, AUC) next to COLMAP's (which has no hand points to use)."""
     path = args.work / "datasets" / f"home{HOME['views']}_r{HOME['rooms']}_w{HOME['width']}_s{args.seed}"
     if not (path / "images").exists():
         proc = run([sys.executable, "-m", "fullview", "synth", str(path), "--scene", "home", "--rooms",
@@ -126,15 +128,19 @@ def home_row(args) -> dict:
                     str(args.seed)])
         if proc.returncode:
             raise RuntimeError(proc.stderr[-2000:])
-    label = f"home{HOME['views']}"
-    row = {"scene": label, "views": HOME["views"], "ours": ours(path, args.work, label, [])}
-    from fullview.io.workspace import Workspace
-    manifest = Workspace(args.work / "ws" / label, path.name).read_manifest("filter") or {}
-    row["ours"]["verified_pairs"] = (manifest.get("summary") or {}).get("verified_pairs")
-    if not args.no_colmap:
-        row["colmap"] = colmap(path, args.work, label)
-    log.info("%s: %s", label, json.dumps(row)[:400])
-    return row
+    rows = []
+    for hand in (True, False):  # the bare capture, as a user makes it, has no hand points
+        label = f"home{HOME['views']}-{'hand' if hand else 'bare'}"
+        row = {"scene": label, "views": HOME["views"],
+               "ours": ours(path, args.work, label, [f"filter.use_hand_points={str(hand).lower()}"])}
+        from fullview.io.workspace import Workspace
+        manifest = Workspace(args.work / "ws" / label, path.name).read_manifest("filter") or {}
+        row["ours"]["verified_pairs"] = (manifest.get("summary") or {}).get("verified_pairs")
+        if not args.no_colmap:
+            row["colmap"] = rows[-1]["colmap"] if rows else colmap(path, args.work, f"home{HOME['views']}")
+        log.info("%s: %s", label, json.dumps(row)[:400])
+        rows.append(row)
+    return rows
 
 
 def viewer_timing(dataset: Path, ws: Path) -> dict:
@@ -176,7 +182,7 @@ def fmt(x, spec=".2f"):
 
 
 def table(rows: list[dict]) -> str:
-    head = ("scene", "ours reg", "colmap reg", "ours AUC@0.5/1", "colmap AUC@0.5/1", "ours rot°", "colmap rot°",
+    head = ("scene", "ours reg", "colmap reg", "ours AUC@0.5/1/5", "colmap AUC@0.5/1/5", "ours rot°", "colmap rot°",
             "ours s", "colmap s", "ratio", "ours MB", "colmap MB")
     lines = [" | ".join(head), " | ".join("---" for _ in head)]
     for r in rows:
@@ -185,8 +191,8 @@ def table(rows: list[dict]) -> str:
         ratio = o.get("sparse_time_s", 0) / c["wall_time_s"] if c.get("wall_time_s") else None
         lines.append(" | ".join([
             r["scene"], str(o.get("registered", "err")), str(c.get("registered", "—")),
-            f"{fmt(om.get('auc@0.5'), '.1f')}/{fmt(om.get('auc@1'), '.1f')}",
-            f"{fmt(cm.get('auc@0.5'), '.1f')}/{fmt(cm.get('auc@1'), '.1f')}",
+            f"{fmt(om.get('auc@0.5'), '.1f')}/{fmt(om.get('auc@1'), '.1f')}/{fmt(om.get('auc@5'), '.1f')}",
+            f"{fmt(cm.get('auc@0.5'), '.1f')}/{fmt(cm.get('auc@1'), '.1f')}/{fmt(cm.get('auc@5'), '.1f')}",
             fmt(om.get("median_relative_rotation_error_deg"), ".4f"),
             fmt(cm.get("median_relative_rotation_error_deg"), ".4f"),
             fmt(o.get("sparse_time_s"), ".1f"), fmt(c.get("wall_time_s"), ".1f"), fmt(ratio, ".2f"),
@@ -264,7 +270,7 @@ def main() -> int:
             rows.append(row)
             log.info("%s: %s", label, json.dumps(row)[:400])
     if not args.no_home:
-        rows.append(home_row(args))
+        rows.extend(home_rows(args))
     if not args.no_real:
         if SHARED.exists():
             for name in ("360_Flat", "360_school"):
