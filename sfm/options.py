@@ -100,7 +100,8 @@ class RegistrationOptions:
                                         ge=6, le=1_000_000)
     resection_threshold_deg: float = setting(1.0, "angular error of a resection inlier", gt=0.0, le=90.0)
     merge_models: bool = setting(True, "merge two models by a similarity when they share enough points")
-    min_merge_points: int = setting(8, "points triangulated in both models (inliers) needed to merge them",
+    min_merge_points: int = setting(6, "points triangulated in both models that must agree on the similarity (3 fix its 7 "
+                                    "unknowns; the rest check it) to merge them",
                                     ge=4, le=1_000_000)
     seed: int = setting(0, "random seed of resection and merging (RANSAC)", ge=0, le=2**31)
     RULES: ClassVar[list[Rule]] = []

@@ -40,6 +40,7 @@ log = logging.getLogger(__name__)
 POINT_ERROR_DEG = 1.0  # model points used for resection and merging: angular error bound before bundle adjustment
 MIN_POINT_ANGLE_DEG = 1.0  # ... and smallest triangulation angle
 MERGE_ITERATIONS = 500  # RANSAC samples of the similarity between two models
+MERGE_START_FACTOR = 5.0  # common points agreeing with a candidate similarity: this many resection thresholds
 GROWTH_BA_ITERATIONS = 30  # function evaluations of the bundle adjustment after each growth round
 
 
@@ -262,7 +263,12 @@ def _adjust_model(state: ModelSet, m: int, tracks: Tracks, bearings, options: Re
 # --------------------------------------------------------------------------------------------- merging
 def _merge_once(state: ModelSet, links: PairLinks, tracks: Tracks, bearings, options: RegistrationOptions,
                 min_points: int) -> bool:
-    """Merge the first pair of models (largest first) whose common points agree on a similarity; True if merged."""
+    """Merge the first pair of models (largest first) whose common points agree on a similarity; True if merged.
+
+    Common points are triangulated in each model on its own, so far points (seen through a doorway) carry large
+    depth errors: the similarity from them is only a start. The merge is kept when, after bundle adjustment of the
+    merged model, at least `min_points` common tracks triangulate within the point error bound from the rays of
+    both sides together; otherwise it is undone."""
     order = _by_size(state)
     points = {m: _points_of(state, m, tracks, bearings) for m in order}
     for a_rank, a in enumerate(order):
@@ -272,18 +278,23 @@ def _merge_once(state: ModelSet, links: PairLinks, tracks: Tracks, bearings, opt
                 continue
             X_a, X_b = points[a][0][points[a][1][common]], points[b][0][points[b][1][common]]
             sim, agree = _ransac_similarity(state, a, X_b, X_a, common, tracks, bearings, options)
-            if agree < min_points:
-                log.info("models %d and %d share %d points but only %d agree on a similarity: not merged",
-                         a, b, len(common), agree)
+            if agree < 3:
                 continue
+            saved = (state.model_id.copy(), state.R_cam_from_world.copy(), state.centers.copy())
             moved = np.flatnonzero(state.model_id == b)
             state.centers[moved] = sim.apply(state.centers[moved])
             state.R_cam_from_world[moved] = state.R_cam_from_world[moved] @ sim.R.T
             state.model_id[moved] = a
-            state.merges.append({"images": moved.tolist(), "points": int(agree)})
-            log.info("merged model %d (%d images) into model %d: %d/%d common points agree", b, len(moved), a,
-                     agree, len(common))
             _adjust_model(state, a, tracks, bearings, options)
+            joined = int((_points_of(state, a, tracks, bearings)[1][common] >= 0).sum())
+            if joined < min_points:
+                state.model_id, state.R_cam_from_world, state.centers = saved
+                log.info("models %d and %d share %d points but only %d fit both after adjustment: not merged",
+                         a, b, len(common), joined)
+                continue
+            state.merges.append({"images": moved.tolist(), "points": joined})
+            log.info("merged model %d (%d images) into model %d: %d/%d common points fit both", b, len(moved), a,
+                     joined, len(common))
             _grow(state, a, links, tracks, bearings, options)
             return True
     return False
@@ -291,9 +302,11 @@ def _merge_once(state: ModelSet, links: PairLinks, tracks: Tracks, bearings, opt
 
 def _ransac_similarity(state: ModelSet, a: int, X_b: np.ndarray, X_a: np.ndarray, common: np.ndarray,
                        tracks: Tracks, bearings, options: RegistrationOptions):
-    """Similarity taking model b's points onto model a's, and how many common points agree with it."""
+    """Similarity taking model b's points onto model a's, and how many common points roughly agree with it (within
+    MERGE_START_FACTOR times the resection threshold: their depths are uncertain until both sides' rays meet)."""
     rng = np.random.default_rng(options.seed)
-    check = _agreement_check(state, a, common, tracks, bearings, np.radians(2 * options.resection_threshold_deg))
+    check = _agreement_check(state, a, common, tracks, bearings,
+                             np.radians(MERGE_START_FACTOR * options.resection_threshold_deg))
     best, best_agree = None, np.zeros(len(common), bool)
     for _ in range(MERGE_ITERATIONS):
         sample = rng.choice(len(common), 3, replace=False)
