@@ -47,9 +47,12 @@ def run(ctx: StageContext) -> dict:
     rot_res, dir_res, pair_ok = _judge_pairs(epi, weights, models, t, options)
     placed = model_id >= 0
     reasons = _reasons(ctx, obs, verified, epi, usable, placed)
-    for name, reason in reasons.items():
-        log.warning("%s is not registered: %s", name, reason)
     sizes = models.sizes()
+    for k in np.flatnonzero(model_id > 0):  # outside the main model, but placed: say where
+        reasons[names[k]] = (f"in model {model_id[k]} ({sizes[model_id[k]]} images), not joined to model 0 by "
+                             "verified pairs or shared points")
+    for name, reason in reasons.items():
+        log.warning("%s is not in model 0: %s", name, reason)
     if len(sizes) > 1:
         log.warning("%d separate models (sizes %s): no verified pairs or shared points join them; model 0 is the "
                     "main one (densify, viewer)", len(sizes), sizes)
