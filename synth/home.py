@@ -2,12 +2,28 @@
 
 The flat is a row of rooms along world x inside one outer shell (box 0, seen from inside). Rooms are separated by
 interior walls built from thin slab boxes: each wall has one doorway (``DOOR_WIDTH`` x ``DOOR_HEIGHT``), made of a
-slab on either side of the opening and a lintel slab above it up to the ceiling; a closed doorway is one full
-slab. The shell and the slabs are PLAIN (near-uniform colour, faint noise: SIFT finds little on them); each room
-holds a few strongly textured furniture boxes. The cameras are level (no roll or pitch) at ``HOME_EYE_HEIGHT``
-above the floor and walk through the rooms in order, 1-3 per room, passing each doorway, with a free line of
-sight and ``HOME_STEP_RANGE`` metres between consecutive cameras. Same world frame as the room scene (y down,
-floor at ``y = FLOOR_Y``).
+slab on either side of the opening and a lintel slab above it up to the ceiling. The shell and the slabs are PLAIN
+(near-uniform colour, faint noise: SIFT finds little on them); each room holds a few strongly textured furniture
+boxes. The cameras are level (no roll or pitch) at ``HOME_EYE_HEIGHT`` above the floor and walk through the rooms
+in order, 1-3 per room, passing each doorway, with a free line of sight and ``HOME_STEP_RANGE`` metres between
+consecutive cameras. Same world frame as the room scene (y down, floor at ``y = FLOOR_Y``).
+
+A closed doorway (``closed_door=k``, between room k and k + 1) keeps its wall and gets a closed door: a plain leaf
+(``DOOR_LEAF_THICKNESS``, centred in the wall) filling the opening, with a small window in it (an open hole,
+``WINDOW_WIDTH`` x ``WINDOW_HEIGHT`` at ``WINDOW_SILL`` above the floor, centred across the leaf): think of a
+glazed door. The leaf is four plain boxes around the window (below, above and beside it). The walk does not pass
+it (consecutive cameras across it need not see each other; their 1-2 m step still holds) and automatic matching
+does not join the two sides, yet a person can pick common points across it:
+
+- the cameras of its two rooms keep ``WINDOW_MIN_DISTANCE`` from it and see no furniture through the window
+  (``WINDOW_MAX_CLUTTER``), so only a small, mostly plain patch of the other side shows through it;
+- the ``WINDOW_VIEW_CAMERAS`` cameras nearest it on each side look through the window (``WINDOW_VIEW_MAX_ANGLE_DEG``
+  from its normal, ``WINDOW_PAIR_MAX_ANGLE_DEG`` from each other), and ``CROSSING_MARKERS`` extra target markers
+  ("home_door<k>_marker<m>") are placed, spread out, on plain walls, floor or ceiling of the two rooms where
+  ``CROSSING_MIN_VIEWS`` cameras on EACH side see them whole (from one side through the window), the nearest
+  camera on either side among them.
+
+When the two rooms have fewer cameras than that, the markers that fit are placed (maybe none).
 """
 
 from __future__ import annotations
@@ -16,8 +32,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fullview.sfm.camera import bearings_to_lonlat
+from fullview.synth.geometry import face_frame, face_normal
 from fullview.synth.layout import FLOOR_Y, rect_gap, rot_y, sample_box
 from fullview.synth.render import cast_rays
+from fullview.synth.textures import MARKER_RADIUS
 
 
 HOME_EYE_HEIGHT = 1.5  # camera height above the floor (m)
@@ -37,19 +56,43 @@ FLAT_DEPTH = (3.6, 4.6)  # extent of the flat along z (m)
 FLAT_HEIGHT = (2.5, 2.8)  # floor to ceiling (m)
 FLOOR_MARKERS_PER_ROOM = 3  # target markers on each room's floor (hand-point candidates)
 FLOOR_FACE = 3  # face index of the shell's floor (box 0, y axis, max side)
+# The closed doorway's door (see the module doc), tuned on `fullview synth --scene home --rooms 4 --views 12
+# --closed-door 1 --width 1024`, seeds 0-11, hand points off: at 0.4 m x 0.4 m, with the cameras >= 0.8 m away, no
+# cross-door pair keeps more than 11 RANSAC inliers even with filter.min_inliers and min_inliers_upright lowered to
+# 8 (random matches alone give the 3-point upright solver 8-10); a 0.5 m window let 3 of the 12 seeds reach 20-22,
+# above min_inliers_upright = 15 (and 0.6 m once 40, above min_inliers = 30).
+DOOR_LEAF_THICKNESS = 0.04  # door leaf (m), centred in the wall's thickness
+WINDOW_WIDTH = 0.4  # window opening along the wall (m), centred in the leaf
+WINDOW_HEIGHT = 0.4  # window opening (m)
+WINDOW_SILL = 1.25  # window bottom above the floor (m): the window (1.25-1.65 m) spans the eye height
+WINDOW_MIN_DISTANCE = 0.8  # no camera of the closed door's two rooms is nearer its plane (m)
+WINDOW_MAX_CLUTTER = 0.0  # ... nor sees furniture through more than this share of the window (6 x 6 rays)
+CLOSED_DOOR_REACH = 2.0  # DOOR_REACH of the closed door (m)
+WINDOW_VIEW_CAMERAS = 2  # cameras nearest the closed door on each side (in its two rooms) that see through it
+WINDOW_VIEW_MAX_ANGLE_DEG = 45.0  # ... from within this horizontal angle of the door's normal
+WINDOW_PAIR_MAX_ANGLE_DEG = 10.0  # ... and within this horizontal angle of each other's direction from the window
+CROSSING_MARKERS = 8  # target markers seen through the window by cameras on both sides of the closed door
+CROSSING_MIN_VIEWS = 2  # cameras on EACH side that see every crossing marker whole
+CROSSING_MARKER_GAP = 0.35  # minimum distance between a crossing marker and any other marker (m)
+_CROSSING_RAYS = 120  # rays per camera cast through the window to find crossing-marker candidates
+# A view of a crossing marker counts only where scene.visible_observations (depth maps) agrees at widths >= 384:
+_MIN_FACING = 0.5  # not steeper than 60° from the face's normal (depth varies too much across a pixel)
+_BORDER_ANGLE = np.deg2rad(6.0)  # not this near the panorama's left/right seam or its poles (the image border)
+_CLEAR_ANGLE = np.deg2rad(1.0)  # no occluding edge this near the marker's centre (the 4 pixels around it)
 _GRID = 0.05  # camera position grid (m)
 
 
 @dataclass(kw_only=True)
 class HomeLayout:
     boxes: np.ndarray  # (K, 2, 3): shell, wall slabs, furniture
-    plain_boxes: tuple[int, ...]  # indices of the plain boxes (shell and wall slabs)
+    plain_boxes: tuple[int, ...]  # indices of the plain boxes (shell, wall slabs, the closed door's leaf)
     rooms: np.ndarray  # (N, 2, 3) interior of every room (between its walls)
     doors: np.ndarray  # (N - 1, 2, 3) doorway openings (the empty box inside each interior wall)
-    closed_door: int | None  # doorway k (between room k and k + 1) walled up, or None
-    markers: np.ndarray  # (M, 3) floor marker centres
+    closed_door: int | None  # doorway k (between room k and k + 1) closed by a door with a window, or None
+    window: np.ndarray | None  # (2, 3) the closed door's window opening (through the leaf), or None
+    markers: np.ndarray  # (M, 3) marker centres: floor markers, then the closed door's crossing markers
     marker_names: list[str]
-    marker_faces: list[int]
+    marker_faces: list[int]  # face index (fullview.synth.geometry) each marker is drawn on
     R_world_from_cam: np.ndarray  # (V, 3, 3) level rotations (about world y)
     centers: np.ndarray  # (V, 3)
     room_of_view: np.ndarray  # (V,) room index of every camera
@@ -72,28 +115,55 @@ def check_closed_door(closed_door: int | None, rooms: int) -> None:
 
 
 def layout_home(rng: np.random.Generator, views: int, rooms: int, closed_door: int | None = None) -> HomeLayout:
-    """Seeded home of ``rooms`` rooms and a walk of ``views`` cameras through it (see the module doc)."""
+    """Seeded home of ``rooms`` rooms and a walk of ``views`` cameras through it (see the module doc).
+
+    With a closed door whose two rooms have >= CROSSING_MIN_VIEWS cameras each, walks are drawn until
+    ``CROSSING_MARKERS`` crossing markers fit (failing that, the walk with the most is kept); otherwise the
+    first walk is kept with the crossing markers that fit (maybe none)."""
     counts = views_per_room(views, rooms)
     check_closed_door(closed_door, rooms)
+    want_crossing = closed_door is not None and min(counts[closed_door], counts[closed_door + 1]) >= CROSSING_MIN_VIEWS
+    best = None
     for _attempt in range(50):
-        shell, rooms_b, doors, slabs = _walls(rng, counts, closed_door)
+        shell, rooms_b, doors, slabs, window, leaf = _walls(rng, counts, closed_door)
         furniture = _furniture(rng, rooms_b, doors)
         boxes = np.array([shell] + slabs + furniture)
+        plain = tuple(range(1 + len(slabs)))
+        cells = [_room_cells(room, boxes) for room in rooms_b]
         for _try in range(10):
-            walk = _walk(rng, boxes, rooms_b, doors, counts, closed_door)
-            if walk is not None:
-                rots, centers, room_of = walk
-                markers, names = _floor_markers(rng, rooms_b, furniture)
-                return HomeLayout(boxes=boxes, plain_boxes=tuple(range(1 + len(slabs))), rooms=rooms_b, doors=doors,
-                                  closed_door=closed_door, markers=markers, marker_names=names,
-                                  marker_faces=[FLOOR_FACE] * len(names), R_world_from_cam=rots, centers=centers,
-                                  room_of_view=room_of)
+            walk = _walk(rng, boxes, rooms_b, doors, counts, closed_door, window, len(plain), cells)
+            if walk is None:
+                continue
+            rots, centers, room_of = walk
+            markers, names = _floor_markers(rng, rooms_b, furniture)
+            faces = [FLOOR_FACE] * len(names)
+            if closed_door is not None:
+                span = (rooms_b[closed_door][0, 0], rooms_b[closed_door + 1][1, 0])
+                cross, cross_faces = _crossing_markers(rng, boxes, [k for k in plain if k not in leaf], window, span,
+                                                       centers, rots, room_of <= closed_door, markers)
+                markers = np.concatenate([markers, cross])
+                names += [f"home_door{closed_door}_marker{m}" for m in range(len(cross))]
+                faces += cross_faces
+            layout = HomeLayout(boxes=boxes, plain_boxes=plain, rooms=rooms_b, doors=doors,
+                                closed_door=closed_door, window=window, markers=markers, marker_names=names,
+                                marker_faces=faces, R_world_from_cam=rots, centers=centers, room_of_view=room_of)
+            if not want_crossing or _crossing_count(layout) >= CROSSING_MARKERS:
+                return layout
+            if best is None or _crossing_count(layout) > _crossing_count(best):
+                best = layout
+    if best is not None:
+        return best
     raise RuntimeError("could not lay out a home with a camera walk through it")
 
 
+def _crossing_count(layout: HomeLayout) -> int:
+    return sum(n.startswith("home_door") for n in layout.marker_names)
+
+
 def _walls(rng: np.random.Generator, counts: list[int], closed_door: int | None
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
-    """Shell, room interiors, doorway openings and wall slabs; the flat is centred on x = z = 0."""
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray], np.ndarray | None, list[int]]:
+    """Shell, room interiors, doorway openings, wall slabs (with the closed door's leaf), the closed door's window
+    and the box indices of its leaf; the flat is centred on x = z = 0."""
     n = len(counts)
     widths = [rng.uniform(*ROOM_WIDTH[c]) for c in counts]
     depth, height = rng.uniform(*FLAT_DEPTH), rng.uniform(*FLAT_HEIGHT)
@@ -102,6 +172,7 @@ def _walls(rng: np.random.Generator, counts: list[int], closed_door: int | None
     shell = np.array([[-length / 2, ceil_y, z0], [length / 2, FLOOR_Y, z1]])
     door_lo, door_hi = z0 + 0.3, z1 - 0.3 - DOOR_WIDTH
     rooms, doors, slabs = [], [], []
+    window, leaf = None, []
     x, zd = -length / 2, None
     for r in range(n):
         rooms.append([[x, ceil_y, z0], [x + widths[r], FLOOR_Y, z1]])
@@ -114,14 +185,32 @@ def _walls(rng: np.random.Generator, counts: list[int], closed_door: int | None
             zd = float(np.clip(zd + rng.uniform(-0.4, 0.4), door_lo, door_hi))
         xw = x + WALL_THICKNESS
         doors.append([[x, FLOOR_Y - DOOR_HEIGHT, zd], [xw, FLOOR_Y, zd + DOOR_WIDTH]])
+        slabs += [np.array([[x, ceil_y, z0], [xw, FLOOR_Y, zd]]),
+                  np.array([[x, ceil_y, zd + DOOR_WIDTH], [xw, FLOOR_Y, z1]]),
+                  np.array([[x, ceil_y, zd], [xw, FLOOR_Y - DOOR_HEIGHT, zd + DOOR_WIDTH]])]
         if r == closed_door:
-            slabs.append(np.array([[x, ceil_y, z0], [xw, FLOOR_Y, z1]]))
-        else:
-            slabs += [np.array([[x, ceil_y, z0], [xw, FLOOR_Y, zd]]),
-                      np.array([[x, ceil_y, zd + DOOR_WIDTH], [xw, FLOOR_Y, z1]]),
-                      np.array([[x, ceil_y, zd], [xw, FLOOR_Y - DOOR_HEIGHT, zd + DOOR_WIDTH]])]
+            window, boards = _door_leaf(np.array(doors[-1]))
+            leaf = list(range(1 + len(slabs), 1 + len(slabs) + len(boards)))
+            slabs += boards
         x = xw
-    return shell, np.array(rooms), np.array(doors).reshape(-1, 2, 3), slabs
+    return shell, np.array(rooms), np.array(doors).reshape(-1, 2, 3), slabs, window, leaf
+
+
+def _door_leaf(door: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The window opening (2, 3) of a closed door filling the doorway ``door`` and the leaf's four boxes around it
+    (below, above, left, right of the window)."""
+    xc = door[:, 0].mean()
+    x0, x1 = xc - DOOR_LEAF_THICKNESS / 2, xc + DOOR_LEAF_THICKNESS / 2
+    (_, top, dz0), (_, floor, dz1) = door
+    wz0 = (dz0 + dz1 - WINDOW_WIDTH) / 2
+    wz1 = wz0 + WINDOW_WIDTH
+    sill, head = floor - WINDOW_SILL, floor - WINDOW_SILL - WINDOW_HEIGHT
+    window = np.array([[x0, head, wz0], [x1, sill, wz1]])
+    boards = [np.array([[x0, sill, dz0], [x1, floor, dz1]]),  # below the window, down to the floor
+              np.array([[x0, top, dz0], [x1, head, dz1]]),  # above it, up to the lintel
+              np.array([[x0, head, dz0], [x1, sill, wz0]]),  # beside it
+              np.array([[x0, head, wz1], [x1, sill, dz1]])]
+    return window, boards
 
 
 def _furniture(rng: np.random.Generator, rooms: np.ndarray, doors: np.ndarray) -> list[np.ndarray]:
@@ -164,21 +253,44 @@ def _room_cells(room: np.ndarray, boxes: np.ndarray) -> np.ndarray:
 
 
 def _walk(rng: np.random.Generator, boxes: np.ndarray, rooms: np.ndarray, doors: np.ndarray,
-          counts: list[int], closed_door: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+          counts: list[int], closed_door: int | None, window: np.ndarray | None = None, furniture_from: int = 0,
+          room_cells: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Cameras room by room (None if the random walk gets stuck): consecutive ones 1-2 m apart and in sight
-    (except across the closed doorway)."""
+    (except across the closed doorway: there the nearest ``WINDOW_VIEW_CAMERAS`` cameras on each side see through
+    its window, and no camera of its two rooms is closer than ``WINDOW_MIN_DISTANCE`` to it or sees much furniture
+    (boxes from index ``furniture_from`` on) through it)."""
     door_xz = doors.mean(axis=1)[:, [0, 2]]
+    room_cells = room_cells or [_room_cells(room, boxes) for room in rooms]
     centers: list[np.ndarray] = []
     rots, room_of = [], []
     for r, count in enumerate(counts):
-        cells = _room_cells(rooms[r], boxes)
+        cells = room_cells[r]
         for j in range(count):
             y = FLOOR_Y - HOME_EYE_HEIGHT + rng.uniform(-HOME_EYE_JITTER, HOME_EYE_JITTER)
             ok = np.ones(len(cells), bool)
             if j == 0 and r > 0:
-                ok &= np.linalg.norm(cells - door_xz[r - 1], axis=1) <= DOOR_REACH
+                reach = CLOSED_DOOR_REACH if r - 1 == closed_door else DOOR_REACH
+                ok &= np.linalg.norm(cells - door_xz[r - 1], axis=1) <= reach
             if j == count - 1 and r < len(counts) - 1:
-                ok &= np.linalg.norm(cells - door_xz[r], axis=1) <= DOOR_REACH
+                reach = CLOSED_DOOR_REACH if r == closed_door else DOOR_REACH
+                ok &= np.linalg.norm(cells - door_xz[r], axis=1) <= reach
+            by_window = closed_door is not None and r in (closed_door, closed_door + 1)
+            if by_window:
+                off = np.abs(cells[:, 0] - window[:, 0].mean())
+                ok &= off >= WINDOW_MIN_DISTANCE
+                if r == closed_door and j == count - 1:  # so that the next camera can be in step beyond the door
+                    ok &= off <= WINDOW_MIN_DISTANCE + 0.15
+                elif r == closed_door and j == count - WINDOW_VIEW_CAMERAS:  # ... and the last one in step from here
+                    ok &= (off >= WINDOW_MIN_DISTANCE + HOME_STEP_RANGE[0])
+                    ok &= off <= WINDOW_MIN_DISTANCE + 0.15 + HOME_STEP_RANGE[1]
+            looks = by_window and (j >= count - WINDOW_VIEW_CAMERAS if r == closed_door else j < WINDOW_VIEW_CAMERAS)
+            if looks and j > 0 and (r == closed_door + 1 or j > count - WINDOW_VIEW_CAMERAS):
+                # the second one looks through from about the direction of the first (the previous camera), so
+                # that the two see much the same part of the far side (where the crossing markers go)
+                w = window.mean(axis=0)[[0, 2]]
+                u = (centers[-1][[0, 2]] - w) / np.linalg.norm(centers[-1][[0, 2]] - w)
+                rel = cells - w
+                ok &= rel @ u >= np.cos(np.deg2rad(WINDOW_PAIR_MAX_ANGLE_DEG)) * np.linalg.norm(rel, axis=1)
             if centers:
                 prev = np.array(centers)[:, [0, 2]]
                 d_all = np.linalg.norm(cells[:, None] - prev[None], axis=2)
@@ -187,6 +299,10 @@ def _walk(rng: np.random.Generator, boxes: np.ndarray, rooms: np.ndarray, doors:
                 if not (j == 0 and r - 1 == closed_door):
                     ok[ok] = _in_sight(centers[-1], np.column_stack([cells[ok, 0], np.full(int(ok.sum()), y),
                                                                     cells[ok, 1]]), boxes)
+            if looks:
+                ok[ok] = _sees_window(cells[ok], y, window, boxes)
+            if by_window:
+                ok[ok] = _window_clutter(cells[ok], y, window, boxes, furniture_from) <= WINDOW_MAX_CLUTTER
             if not ok.any():
                 return None
             x, z = cells[np.flatnonzero(ok)[rng.integers(int(ok.sum()))]]
@@ -194,6 +310,41 @@ def _walk(rng: np.random.Generator, boxes: np.ndarray, rooms: np.ndarray, doors:
             rots.append(rot_y(rng.uniform(0.0, 2 * np.pi)))
             room_of.append(r)
     return np.array(rots), np.array(centers), np.array(room_of)
+
+
+def _sees_window(cells: np.ndarray, y: float, window: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(C,) whether cameras at x-z ``cells`` and height ``y`` look at the window within WINDOW_VIEW_MAX_ANGLE_DEG
+    of its normal, with a free line of sight to its centre and to its four corners (5 cm inside)."""
+    centre = window.mean(axis=0)
+    rel = centre[[0, 2]] - cells
+    ok = np.abs(rel[:, 0]) >= np.cos(np.deg2rad(WINDOW_VIEW_MAX_ANGLE_DEG)) * np.linalg.norm(rel, axis=1)
+    (_, y0, z0), (_, y1, z1) = window
+    targets = [centre] + [np.array([centre[0], yy, zz])
+                          for yy in (y0 + 0.05, y1 - 0.05) for zz in (z0 + 0.05, z1 - 0.05)]
+    for target in targets:
+        idx = np.flatnonzero(ok)
+        origins = np.column_stack([cells[idx, 0], np.full(len(idx), y), cells[idx, 1]])
+        rel3 = target - origins
+        dist = np.linalg.norm(rel3, axis=1)
+        if len(idx):
+            t, _ = cast_rays(origins, rel3 / dist[:, None], boxes)
+            ok[idx] = t >= dist - 1e-4
+    return ok
+
+
+def _window_clutter(cells: np.ndarray, y: float, window: np.ndarray, boxes: np.ndarray, furniture_from: int
+                    ) -> np.ndarray:
+    """(C,) share of the rays from cameras at x-z ``cells`` and height ``y`` through a grid of points of the window
+    that pass it and land on furniture (boxes from index ``furniture_from`` on)."""
+    (_, y0, z0), (_, y1, z1) = window
+    g = np.linspace(0.03, 0.97, 6)
+    grid = np.array([[window[:, 0].mean(), y0 + a * (y1 - y0), z0 + b * (z1 - z0)] for a in g for b in g])
+    origins = np.repeat(np.column_stack([cells[:, 0], np.full(len(cells), y), cells[:, 1]]), len(grid), axis=0)
+    rel = np.tile(grid, (len(cells), 1)) - origins
+    dist = np.linalg.norm(rel, axis=1)
+    t, face = cast_rays(origins, rel / dist[:, None], boxes)
+    hit = (t > dist) & (face // 6 >= furniture_from)
+    return hit.reshape(len(cells), len(grid)).mean(axis=1)
 
 
 def _in_sight(origin: np.ndarray, targets: np.ndarray, boxes: np.ndarray) -> np.ndarray:
@@ -220,3 +371,98 @@ def _floor_markers(rng: np.random.Generator, rooms: np.ndarray, furniture: list[
                     names.append(f"home_room{r}_floor_marker{m}")
                     break
     return np.array(pts).reshape(-1, 3), names
+
+
+def _crossing_markers(rng: np.random.Generator, boxes: np.ndarray, surfaces: list[int], window: np.ndarray,
+                      span: tuple[float, float], centers: np.ndarray, rots: np.ndarray, side_a: np.ndarray,
+                      markers: np.ndarray) -> tuple[np.ndarray, list[int]]:
+    """Up to CROSSING_MARKERS marker centres (and their faces) on the faces of boxes ``surfaces`` between x =
+    ``span`` (the closed door's two rooms), each seen whole
+    by >= CROSSING_MIN_VIEWS cameras on either side of the closed door (``side_a``: cameras on its first side),
+    spread out (farthest point sampling, at least CROSSING_MARKER_GAP from each other and from ``markers``).
+
+    Candidates are where rays cast from every camera through the window land, so they lie behind it."""
+    (wx0, wy0, wz0), (wx1, wy1, wz1) = window
+    pts, faces = [], []
+    for c in centers:
+        m = _CROSSING_RAYS
+        target = np.column_stack([np.full(m, (wx0 + wx1) / 2), rng.uniform(wy0 + 0.02, wy1 - 0.02, m),
+                                  rng.uniform(wz0 + 0.02, wz1 - 0.02, m)])
+        rel = target - c
+        dist = np.linalg.norm(rel, axis=1)
+        dirs = rel / dist[:, None]
+        t, face = cast_rays(c, dirs, boxes)
+        through = t > dist + 0.3  # passed the window (not stopped by furniture on the way) and landed beyond it
+        pts.append(c + t[through, None].astype(np.float64) * dirs[through])
+        faces.append(face[through])
+    pts, faces = np.concatenate(pts), np.concatenate(faces).astype(int)
+    keep = np.isin(faces // 6, surfaces) & (pts[:, 0] >= span[0] - 1e-6) & (pts[:, 0] <= span[1] + 1e-6)
+    pts, faces = pts[keep], faces[keep]
+    # the marker (radius and black ring) must lie on its face: check its rim, 4 points on the face plane
+    rim_r = 1.3 * MARKER_RADIUS
+    ok = np.ones(len(pts), bool)
+    rims = np.zeros((len(pts), 5, 3))
+    for i, (p, f) in enumerate(zip(pts, faces)):
+        axis, uax, vax, plane, uv0, size = face_frame(boxes, int(f))
+        uv = p[[uax, vax]]
+        ok[i] = np.all(uv - rim_r - 0.02 >= uv0) and np.all(uv + rim_r + 0.02 <= uv0 + size)
+        p = p.copy()
+        p[axis] = plane  # exactly on the face
+        rims[i] = p
+        for k, (du, dv) in enumerate(((1, 0), (-1, 0), (0, 1), (0, -1)), start=1):
+            rims[i, k, uax] += du * rim_r
+            rims[i, k, vax] += dv * rim_r
+    pts, faces, rims = rims[ok, 0], faces[ok], rims[ok]
+    if not len(pts):
+        return np.zeros((0, 3)), []
+    normals = np.array([face_normal(int(f), room=f < 6) for f in faces])
+    seen = np.zeros((len(pts), len(centers)), bool)
+    flat = rims.reshape(-1, 3)
+    for v, (c, R) in enumerate(zip(centers, rots)):
+        rel = flat - c
+        dist = np.linalg.norm(rel, axis=1)
+        t, _ = cast_rays(c, rel / dist[:, None], boxes)
+        whole = (t >= dist - 2e-3 * np.maximum(dist, 1.0)).reshape(-1, 5).all(axis=1)
+        facing = np.einsum("ij,ij->i", normals, c - pts) >= _MIN_FACING * np.linalg.norm(c - pts, axis=1)
+        lon, lat = bearings_to_lonlat((pts - c) @ R)
+        inside = (np.abs(lon) <= np.pi - _BORDER_ANGLE) & (np.abs(lat) <= np.pi / 2 - _BORDER_ANGLE)
+        seen[:, v] = whole & facing & inside & _clear_around(c, pts, faces, boxes)
+    n_a, n_b = seen[:, side_a].sum(axis=1), seen[:, ~side_a].sum(axis=1)
+    # ... and by the nearest camera on either side (the last before the door, the first after it), so that the pair
+    # of them shares every crossing marker
+    nearest = seen[:, np.flatnonzero(side_a)[-1]] & seen[:, np.flatnonzero(~side_a)[0]]
+    cand = np.flatnonzero((n_a >= CROSSING_MIN_VIEWS) & (n_b >= CROSSING_MIN_VIEWS) & nearest)
+    cand = cand[rng.permutation(len(cand))]
+    # spread them (farthest point first, from the one seen by most cameras): clustered targets make large blobs
+    # that SIFT matches through the window
+    chosen: list[int] = []
+    gap = np.full(len(cand), np.inf)
+    for m in np.asarray(markers, dtype=np.float64).reshape(-1, 3):
+        gap = np.minimum(gap, np.linalg.norm(pts[cand] - m, axis=1))
+    while len(chosen) < CROSSING_MARKERS and len(cand):
+        if not chosen:
+            views = np.where(gap >= CROSSING_MARKER_GAP, (n_a + n_b)[cand], -1)
+            k = int(np.argmax(views))
+        else:
+            k = int(np.argmax(gap))
+        if gap[k] < CROSSING_MARKER_GAP:
+            break
+        chosen.append(int(cand[k]))
+        gap = np.minimum(gap, np.linalg.norm(pts[cand] - pts[cand[k]], axis=1))
+    return pts[chosen].reshape(-1, 3), [int(faces[i]) for i in chosen]
+
+
+
+def _clear_around(c: np.ndarray, pts: np.ndarray, faces: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(N,) whether the rays from ``c`` _CLEAR_ANGLE up, down, left and right of each point land on its face."""
+    d = pts - c
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    e1 = np.cross(d, [0.0, 1.0, 0.0])
+    e1 /= np.maximum(np.linalg.norm(e1, axis=1, keepdims=True), 1e-9)
+    e2 = np.cross(d, e1)
+    ok = np.ones(len(pts), bool)
+    for e in (e1, -e1, e2, -e2):
+        ray = d + np.tan(_CLEAR_ANGLE) * e
+        _, face = cast_rays(c, ray / np.linalg.norm(ray, axis=1, keepdims=True), boxes)
+        ok &= face == faces
+    return ok

