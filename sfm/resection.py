@@ -37,6 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from fullview.sfm.camera import normalize, tangent_basis
 from fullview.sfm.triangulation import angular_errors
+from fullview.sfm.two_view import required_iterations
 
 MAX_SOLUTIONS = 4  # P3P has at most four real solutions
 PAIRS = ((0, 1), (0, 2), (1, 2))  # the three quadrics, in the order (12, 13, 23)
@@ -331,16 +332,6 @@ def _inlier_mask(R, t, bearings, points, threshold) -> np.ndarray:
     return (angular_errors(bearings, cam) < threshold) & (depth > 0)
 
 
-def _required_iterations(inlier_ratio: float, confidence: float, sample_size: int = 3) -> float:
-    """Samples needed to draw an all-inlier sample with the given confidence (the RANSAC bound)."""
-    p = inlier_ratio**sample_size
-    if p <= 1e-12:
-        return np.inf
-    if p >= 1.0:
-        return 0.0
-    return np.log(1.0 - confidence) / np.log(1.0 - p)
-
-
 def _draw_triplets(rng: np.random.Generator, batch: int, n: int) -> np.ndarray:
     """(batch, 3) indices, distinct within each row, uniform over the correspondences (which carry no ordering).
 
@@ -405,7 +396,7 @@ def resect(bearings: np.ndarray, points: np.ndarray, options: ResectionOptions) 
                 best, best_cost = _local_optimization(bearings, points, R[k], t[k], thr)
         if best is not None:
             ratio = float(_inlier_mask(*best, bearings, points, thr).mean())
-            if drawn >= options.min_iterations and drawn >= _required_iterations(ratio, options.confidence):
+            if drawn >= options.min_iterations and drawn >= required_iterations(ratio, options.confidence, 3):
                 break
     if best is None:
         return None

@@ -114,7 +114,8 @@ def _local_optimization(b_i, b_j, F, threshold, steps):
     return best_F, best_cost
 
 
-def _required_iterations(inlier_ratio: float, confidence: float, sample_size: int = 8) -> float:
+def required_iterations(inlier_ratio: float, confidence: float, sample_size: int = 8) -> float:
+    """Samples needed to draw an all-inlier minimal sample with the given confidence (the RANSAC bound)."""
     p = inlier_ratio**sample_size
     if p <= 1e-12:
         return np.inf
@@ -154,7 +155,7 @@ def ransac_f(b_i: np.ndarray, b_j: np.ndarray, options: RansacOptions) -> FResul
         if costs[k] < best_cost:
             best_F, best_cost = _local_optimization(b_i, b_j, Fs[k], thr, options.local_optimization_steps)
         ratio = float((epipolar_angular_errors(best_F, b_i, b_j) < thr).mean())
-        if drawn >= options.min_iterations and drawn >= _required_iterations(ratio, options.confidence):
+        if drawn >= options.min_iterations and drawn >= required_iterations(ratio, options.confidence):
             break
     return _finish(b_i, b_j, best_F, thr, options.refine, drawn)
 

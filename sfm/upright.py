@@ -266,7 +266,7 @@ def ransac_f_upright(b_i: np.ndarray, b_j: np.ndarray, options: tv.RansacOptions
         if best_F is None:
             continue
         ratio = float((tv.epipolar_angular_errors(best_F, b_i, b_j) < thr).mean())
-        required = tv._required_iterations(ratio, options.confidence, sample_size=UPRIGHT_SAMPLE_SIZE)
+        required = tv.required_iterations(ratio, options.confidence, sample_size=UPRIGHT_SAMPLE_SIZE)
         if drawn >= options.min_iterations and drawn >= required:
             break
     if best_F is None:

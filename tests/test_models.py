@@ -74,27 +74,28 @@ def test_two_separate_groups_become_two_models_largest_first():
         _assert_matches_truth(models, m, R, centres)
 
 
-def test_image_with_wrong_pair_poses_is_placed_by_resection():
-    """Image 5's relative poses are gross outliers (averaging rejects them, attaching along them fails), but its
-    matches are right: resection places it from the model's points."""
+def _room_with_wrong_image():
+    """8 cameras in one room; image 5's relative poses are gross outliers, its matches are right."""
     rng = np.random.default_rng(1)
     centres = np.column_stack([rng.uniform(0, 6, 8), np.zeros(8), rng.uniform(0, 3, 8)])
     R, _, feature_of, bearings = _world(rng, centres, reach=6.0)
     links, matches = _links(R, centres, feature_of)
     bad = (links.pairs == 5).any(axis=1)
     links.R_j_from_i[bad] = Rotation.from_rotvec([0.0, 2.0, 0.5]).as_matrix() @ links.R_j_from_i[bad]
+    return R, centres, links, matches, bearings
+
+
+def test_image_with_wrong_pair_poses_is_placed_by_resection():
+    """Averaging rejects image 5's pairs and attaching along them fails, but resection places it from the model's
+    points."""
+    R, centres, links, matches, bearings = _room_with_wrong_image()
     models = _build(links, matches, bearings)
     assert (models.model_id == 0).all() and models.resected == [5]
     _assert_matches_truth(models, 0, R, centres)
 
 
 def test_resection_off_leaves_it_out():
-    rng = np.random.default_rng(1)
-    centres = np.column_stack([rng.uniform(0, 6, 8), np.zeros(8), rng.uniform(0, 3, 8)])
-    R, _, feature_of, bearings = _world(rng, centres, reach=6.0)
-    links, matches = _links(R, centres, feature_of)
-    bad = (links.pairs == 5).any(axis=1)
-    links.R_j_from_i[bad] = Rotation.from_rotvec([0.0, 2.0, 0.5]).as_matrix() @ links.R_j_from_i[bad]
+    _, _, links, matches, bearings = _room_with_wrong_image()
     models = _build(links, matches, bearings, resection=False)
     assert models.model_id[5] == -1 and not models.resected
 
@@ -149,10 +150,6 @@ def test_chain_without_triangles_is_seeded_from_its_strongest_pair_and_attached(
 
 
 def test_models_are_deterministic():
-    rng = np.random.default_rng(1)
-    centres = np.column_stack([rng.uniform(0, 6, 8), np.zeros(8), rng.uniform(0, 3, 8)])
-    R, _, feature_of, bearings = _world(rng, centres, reach=6.0)
-    links, matches = _links(R, centres, feature_of)
-    links.R_j_from_i[(links.pairs == 5).any(axis=1)] = np.eye(3)
+    _, _, links, matches, bearings = _room_with_wrong_image()
     a, b = _build(links, matches, bearings), _build(links, matches, bearings)
     assert np.array_equal(a.model_id, b.model_id) and np.array_equal(a.centers, b.centers)
