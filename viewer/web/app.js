@@ -561,6 +561,17 @@ async function rerun() {
 }
 
 // ------------------------------------------------------------------------------------------------ page
+/** "a, b, c: reason; d: other reason": images sharing a reason (a whole separate model) are listed once. */
+function groupByReason(names, why) {
+  const groups = new Map();
+  names.forEach((n) => {
+    const reason = why[n] || 'no reason recorded';
+    if (!groups.has(reason)) groups.set(reason, []);
+    groups.get(reason).push(n);
+  });
+  return [...groups].map(([reason, members]) => `${members.join(', ')}: ${reason}`).join('; ');
+}
+
 function selectTab(name) {
   document.querySelectorAll('.tab').forEach((b) => b.classList.toggle('active', b.dataset.tab === name));
   document.querySelectorAll('.tabpage').forEach((p) => p.classList.toggle('active', p.id === `tab-${name}`));
@@ -588,10 +599,9 @@ async function main() {
   document.getElementById('reload').addEventListener('click', () => location.reload());
   if (state.model) {
     state.model.cameras.forEach((c) => cams.set(c.name, c));
-    const why = state.model.unregistered_reasons || {};
     if (state.model.unregistered.length) {
-      messages.push('not registered: ' + state.model.unregistered.map((n) => (why[n] ? `${n} (${why[n]})` : n))
-        .join('; '));
+      messages.push('not in this model: ' + groupByReason(state.model.unregistered,
+                                                          state.model.unregistered_reasons || {}));
     }
     initScene();
     buildScene(state.model);
