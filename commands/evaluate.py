@@ -9,38 +9,68 @@ import numpy as np
 
 from fullview.io.dataset import Dataset, DatasetError
 from fullview.io.workspace import Workspace, WorkspaceBusy, folder_of
-from fullview.sfm.dense_metrics import dense_metrics
+from fullview.sfm.dense_metrics import dense_metrics, leave_one_out_agreement
 from fullview.sfm.metrics import Similarity, pose_metrics, umeyama
 from fullview.stages.runner import Pipeline, RunnerError
 
 log = logging.getLogger(__name__)
 
+AGREEMENT_TOLERANCE = 0.02  # leave-one-out agreement: relative range difference that counts as agreeing
+AGREEMENT_STRIDE = 2  # ... other panoramas' pixels are splatted every this many pixels in both directions
+
 
 def evaluate(pipeline: Pipeline) -> dict:
-    """Pose metrics (and dense metrics when available); also written to eval/metrics.json when the workspace is
-    not busy (eval is a read-only command: it never waits for a run)."""
+    """Pose metrics against ground truth (and dense metrics when available), and on any dataset the dense
+    leave-one-out agreement when densify is current; also written to eval/metrics.json when the workspace is not
+    busy (eval is a read-only command: it never waits for a run)."""
     dataset, ws = pipeline.dataset, pipeline.ws
-    if not dataset.has_ground_truth():
-        raise DatasetError(f"{dataset.root}: no ground_truth/poses.yaml to evaluate against")
+    with ws.reading():
+        source = _current_model(pipeline)
+        est = ws.load_sparse() if source == "triangulation" else ws.load_registration()
+        metrics = {"dataset": dataset.name, "poses_from": source}
+        if dataset.has_ground_truth():
+            metrics.update(_against_ground_truth(pipeline, est, source))
+        dense_current = source == "triangulation" and pipeline.status("densify", deep=True).state == "fresh"
+        if dense_current:
+            metrics["dense_agreement"] = dense_agreement(dataset, ws, est)
+        elif not dataset.has_ground_truth():
+            raise DatasetError(f"{dataset.root}: no ground_truth/poses.yaml and no current densify results: nothing "
+                               "to evaluate")
+    _save(pipeline, metrics)
+    return metrics
+
+
+def _against_ground_truth(pipeline: Pipeline, est: dict, source: str) -> dict:
+    dataset, ws = pipeline.dataset, pipeline.ws
     gt = dataset.ground_truth_poses()
     missing = [n for n in dataset.image_names if n not in gt]
     if missing:
         raise DatasetError(f"{dataset.ground_truth_dir / 'poses.yaml'}: no pose for {missing}")
-    with ws.reading():
-        source = _current_model(pipeline)
-        est = ws.load_sparse() if source == "triangulation" else ws.load_registration()
-        R_gt = np.stack([gt[n].R_world_from_cam.T for n in dataset.image_names])
-        c_gt = np.stack([gt[n].center for n in dataset.image_names])
-        metrics = {"dataset": dataset.name, "poses_from": source}
-        metrics.update(pose_metrics(est["R_cam_from_world"], est["centers"], R_gt, c_gt, est["registered"]))
-        metrics["models"] = _model_metrics(est, R_gt, c_gt)
-        metrics["in_models"] = int((est["model_id"] >= 0).sum())
-        if source == "triangulation" and pipeline.status("densify", deep=True).state == "fresh":
-            dense = evaluate_dense(dataset, ws, est, R_gt, c_gt)
-            if dense is not None:
-                metrics["dense"] = dense
-    _save(pipeline, metrics)
+    R_gt = np.stack([gt[n].R_world_from_cam.T for n in dataset.image_names])
+    c_gt = np.stack([gt[n].center for n in dataset.image_names])
+    metrics = pose_metrics(est["R_cam_from_world"], est["centers"], R_gt, c_gt, est["registered"])
+    metrics["models"] = _model_metrics(est, R_gt, c_gt)
+    metrics["in_models"] = int((est["model_id"] >= 0).sum())
+    if source == "triangulation" and pipeline.status("densify", deep=True).state == "fresh":
+        dense = evaluate_dense(dataset, ws, est, R_gt, c_gt)
+        if dense is not None:
+            metrics["dense"] = dense
     return metrics
+
+
+def dense_agreement(dataset: Dataset, ws: Workspace, est: dict) -> dict:
+    """Leave-one-out agreement of the densify range maps (no ground truth needed): per panorama of model 0 its valid
+    share and the share of its ranged pixels within 2% of what the other panoramas predict; with the medians."""
+    names = [n for n, ok in zip(dataset.image_names, est["registered"]) if ok]
+    keep = np.asarray(est["registered"], bool)
+    maps = [(d["range"] if d is not None else None) for d in (ws.load_depth(n) for n in names)]
+    per_image = leave_one_out_agreement(maps, est["R_cam_from_world"][keep], est["t_cam_from_world"][keep],
+                                        tolerance=AGREEMENT_TOLERANCE, stride=AGREEMENT_STRIDE)
+    values = [p["agreement"] for p in per_image if p["agreement"] is not None]
+    return {"tolerance": AGREEMENT_TOLERANCE,
+            "median_agreement": float(np.median(values)) if values else None,
+            "median_valid_share": float(np.median([p["valid_share"] for p in per_image])) if per_image else None,
+            "per_image": dict(zip(names, per_image))}
 
 
 def _model_metrics(est: dict, R_gt: np.ndarray, c_gt: np.ndarray) -> list[dict]:

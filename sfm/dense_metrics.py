@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fullview.sfm.camera import pixels_to_bearings
+from fullview.sfm.camera import bearings_to_pixels, pixels_to_bearings
 from fullview.sfm.metrics import Similarity
 
 
@@ -157,4 +157,49 @@ def dense_metrics(*, range_est: Sequence[np.ndarray | None], valid_est: Sequence
         surface = surface_samples(range_gt, R_gt_cam_from_world, t_gt_cam_from_world, spacing=tau / 3)
         out["cloud"] = {"points": int(len(points)), "surface_samples": int(len(surface)),
                         **cloud_accuracy_completeness(sim.apply(np.asarray(points, np.float64)), surface, tau)}
+    return out
+
+
+def predicted_range_map(k: int, range_maps: Sequence[np.ndarray], R_cam_from_world: np.ndarray,
+                        t_cam_from_world: np.ndarray, *, stride: int = 2) -> np.ndarray:
+    """(H, W) range that the other panoramas' range maps predict for panorama k: their pixels (every ``stride``-th)
+    back-projected to the world and splatted into k's equirectangular grid, nearest range per pixel (the visible
+    surface); NaN where none lands."""
+    height, width = range_maps[k].shape
+    best = np.full(height * width, np.inf)
+    for j, rng in enumerate(range_maps):
+        if j == k or rng is None:
+            continue
+        x = backproject_range_map(rng, R_cam_from_world[j], t_cam_from_world[j], stride=stride)
+        x_k = x @ np.asarray(R_cam_from_world[k]).T + t_cam_from_world[k]
+        dist = np.linalg.norm(x_k, axis=1)
+        ok = dist > 0
+        pix = bearings_to_pixels(x_k[ok], width, height)
+        cols = np.clip(pix[:, 0].astype(np.int64), 0, width - 1)
+        rows = np.clip(pix[:, 1].astype(np.int64), 0, height - 1)
+        np.minimum.at(best, rows * width + cols, dist[ok])
+    best[~np.isfinite(best)] = np.nan
+    return best.reshape(height, width)
+
+
+def leave_one_out_agreement(range_maps: Sequence[np.ndarray | None], R_cam_from_world: np.ndarray,
+                            t_cam_from_world: np.ndarray, *, tolerance: float = 0.02, stride: int = 2
+                            ) -> list[dict[str, float | None]]:
+    """Per panorama, without ground truth: ``valid_share`` (pixels with a range) and ``agreement``, the share of its
+    ranged pixels where the other panoramas predict a range (`predicted_range_map`) that lies within ``tolerance``
+    (relative) of its own; ``checked_share`` says on how many of its pixels the others could speak. A panorama whose
+    depth is wrong disagrees with what the rest of the scene says it should see."""
+    out = []
+    for k, own in enumerate(range_maps):
+        if own is None:
+            out.append({"valid_share": 0.0, "agreement": None, "checked_share": 0.0})
+            continue
+        predicted = predicted_range_map(k, range_maps, R_cam_from_world, t_cam_from_world, stride=stride)
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(own) & (own > 0)
+            checked = valid & np.isfinite(predicted)
+            agree = checked & (np.abs(predicted - own) <= tolerance * own)
+        out.append({"valid_share": float(valid.mean()),
+                    "agreement": float(agree.sum() / checked.sum()) if checked.any() else None,
+                    "checked_share": float(checked.sum() / max(valid.sum(), 1))})
     return out

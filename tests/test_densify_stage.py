@@ -87,6 +87,11 @@ def test_eval_reports_dense_metrics(reconstructed):
     assert d["cloud"]["accuracy"] > 0.85
     assert d["cloud"]["completeness"] > 0.5
     assert np.isclose(d["cloud"]["tau"], 0.01 * d["scene_size"])
+    # without ground truth: each panorama's ranges against what the others predict (accurate maps agree)
+    agreement = metrics["dense_agreement"]
+    assert set(agreement["per_image"]) == set(dataset.image_names) and agreement["median_agreement"] > 0.8
+    for name, m in agreement["per_image"].items():
+        assert m["valid_share"] == pytest.approx(d["per_panorama"][name]["valid_share"], abs=0.05), name
 
 
 def test_fusion_drops_a_corrupted_panorama(reconstructed):
