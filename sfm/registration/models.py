@@ -187,7 +187,6 @@ def _renumber(state: ModelSet) -> None:
     lookup = np.full(state.num_models + 1, -1)
     lookup[order] = np.arange(len(order))
     state.model_id = lookup[state.model_id]  # -1 indexes the last entry, which stays -1
-    state.averaged_in = np.where(state.averaged_in >= 0, state.averaged_in, -1)
 
 
 # --------------------------------------------------------------------------------------------- growth
