@@ -175,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="room: one textured room; home: rooms with plain walls and doorways (hard case)")
     p.add_argument("--rooms", type=int, default=4, help="rooms of the home (views must be 1-3 per room)")
     p.add_argument("--closed-door", type=int, default=None, metavar="K",
-                   help="home: wall up the doorway between room K and K+1 (0-based), splitting the walk in two")
+                   help="home: close the doorway between room K and K+1 (0-based) with a windowed door leaf, splitting the walk")
     p.add_argument("--hand-points", choices=("all", "crossing", "none"), default="all",
                    help="hand_points.yaml: every track, the 8 joining the sides of --closed-door, or no file")
     p.set_defaults(func=cmd_synth)
