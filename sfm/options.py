@@ -120,8 +120,11 @@ class TriangulationOptions:
 
 @dataclass(frozen=True, kw_only=True)
 class DensifyOptions:
-    neighbours: int = setting(2, "stereo partners per camera (best by inlier count, short baselines discounted)",
+    neighbours: int = setting(3, "stereo partners per camera (best by inlier count, short baselines discounted)",
                               ge=1, le=64)
+    min_epipole_separation_deg: float = setting(
+        30.0, "a camera's partners lie in baseline directions at least this far apart (their epipoles differ)",
+        ge=0.0, le=90.0)
     min_triangulation_angle_deg: float = setting(
         5.0, "partner baselines must subtend at least this at the scene's median depth", gt=0.0, lt=90.0)
     max_triangulation_angle_deg: float = setting(60.0, "... and at most this", gt=0.0, le=180.0)
@@ -155,6 +158,13 @@ class DensifyOptions:
     outlier_neighbours: int = setting(20, "statistical outlier removal: neighbours", ge=1, le=1000)
     outlier_std_ratio: float = setting(2.0, "statistical outlier removal: std ratio", gt=0.0, le=1000.0)
     preview: bool = setting(True, "render densify/dense_preview.png")
+    fill_planes: bool = setting(True, "fill textureless regions with the planes through their border depths, kept "
+                                "where another view's own result agrees (sfm/dense/planes.py)")
+    fill_width: int = setting(1024, "textureless filling works at this width (at most the range maps')", ge=64,
+                              le=65536)
+    plane_tolerance: float = setting(0.03, "relative range difference within which a border depth lies on a plane",
+                                     gt=0.0, le=0.5)
+    seed: int = setting(0, "seed of the plane RANSAC of textureless filling", ge=0, le=2**31 - 1)
     RULES: ClassVar[list[Rule]] = [
         ("min_triangulation_angle_deg < max_triangulation_angle_deg",
          lambda o: o.min_triangulation_angle_deg < o.max_triangulation_angle_deg),

@@ -5,7 +5,11 @@
    back to both panoramas. The disparity search covers depths down to the nearest plausible one, taken from the
    sparse points (a low percentile of the camera-to-point distances), since the model's scale is arbitrary.
 3. Per panorama: the pair estimates are combined (median of the agreeing ones; pixels whose estimates conflict are
-   dropped) and saved as ``depth/<stem>.npz`` (``range``, ``valid``) and a colour-mapped ``depth/<stem>.png``.
+   dropped).
+3b. Textureless regions (``densify.fill_planes``, ``fullview.sfm.dense.planes``): each edge-bounded region whose
+   border depths lie on planes gets them where the views do not contradict it, and a filled pixel is kept only where
+   another panorama's own result (stereo, else its own fill) agrees. The maps are saved as ``depth/<stem>.npz``
+   (``range``, ``valid``) and a colour-mapped ``depth/<stem>.png``.
 4. Fusion: every panorama's points are kept where the nearest other panoramas agree, voxel down-sampled per
    panorama (bounded memory), then merged, cleaned (statistical outliers), given normals and written to
    ``dense.ply``; ``dense_preview.png`` renders it.
@@ -18,6 +22,7 @@ from __future__ import annotations
 import logging
 import time
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -25,6 +30,7 @@ from fullview.io.config import ConfigError
 from fullview.io.render import colorize_range, render_point_cloud
 from fullview.sfm import dense
 from fullview.sfm.camera import camera_center, camera_up
+from fullview.sfm.dense import planes
 from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimates, fusion_neighbours,
                                 mask_below_latitude, pair_min_depth_ratio, range_error_per_pixel, scene_size)
 from fullview.sfm.dense_metrics import voxel_downsample
@@ -33,7 +39,7 @@ from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
 
-VERSION = 1
+VERSION = 2
 UPSTREAM = ("triangulation",)
 INPUTS = ("images", "masks")
 DEFAULT_VOXEL_SHARE = 0.002  # voxel size = this share of the scene size when densify.voxel_size is 0
@@ -59,6 +65,9 @@ def run(ctx: StageContext) -> dict:
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = {k: ctx.dataset.load_image(names[k], width=width) for k in cams}
     maps, pair_log = _range_maps(ctx, images, R, t, near, pairs)
+    filled = _fill_textureless(ctx, images, maps, R, t, centers) if config.fill_planes else {}
+    for k, (rng, valid) in maps.items():
+        ctx.out.save_depth(names[k], rng, valid, colorize_range(rng, valid))
     checkers = min(config.fusion_views, len(maps) - 1)
     if config.min_consistent > checkers:
         raise ConfigError(f"densify.min_consistent={config.min_consistent}: a point can be checked by at most "
@@ -72,6 +81,7 @@ def run(ctx: StageContext) -> dict:
         "pairs": int(len(pairs)), "panoramas": len(maps), "points": int(len(points)), "voxel_size": voxel,
         "width": int(width), "median_pair_time_s": float(np.median([p["time_s"] for p in pair_log])),
         "valid_share": {names[k]: float(np.mean(m[1])) for k, m in maps.items()},
+        "filled_share": filled,
         "pair_log": pair_log, "wall_time_s": round(time.perf_counter() - t_start, 2),
     }
     ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=summary)
@@ -94,37 +104,42 @@ def _stereo_pairs(epi: dict, centers, registered, median_depth, config: DensifyO
         centers[idx], inliers[np.ix_(idx, idx)], k=config.neighbours,
         min_triangulation_angle_deg=config.min_triangulation_angle_deg,
         max_triangulation_angle_deg=config.max_triangulation_angle_deg, min_inliers=config.min_pair_inliers,
+        min_epipole_separation_deg=config.min_epipole_separation_deg,
         scene_depths=depths if np.isfinite(depths).all() else None)
     return idx[pairs] if len(pairs) else np.zeros((0, 2), np.intp)
 
 
 def _range_maps(ctx: StageContext, images, R, t, near, pairs):
-    """Densify every pair; combine and save each panorama's estimates as soon as its last pair is done.
+    """Densify every pair; combine each panorama's estimates as soon as its last pair is done.
 
     Returns ({camera: (range float32 NaN-invalid, valid bool)}, per-pair log)."""
     config: DensifyOptions = ctx.options
     names = ctx.dataset.image_names
     remaining = {k: int(np.sum(pairs == k)) for k in np.unique(pairs)}
     estimates: dict[int, list[np.ndarray]] = {k: [] for k in remaining}
+    errors: dict[int, list[np.ndarray]] = {k: [] for k in remaining}
     maps, pair_log = {}, []
     params = dense.SgbmParams(block_size=config.block_size, min_texture_std=config.min_texture_std)
+    # never upsample: the rectified grid spans 180° in at most as many rows as the panoramas have
+    rect_height = min(config.rect_height, min(image.shape[0] for image in images.values()))
     for i, j in tqdm(pairs, desc="densify", unit="pair"):
         baseline = float(np.linalg.norm(camera_center(R[i], t[i]) - camera_center(R[j], t[j])))
         ratio = pair_min_depth_ratio(near[i], near[j], baseline, config.min_depth_factor, config.max_disparity_deg)
         t0 = time.perf_counter()
-        res = dense.densify_pair(images[i], images[j], R[i], t[i], R[j], t[j], rect_height=config.rect_height,
+        res = dense.densify_pair(images[i], images[j], R[i], t[i], R[j], t[j], rect_height=rect_height,
                                  out_width=images[i].shape[1], min_depth_ratio=ratio,
                                  min_epipole_angle_deg=config.epipole_margin_deg, params=params)
         elapsed = time.perf_counter() - t0
         kept = {}
         for cam, other, rng in ((i, j, res.range_i), (j, i, res.range_j)):
             err = range_error_per_pixel(rng, R[cam], camera_center(R[cam], t[cam]), camera_center(R[other], t[other]),
-                                        np.pi / config.rect_height)
+                                        np.pi / rect_height)
             with np.errstate(invalid="ignore"):
                 rng[~(err <= config.max_range_error_per_px)] = np.nan
             kept[cam] = float(np.isfinite(rng).mean())
+            errors[cam].append(err)
         pair_log.append({"pair": [names[i], names[j]], "baseline": baseline, "min_depth_ratio": ratio,
-                         "num_disparities": dense.disparity_search_range(config.rect_height, ratio),
+                         "num_disparities": dense.disparity_search_range(rect_height, ratio),
                          "valid_i": float(res.valid_i.mean()), "valid_j": float(res.valid_j.mean()),
                          "well_conditioned_i": kept[i], "well_conditioned_j": kept[j],
                          "time_s": round(elapsed, 3), "timings_s": {k: round(v, 3) for k, v in res.timings.items()}})
@@ -135,12 +150,50 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
             estimates[cam].append(rng)
             remaining[cam] -= 1
             if remaining[cam] == 0:
-                combined = combine_range_estimates(estimates.pop(cam), config.combine_tolerance)
+                combined = combine_range_estimates(estimates.pop(cam), config.combine_tolerance, errors.pop(cam))
                 combined = mask_below_latitude(*combined, config.min_latitude_deg, config.max_latitude_deg)
-                combined = apply_mask(*combined, ctx.dataset.load_mask(names[cam]))
-                ctx.out.save_depth(names[cam], *combined, colorize_range(*combined))
-                maps[cam] = combined
+                maps[cam] = apply_mask(*combined, ctx.dataset.load_mask(names[cam]))
     return maps, pair_log
+
+
+# ------------------------------------------------------------------------------------------------ textureless
+def _fill_textureless(ctx: StageContext, images, maps, R, t, centers) -> dict[str, float]:
+    """Fill each range map's textureless regions in place (module doc, step 3b); returns the filled share per
+    panorama. Only where a stereo range could be: inside the latitude caps and the image mask."""
+    config: DensifyOptions = ctx.options
+    names = ctx.dataset.image_names
+    cams = sorted(maps)
+    neighbours = fusion_neighbours(centers[cams], config.fusion_views)
+    options = planes.PlaneOptions(fit_tolerance=config.plane_tolerance)
+    views = []
+    for k in cams:
+        height, width = maps[k][0].shape
+        observable = mask_below_latitude(np.ones((height, width), np.float32), np.ones((height, width), bool),
+                                         config.min_latitude_deg, config.max_latitude_deg)[1]
+        observable = apply_mask(np.zeros((height, width), np.float32), observable,
+                                ctx.dataset.load_mask(names[k]))[1]
+        views.append(planes.view_of(R[k], t[k], maps[k][0], observable, images[k], min(config.fill_width, width)))
+    fills = [planes.fill_plane_ranges(views[a], [views[b] for b in neighbours[a]], options, config.seed + k)
+             for a, k in enumerate(tqdm(cams, desc="planes", unit="pano"))]
+    shares = {}
+    for a, k in enumerate(cams):
+        others = neighbours[a]
+        fill, labels = fills[a]
+        kept = planes.confirmed_by_views(views[a], fill, labels, [views[b] for b in others],
+                                         [fills[b][0] for b in others], options)
+        rng, valid = maps[k]
+        fill = cv2.resize(np.where(kept, fill, np.nan), (rng.shape[1], rng.shape[0]),
+                          interpolation=cv2.INTER_NEAREST)
+        new = ~valid & np.isfinite(fill) & _observable_at(views[a], rng.shape)
+        maps[k] = (np.where(new, fill, rng).astype(np.float32), valid | new)
+        shares[names[k]] = float(new.mean())
+        log.info("planes: %s %.0f%% filled, %.0f%% valid", names[k], 100 * new.mean(), 100 * np.mean(maps[k][1]))
+    return shares
+
+
+def _observable_at(view: planes.View, shape: tuple[int, int]) -> np.ndarray:
+    """A view's observable area at a range map's size."""
+    return cv2.resize(view.observable.astype(np.uint8), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST) > 0
 
 
 # ------------------------------------------------------------------------------------------------ fusion

@@ -286,3 +286,48 @@ def test_select_stereo_pairs():
     assert np.all(pairs[:, 0] < pairs[:, 1])
     with pytest.raises(ValueError, match="inlier_counts"):
         dense.select_stereo_pairs(centers, inl[:4], k=1, min_triangulation_angle_deg=3.0)
+
+
+def test_stereo_partners_spread_over_baseline_directions():
+    # camera 0 with three strong partners on one line (their epipoles coincide) and a weaker one across: with
+    # separation, the second partner is the one across, so every pixel has a partner whose epipole is elsewhere
+    from fullview.sfm.dense.pairs import _diverse_partners
+    centers = np.array([[0, 0, 0], [1.0, 0, 0], [-1.0, 0, 0], [2.0, 0, 0], [0, 0, 1.0]], float)
+    score = np.full((5, 5), -np.inf)
+    score[0, 1:] = [900, 800, 700, 100]
+    assert list(_diverse_partners(centers, score, 2, 0.0)[0]) == [1, 2]
+    assert list(_diverse_partners(centers, score, 2, 30.0)[0]) == [1, 4]
+    assert list(_diverse_partners(centers, score, 3, 30.0)[0]) == [1, 4, 2]  # then the best remaining
+    assert list(_diverse_partners(centers, score, 2, 30.0)[1]) == [-1, -1]  # no candidates
+    # through select_stereo_pairs
+    inl = np.zeros((5, 5), int)
+    inl[0, 1:] = inl[1:, 0] = [900, 800, 700, 100]
+    pairs = dense.select_stereo_pairs(centers, inl, k=2, min_triangulation_angle_deg=3.0, min_inliers=50,
+                                      scene_depths=np.full(5, 3.0), min_epipole_separation_deg=30.0)
+    assert {tuple(p) for p in pairs} == {(0, 1), (0, 2), (0, 3), (0, 4)}  # each other camera's only partner is 0
+
+
+def test_partner_in_another_direction_removes_the_epipole_stripe():
+    # one partner leaves the pixels around its epipoles without depth (a stripe along the line of cameras); a second
+    # partner in another direction fills them, and the confidence-weighted combination keeps them accurate
+    layers = _noise_layers(0, (0.6, 0.25, 0.1))
+    centers = np.array([[-0.3, 0.1, -0.2], [0.15, 0.1, -0.2], [-0.3, 0.1, 0.25]])  # partners along x and along z
+    views = [render(np.eye(3), c, 384, layers) + (np.eye(3), -c) for c in centers]
+    (img0, gt0, R0, t0) = views[0]
+    estimates, errors = [], []
+    for img, _, R, t in views[1:]:
+        res = dense.densify_pair(img0, img, R0, t0, R, t, min_depth_ratio=1.5)
+        err = dense.range_error_per_pixel(res.range_i, R0, -t0, -t, np.pi / 192)
+        rng = np.where(err <= 0.2, res.range_i, np.nan)  # 384 px: a pixel of disparity is a coarse step
+        estimates.append(rng)
+        errors.append(err)
+    lon, lat = np.meshgrid(np.linspace(-np.pi, np.pi, 384, endpoint=False) + np.pi / 384,
+                           np.pi / 2 - (np.arange(192) + 0.5) * np.pi / 192)
+    bearing = np.stack([np.cos(lat) * np.sin(lon), -np.sin(lat), np.cos(lat) * np.cos(lon)], -1)
+    near_x_epipole = np.abs(bearing[..., 0]) > np.cos(np.radians(12))  # within 12° of the x partner's epipoles
+    single, _ = dense.combine_range_estimates(estimates[:1], 0.02)
+    both, ok = dense.combine_range_estimates(estimates, 0.02, errors)
+    assert np.isfinite(single[near_x_epipole]).mean() < 0.05  # the stripe
+    assert ok[near_x_epipole].mean() > 0.5  # filled by the other partner
+    rel = np.abs(both[ok] - gt0[ok]) / gt0[ok]
+    assert np.median(rel) < 0.02 and np.mean(rel < 0.1) > 0.9

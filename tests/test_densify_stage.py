@@ -134,6 +134,10 @@ def test_combine_range_estimates():
     assert np.isnan(rng[0, 1])
     single, ok = dense.combine_range_estimates([b], rel_tol=0.02)
     assert ok[0].tolist() == [True, True, True, False, False]
+    # with confidences: the better-conditioned estimate dominates the agreeing ones (weights 1 / error²)
+    err_a, err_c = np.full(a.shape, 0.001, np.float32), np.full(a.shape, 0.01, np.float32)
+    rng, valid = dense.combine_range_estimates([a, c], rel_tol=0.02, errors=[err_a, err_c])
+    assert abs(rng[0, 0] - (2.0 * 100 + 1.98) / 101) < 1e-5 and valid[0, 0]
 
 
 def test_mask_below_latitude():

@@ -189,12 +189,15 @@ def range_error_per_pixel(range_map: np.ndarray, R_cam_from_world: np.ndarray, c
         return (r_j_sq * np.float32(pixel_angle) / (r * np.float32(T) * sin_theta)).astype(np.float32)
 
 
-def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float) -> tuple[np.ndarray, np.ndarray]:
+def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float,
+                            errors: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One range map from a panorama's pair estimates (each (H, W), NaN invalid).
 
-    Where one pair has a range it is kept; where several have, the median is taken and the estimates within
-    ``rel_tol`` (relative) of it are averaged, and the pixel is dropped unless at least two agree (two conflicting
-    estimates cannot say which is right). Returns (range float32 NaN-invalid, valid bool)."""
+    Where one pair has a range it is kept; where several have, the estimates within ``rel_tol`` (relative) of their
+    median are averaged, weighted by confidence (1 / error² with ``errors`` the expected relative error of each
+    estimate per pixel, ``range_error_per_pixel``: a partner whose epipole is near the pixel counts little), and the
+    pixel is dropped unless at least two agree (two conflicting estimates cannot say which is right). Returns
+    (range float32 NaN-invalid, valid bool)."""
     if not estimates:
         raise ValueError("combine_range_estimates needs at least one estimate")
     if len(estimates) == 1:
@@ -202,15 +205,23 @@ def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float) -> tupl
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(rng) & (rng > 0)
         return np.where(valid, rng, np.nan).astype(np.float32), valid
-    stack = np.sort(np.stack(estimates).astype(np.float32), axis=0)  # NaN sorts last
+    raw = np.stack(estimates).astype(np.float32)
+    stack = np.sort(raw, axis=0)  # NaN sorts last
     count = np.isfinite(stack).sum(0)
     lo = np.take_along_axis(stack, np.maximum((count - 1) // 2, 0)[None], 0)[0]
     hi = np.take_along_axis(stack, np.maximum(count // 2, 0)[None], 0)[0]
     median = 0.5 * (lo + hi)
     with np.errstate(invalid="ignore"):
-        agree = np.abs(stack - median) <= rel_tol * median
+        agree = np.abs(raw - median) <= rel_tol * median
     n_agree = agree.sum(0)
-    mean = np.where(agree, stack, 0).sum(0) / np.maximum(n_agree, 1)
+    if errors is None:
+        weight = agree.astype(np.float32)
+    else:
+        err = np.stack(errors).astype(np.float32)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            weight = np.where(agree & np.isfinite(err) & (err > 0), 1.0 / np.maximum(err, 1e-6) ** 2, 0.0)
+        weight = np.where(agree & (weight.sum(0) == 0)[None], 1.0, weight)  # no usable error: plain mean
+    mean = (np.where(agree, raw, 0) * weight).sum(0) / np.maximum(weight.sum(0), 1e-30)
     valid = ((count == 1) | (n_agree >= 2)) & (count > 0)
     out = np.where(count == 1, stack[0], mean)
     valid &= np.isfinite(out) & (out > 0)

@@ -1,0 +1,135 @@
+"""Textureless filling (sfm/dense/planes.py) on a plain box room seen by three panoramas.
+
+Each wall, the floor and the ceiling has its own flat colour; "stereo" knows the range only along the edges where
+two surfaces meet (what SGBM finds in a plain room). Filling must recover the surfaces exactly, and must not fill
+where another view sees through the surface.
+"""
+
+import numpy as np
+import pytest
+
+from fullview.sfm.camera import pixel_grid_bearings
+from fullview.sfm.dense import planes
+
+WIDTH = 256
+ROOM = np.array([[-2.0, -1.3, -3.0], [2.0, 1.2, 3.0]])  # box corners (y down: ceiling at -1.3)
+FACE_GREY = np.array([60, 90, 120, 150, 180, 210], np.float32)  # -x, +x, -y (ceiling), +y (floor), -z, +z
+CENTERS = np.array([[0.0, 0.0, 0.0], [0.8, 0.1, 1.0], [-0.7, -0.1, -1.1]])
+
+
+def _render(center: np.ndarray):
+    """(range, face id, BGR image) of an identity-oriented panorama at ``center`` inside the box."""
+    b = pixel_grid_bearings(WIDTH, WIDTH // 2)
+    with np.errstate(divide="ignore"):
+        t_lo, t_hi = (ROOM[0] - center) / b, (ROOM[1] - center) / b
+    t = np.where(b > 0, t_hi, t_lo)  # exit distance along each axis
+    axis = np.argmin(t, axis=-1)
+    rng = np.take_along_axis(t, axis[..., None], -1)[..., 0].astype(np.float32)
+    face = 2 * axis + (np.take_along_axis(b, axis[..., None], -1)[..., 0] > 0)
+    image = np.repeat(FACE_GREY[face][..., None], 3, axis=2).astype(np.uint8)
+    return rng, face, image
+
+
+def _edges_only(rng: np.ndarray, face: np.ndarray) -> np.ndarray:
+    """The range where a 3x3 neighbourhood holds two faces (the lines stereo finds in a plain room), NaN elsewhere."""
+    pad = np.pad(face, 1, mode="edge")
+    edge = np.zeros(face.shape, bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            edge |= pad[1 + dy:1 + dy + face.shape[0], 1 + dx:1 + dx + face.shape[1]] != face
+    return np.where(edge, rng, np.nan).astype(np.float32)
+
+
+def _views(stereo_override=None):
+    views, truth = [], []
+    for k, c in enumerate(CENTERS):
+        rng, face, image = _render(c)
+        stereo = _edges_only(rng, face) if stereo_override is None or k not in stereo_override \
+            else stereo_override[k](rng, face)
+        views.append(planes.view_of(np.eye(3), -c, stereo, np.ones(rng.shape, bool), image, WIDTH))
+        truth.append(rng)
+    return views, truth
+
+
+def _fill(views, options=None):
+    options = options or planes.PlaneOptions(min_region_pixels=50)
+    results = [planes.fill_plane_ranges(v, [o for o in views if o is not v], options, seed=0) for v in views]
+    kept = [planes.confirmed_by_views(v, f, labels, [o for o in views if o is not v],
+                                      [g for o, (g, _) in zip(views, results) if o is not v], options)
+            for v, (f, labels) in zip(views, results)]
+    return [f for f, _ in results], kept
+
+
+def test_plain_room_is_filled_exactly():
+    views, truth = _views()
+    fills, kept = _fill(views)
+    for view, fill, ok, rng in zip(views, fills, kept, truth):
+        missing = ~np.isfinite(view.range_map)
+        assert ok.sum() > 0.8 * missing.sum()  # most of the plain surfaces
+        err = np.abs(fill[ok] - rng[ok]) / rng[ok]
+        assert np.percentile(err, 99) < 3e-3  # on the true planes (edge pixels one pixel off tilt them a little)
+
+
+def test_surface_a_view_sees_through_is_not_filled():
+    # the third panorama's stereo sees well beyond the +z wall (as through an opening): nobody may fill that wall
+    def through(rng, face):
+        out = _edges_only(rng, face)
+        return np.where(face == 5, 3.0 * rng, out).astype(np.float32)
+
+    views, truth = _views({2: through})
+    fills, kept = _fill(views)
+    ref = views[0]
+    b = pixel_grid_bearings(WIDTH, WIDTH // 2)
+    with np.errstate(divide="ignore"):
+        far_wall = (np.argmin(np.where(b > 0, (ROOM[1] - CENTERS[0]) / b, (ROOM[0] - CENTERS[0]) / b), -1) == 2) \
+            & (b[..., 2] > 0)
+    seen_by_third = far_wall  # the third camera sees the whole +z wall
+    assert np.isfinite(fills[0][far_wall]).sum() == 0 or not kept[0][far_wall & np.isfinite(fills[0])].any()
+    # the other surfaces are still filled
+    assert kept[0][~seen_by_third & ~np.isfinite(ref.range_map)].mean() > 0.7
+
+
+def test_without_a_second_opinion_nothing_is_kept():
+    # other views that have no range where the filled points land cannot confirm them
+    views, _ = _views()
+    options = planes.PlaneOptions(min_region_pixels=50)
+    fill, labels = planes.fill_plane_ranges(views[0], views[1:], options, seed=0)
+    empty = [np.full_like(fill, np.nan) for _ in views[1:]]
+    blind = [planes.View(R_cam_from_world=v.R_cam_from_world, t_cam_from_world=v.t_cam_from_world,
+                         range_map=np.full_like(v.range_map, np.nan), observable=v.observable, color=v.color)
+             for v in views[1:]]
+    assert np.isfinite(fill).mean() > 0.5
+    assert not planes.confirmed_by_views(views[0], fill, labels, blind, empty, options).any()
+
+
+def test_fill_is_deterministic():
+    views, _ = _views()
+    a, la = planes.fill_plane_ranges(views[0], views[1:], planes.PlaneOptions(min_region_pixels=50), seed=3)
+    b, lb = planes.fill_plane_ranges(views[0], views[1:], planes.PlaneOptions(min_region_pixels=50), seed=3)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(la, lb)
+
+
+@pytest.mark.parametrize("leak", [False, True])
+def test_a_leaking_region_gets_no_plane(leak):
+    # border points of a wall: its exact plane; of a wall and the ceiling together (a region whose edges leak): none
+    # (one plane explains only half of them, and a second one was measured to mislead: see MAX_PLANES_PER_REGION)
+    rng = np.random.default_rng(0)
+    wall = np.column_stack([rng.uniform(-2, 2, 200), rng.uniform(-1.3, 1.2, 200), np.full(200, 3.0)])
+    ceiling = np.column_stack([rng.uniform(-2, 2, 200), np.full(200, -1.3), rng.uniform(-3, 3, 200)])
+    pts = np.vstack([wall, ceiling]) if leak else wall
+    r = np.linalg.norm(pts, axis=1)
+    found, owner = planes.fit_region_planes(pts, pts / r[:, None], np.zeros(3), r, rng, planes.PlaneOptions())
+    if leak:
+        assert found == [] and (owner == -1).all()
+    else:
+        (normal, offset), = found
+        assert abs(abs(normal[2]) - 1) < 1e-9 and abs(abs(offset) - 3.0) < 1e-9 and (owner == 0).all()
+
+
+def test_scattered_points_get_no_plane():
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-3, 3, (300, 3))
+    r = np.linalg.norm(pts, axis=1)
+    found, owner = planes.fit_region_planes(pts, pts / r[:, None], np.zeros(3), r, rng, planes.PlaneOptions())
+    assert found == [] and (owner == -1).all()
