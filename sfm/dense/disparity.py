@@ -1,4 +1,4 @@
-"""Angular disparity on the rectified grid: OpenCV SGBM in both directions with a left-right check.
+"""Angular disparity on the rectified grid: OpenCV SGBM with its left-right check, carried over to the other view.
 
 A point seen at ``θ_i`` from camera i is seen at ``θ_j = θ_i + d`` (``d ≥ 0``) from camera j; SGBM expects the match
 of a left column x at ``x − d``, hence the column flips in ``compute_disparity``. Rows are extended past the poles
@@ -98,7 +98,8 @@ def _textured(gray: np.ndarray, params: SgbmParams) -> np.ndarray:
     return mean_sq - mean * mean >= params.min_texture_std**2
 
 
-def _make_sgbm(num_disparities: int, min_disparity: int, channels: int, p: SgbmParams) -> cv2.StereoSGBM:
+def _make_sgbm(num_disparities: int, min_disparity: int, channels: int, p: SgbmParams,
+               lr_max_diff_px: float) -> cv2.StereoSGBM:
     area = channels * p.block_size**2
     return cv2.StereoSGBM.create(
         minDisparity=min_disparity,
@@ -106,7 +107,7 @@ def _make_sgbm(num_disparities: int, min_disparity: int, channels: int, p: SgbmP
         blockSize=p.block_size,
         P1=p.p1_factor * area,
         P2=p.p2_factor * area,
-        disp12MaxDiff=-1,  # our own LR check below
+        disp12MaxDiff=max(int(round(lr_max_diff_px)), 0),  # SGBM's own left-right check, from its cost volume
         preFilterCap=p.pre_filter_cap,
         uniquenessRatio=p.uniqueness_ratio,
         speckleWindowSize=p.speckle_window_size,
@@ -123,15 +124,19 @@ def _sgbm_pixels(matcher: cv2.StereoSGBM, left: np.ndarray, right: np.ndarray, m
     return disp
 
 
-def _lr_consistent(disp: np.ndarray, other: np.ndarray, sign: int, max_diff: float) -> np.ndarray:
-    """Pixels whose match (column + sign·disp) in the other view carries a disparity within ``max_diff``."""
-    n_theta = disp.shape[1]
-    cols = np.arange(n_theta, dtype=np.float32)[None, :] + sign * np.nan_to_num(disp, nan=-1e6)
-    idx = np.rint(cols)
-    inside = (idx >= 0) & (idx < n_theta)
-    matched = np.take_along_axis(other, np.clip(idx, 0, n_theta - 1).astype(np.intp), axis=1)
-    with np.errstate(invalid="ignore"):
-        return inside & (np.abs(matched - disp) <= max_diff)
+def _forward_warp(disp: np.ndarray) -> np.ndarray:
+    """Camera j's disparity map from camera i's: a point at column x of i lies at column x + d of j (θ_j = θ_i + d),
+    the nearest point (largest disparity) winning where several land on one pixel; NaN where none lands (occluded
+    from i)."""
+    n_phi, n_theta = disp.shape
+    rows, cols = np.nonzero(np.isfinite(disp))
+    d = disp[rows, cols]
+    target = np.rint(cols + d).astype(np.intp)
+    inside = (target >= 0) & (target < n_theta)
+    flat = rows[inside] * n_theta + target[inside]
+    out = np.full(n_phi * n_theta, -np.inf, np.float32)
+    np.maximum.at(out, flat, d[inside])
+    return np.where(np.isfinite(out), out, np.nan).reshape(n_phi, n_theta)
 
 
 def compute_disparity(
@@ -150,11 +155,12 @@ def compute_disparity(
       (``disparity_search_range``).
     - Direction: θ_j = θ_i + d with d ≥ 0, i.e. a point sits at a *larger* column in j than in i. SGBM finds the
       left pixel x at x − d in the right image, so i → j is computed on column-flipped images (left = flip(i),
-      right = flip(j)) and j → i on the unflipped pair (left = j, right = i).
+      right = flip(j)). One SGBM pass: its own left-right check (``disp12MaxDiff``, from the cost volume) replaces a
+      second pass j → i, and j's map is i's carried over (``_forward_warp``): half the time of two passes.
     - Both images are extended past θ = 0 and θ = π by ``pad_theta`` so that SGBM's blind border (the first
       ``num_disparities`` columns of the left image) falls outside the real grid.
     - Pixels are invalid where SGBM found no match, where the two directions disagree by more than
-      ``lr_max_diff_px``, closer than ``min_epipole_angle_deg`` to the epipole or the anti-epipole, or untextured
+      ``lr_max_diff_px`` (rounded to whole pixels), closer than ``min_epipole_angle_deg`` to the epipole or the anti-epipole, or untextured
       (``SgbmParams.min_texture_std``).
     """
     params = params or SgbmParams()
@@ -166,21 +172,21 @@ def compute_disparity(
     num = disparity_search_range(n_theta, min_depth_ratio, min_disparity)
     pad = min(num + max(min_disparity, 0) + params.block_size, n_theta)
     gray_i, gray_j = _to_gray_u8(rect_i), _to_gray_u8(rect_j)
-    matcher = _make_sgbm(num, min_disparity, 1, params)
+    matcher = _make_sgbm(num, min_disparity, 1, params, lr_max_diff_px)
     t0 = time.perf_counter()
     left = np.ascontiguousarray(pad_theta(gray_i, 0, pad)[:, ::-1])
     right = np.ascontiguousarray(pad_theta(gray_j, 0, pad)[:, ::-1])
     disp_i = _sgbm_pixels(matcher, left, right, min_disparity)[:, ::-1][:, :n_theta]
-    disp_j = _sgbm_pixels(matcher, pad_theta(gray_j, pad, 0), pad_theta(gray_i, pad, 0), min_disparity)[:, pad:]
     log.debug("SGBM %dx%d, %d disparities: %.2fs", n_phi, n_theta, num, time.perf_counter() - t0)
-    ok_i = _lr_consistent(disp_i, disp_j, +1, lr_max_diff_px)
-    ok_j = _lr_consistent(disp_j, disp_i, -1, lr_max_diff_px)
     theta = theta_of_columns(n_theta)
     margin = np.radians(min_epipole_angle_deg)
     away = ((theta >= margin) & (theta <= np.pi - margin))[None, :]
+    with np.errstate(invalid="ignore"):
+        valid_i = np.isfinite(disp_i) & away & (disp_i > 0) & _textured(gray_i, params)
+    disp_j = _forward_warp(np.where(valid_i, disp_i, np.nan))
+    with np.errstate(invalid="ignore"):
+        valid_j = np.isfinite(disp_j) & away & (disp_j > 0) & _textured(gray_j, params)
     pixel_angle = np.pi / n_theta
-    valid_i = ok_i & away & (disp_i > 0) & _textured(gray_i, params)
-    valid_j = ok_j & away & (disp_j > 0) & _textured(gray_j, params)
     return DisparityResult(
         disparity_i=np.where(valid_i, disp_i * np.float32(pixel_angle), np.nan).astype(np.float32),
         disparity_j=np.where(valid_j, disp_j * np.float32(pixel_angle), np.nan).astype(np.float32),
