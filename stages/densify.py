@@ -29,6 +29,7 @@ from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimat
                                 mask_below_latitude, pair_min_depth_ratio, range_error_per_pixel, scene_size)
 from fullview.sfm.dense_metrics import voxel_downsample
 from fullview.sfm.options import DensifyOptions
+from fullview.stages import mesh_step
 from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
@@ -74,6 +75,7 @@ def run(ctx: StageContext) -> dict:
         "valid_share": {names[k]: float(np.mean(m[1])) for k, m in maps.items()},
         "pair_log": pair_log, "wall_time_s": round(time.perf_counter() - t_start, 2),
     }
+    summary["mesh"] = mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel)
     ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=summary)
     return summary
 
