@@ -10,9 +10,9 @@ from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
 
 ROOM_MIN, ROOM_MAX = np.array([-3.0, -1.5, -2.5]), np.array([3.0, 1.5, 2.5])  # a box room, y down
 CENTERS = np.array([[-1.2, 0.0, -0.8], [1.0, 0.1, -0.5], [0.2, -0.1, 1.1]])
-WIDTH = 256
-VOXEL = 0.05
-BLOB_CENTER, BLOB_RADIUS = np.array([1.8, 0.2, -0.5]), 0.3  # a fake blob of points in front of camera 1
+WIDTH = 160
+VOXEL = 0.1
+BLOB_CENTER, BLOB_RADIUS = np.array([1.8, 0.2, -0.5]), 0.4  # a fake blob of points in front of camera 1
 
 
 def box_range_map(center, width=WIDTH):
@@ -92,8 +92,8 @@ def test_view_support_free_space_and_occlusion():
 
 def test_mesh_is_reproducible(room):
     points, colors, normals, R, t, maps = room
-    a = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=7))
-    b = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=7))
+    a = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6))
+    b = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6))
     assert a.vertices.tobytes() == b.vertices.tobytes() and a.triangles.tobytes() == b.triangles.tobytes()
     assert a.vertex_colors.tobytes() == b.vertex_colors.tobytes()
 
@@ -101,3 +101,30 @@ def test_mesh_is_reproducible(room):
 def _nearest(a, b, reverse=False):
     from scipy.spatial import cKDTree
     return cKDTree(a).query(b) if not reverse else cKDTree(b).query(a)
+
+
+def test_mesh_ply_round_trip_and_corruption(tmp_path):
+    from fullview.io.artifacts import ArtifactError, load_mesh_ply, save_mesh_ply
+    rng = np.random.default_rng(1)
+    vertices, colors = rng.random((7, 3)), rng.integers(0, 256, (7, 3)).astype(np.uint8)
+    triangles = np.array([[0, 1, 2], [2, 3, 4], [4, 5, 6]])
+    path = save_mesh_ply(tmp_path / "m.ply", vertices, triangles, colors)
+    mesh = load_mesh_ply(path)
+    assert np.array_equal(mesh["triangles"], triangles) and np.array_equal(mesh["colors"], colors)
+    assert np.allclose(mesh["vertices"], vertices, atol=1e-7)
+    path.write_bytes(path.read_bytes()[:-5])
+    with pytest.raises(ArtifactError, match="m.ply: corrupt mesh PLY"):
+        load_mesh_ply(path)
+
+
+def test_mesh_samples_are_uniform_on_the_surface():
+    from fullview.sfm.dense_metrics import sample_mesh_surface
+    # a 2 x 1 rectangle in z = 0 made of one large and two small triangles: samples follow area, not triangles
+    vertices = np.array([[0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0], [1, 1, 0]], float)
+    triangles = np.array([[0, 1, 2], [0, 2, 4], [0, 4, 3]])
+    samples = sample_mesh_surface(vertices, triangles, 0.02)
+    assert len(samples) == 5000 and np.all(samples[:, 2] == 0)
+    assert samples[:, 0].min() >= 0 and samples[:, 0].max() <= 2 and samples[:, 1].min() >= 0
+    hist = np.histogram2d(samples[:, 0], samples[:, 1], bins=(4, 2), range=((0, 2), (0, 1)))[0]
+    assert hist.min() > 0.8 * hist.mean()
+    assert np.array_equal(samples, sample_mesh_surface(vertices, triangles, 0.02))
