@@ -63,6 +63,14 @@ def test_mesh_of_a_box_room_is_accurate_and_complete(room):
     assert mesh.stats["triangles"] == len(mesh.triangles) and 0 <= mesh.stats["trimmed_share"] < 0.2
 
 
+def test_normals_of_either_sign_give_the_same_mesh(room):
+    points, colors, normals, R, t, maps = room
+    flipped = normals * np.where(np.random.default_rng(2).random(len(normals)) < 0.5, -1.0, 1.0)[:, None]
+    a = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL)
+    b = mesh_from_dense(points, colors, flipped, R, t, maps, voxel_size=VOXEL)
+    assert a.vertices.tobytes() == b.vertices.tobytes() and a.triangles.tobytes() == b.triangles.tobytes()
+
+
 def test_a_blob_the_views_see_through_is_trimmed(room):
     points, colors, normals, R, t, maps = room
     rng = np.random.default_rng(0)

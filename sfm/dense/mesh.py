@@ -58,8 +58,8 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
                     params: MeshParams = MeshParams()) -> Mesh:
     """The trimmed, coloured Poisson mesh of a fused cloud.
 
-    ``points`` / ``colors`` (uint8 RGB) / ``normals`` (N, 3): the fused cloud (normals oriented towards the
-    cameras); ``R_cam_from_world`` (K, 3, 3), ``t_cam_from_world`` (K, 3) and ``range_maps[k]`` (H, W) ranges
+    ``points`` / ``colors`` (uint8 RGB) / ``normals`` (N, 3): the fused cloud (the normals' signs do not matter:
+    they are turned towards the cameras that see the points); ``R_cam_from_world`` (K, 3, 3), ``t_cam_from_world`` (K, 3) and ``range_maps[k]`` (H, W) ranges
     (NaN or ≤ 0: invalid; None: no map) of the same cameras; ``voxel_size``: the cloud's spacing."""
     points = np.asarray(points, np.float64).reshape(-1, 3)
     if len(points) < 16:
@@ -72,6 +72,8 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
     vertices, triangles, density = poisson_surface(points, normals, depth)
     stats = {"poisson_depth": int(depth), "poisson_vertices": int(len(vertices)),
              "poisson_triangles": int(len(triangles))}
+    if len(triangles) == 0:
+        raise ValueError(f"Poisson reconstruction (depth {depth}) of {len(points)} points gave no surface")
     keep = np.ones(len(triangles), bool)
     low = density < np.quantile(density, params.density_quantile)
     keep &= _drop("density", ~low[triangles].any(1), keep, stats)
