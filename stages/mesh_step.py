@@ -30,7 +30,8 @@ def write_dense_mesh(ctx: StageContext, points: np.ndarray, colors: np.ndarray, 
                      R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, range_maps: dict,
                      voxel_size: float) -> dict | None:
     """Mesh the fused cloud, trim it by the range maps (``{camera index: (range, valid)}``), save it through the
-    stage writer and return its summary figures (None when ``densify.mesh`` is off or the cloud is too small)."""
+    stage writer and return its summary figures (None when ``densify.mesh`` is off or the cloud is too small; the
+    reason when meshing fails)."""
     config: DensifyOptions = ctx.options
     if not config.mesh:
         return None
@@ -40,8 +41,12 @@ def write_dense_mesh(ctx: StageContext, points: np.ndarray, colors: np.ndarray, 
     t0, cpu0 = time.perf_counter(), time.process_time()
     cams = sorted(range_maps)
     maps = [np.where(range_maps[k][1], range_maps[k][0], np.nan) for k in cams]
-    mesh = mesh_from_dense(points, colors, normals, R_cam_from_world[cams], t_cam_from_world[cams], maps,
-                           voxel_size=voxel_size, params=mesh_params(config))
+    try:
+        mesh = mesh_from_dense(points, colors, normals, R_cam_from_world[cams], t_cam_from_world[cams], maps,
+                               voxel_size=voxel_size, params=mesh_params(config))
+    except ValueError as e:  # a degenerate cloud: the cloud and range maps stand without a mesh
+        log.warning("densify: no mesh: %s", e)
+        return {"error": str(e)}
     ctx.out.save_dense_mesh(vertices=mesh.vertices, triangles=mesh.triangles, colors=mesh.vertex_colors)
     if config.preview and len(mesh.triangles) >= 3:
         centers = np.array([camera_center(R_cam_from_world[k], t_cam_from_world[k]) for k in cams])
