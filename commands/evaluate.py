@@ -124,10 +124,12 @@ def evaluate_dense(dataset: Dataset, ws: Workspace, est: dict, R_gt_cam_from_wor
     depth = [d if d is not None else missing for d in depth]  # no range map: nothing of it is valid
     cloud = ws.load_dense_cloud()
     points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]) if cloud is not None else None
+    mesh = ws.load_dense_mesh()
     t_gt = -np.einsum("nab,nb->na", R_gt_cam_from_world, c_gt)
     out = dense_metrics(range_est=[d["range"] for d in depth], valid_est=[d["valid"] for d in depth], range_gt=gt,
                         R_gt_cam_from_world=R_gt_cam_from_world, t_gt_cam_from_world=t_gt, sim=sim, points=points,
-                        scene_size=dataset.ground_truth_scene_size(c_gt), names=names)
+                        scene_size=dataset.ground_truth_scene_size(c_gt), names=names,
+                        mesh=(mesh["vertices"], mesh["triangles"]) if mesh is not None else None)
     out["median_pair_time_s"] = manifest.get("summary", {}).get("median_pair_time_s")
     out["stage_wall_time_s"] = manifest.get("wall_time_s")
     return out

@@ -2,10 +2,11 @@
 
 - ``colmap`` / ``colmap-bin``: a COLMAP model (text / binary) written by pycolmap, EQUIRECTANGULAR cameras;
 - ``nerfstudio``: ``transforms.json`` (``camera_model: EQUIRECTANGULAR``) plus the sparse points for splatting;
-- ``ply``: the sparse and dense clouds as binary PLY with colours and normals.
+- ``ply``: the sparse and dense clouds as binary PLY with colours and normals, and the dense mesh (when densify
+  made one) as PLY and OBJ with vertex colours.
 
 Every model is written to its own subfolder, ``<k>/`` (model 0 is the largest; COLMAP's ``sparse/<k>`` convention);
-the dense cloud belongs to model 0 (``0/dense.ply``). The export goes to the workspace's ``export_<format>/`` folder, or to ``--out DIR`` (a new or empty folder, or one a
+the dense cloud and mesh belong to model 0 (``0/dense.ply``, ``0/dense_mesh.ply``). The export goes to the workspace's ``export_<format>/`` folder, or to ``--out DIR`` (a new or empty folder, or one a
 previous export wrote), in a transaction either way: an interrupted export leaves the previous one intact.
 """
 
@@ -19,7 +20,7 @@ import numpy as np
 
 from fullview.io.config import ConfigError
 from fullview.io.exports import (SparseModel, sparse_point_normals, split_models, write_colmap_model,
-                                 write_nerfstudio, write_point_cloud)
+                                 write_mesh, write_nerfstudio, write_point_cloud)
 from fullview.io.workspace import (RUN_LOCK, StageWriter, folder_of, folder_transaction, make_dirs,
                                    read_manifest_file)
 from fullview.stages.runner import Pipeline, RunnerError, record_fingerprint
@@ -107,6 +108,9 @@ def _write_model(pipeline: Pipeline, fmt: str, model: SparseModel, writer: Stage
             normals = np.column_stack([cloud["nx"], cloud["ny"], cloud["nz"]]) if "nx" in cloud else None
             write_point_cloud(folder / "dense.ply", xyz, np.column_stack([cloud["red"], cloud["green"], cloud["blue"]]),
                               normals)
+            mesh = pipeline.ws.load_dense_mesh()
+            for name in ("dense_mesh.ply", "dense_mesh.obj") if mesh is not None else ():
+                write_mesh(folder / name, mesh["vertices"], mesh["triangles"], mesh["colors"])
 
 
 def sparse_models(pipeline: Pipeline) -> list[SparseModel]:

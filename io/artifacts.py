@@ -149,3 +149,53 @@ def load_ply(path: Path) -> dict[str, np.ndarray]:
     except (ValueError, KeyError, IndexError, StopIteration, UnicodeDecodeError) as e:
         raise ArtifactError(f"{path}: corrupt PLY ({type(e).__name__}); rerun its stage") from None
     return {name: rec[name] for name, _ in dtype}
+
+
+def save_mesh_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray) -> Path:
+    """Binary little-endian PLY of a triangle mesh: float32 xyz and uint8 rgb per vertex, int32 vertex triples."""
+    vertices = np.asarray(vertices, np.float32).reshape(-1, 3)
+    vert = np.empty(len(vertices), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
+                                    ("blue", "u1")])
+    vert["x"], vert["y"], vert["z"] = vertices.T
+    vert["red"], vert["green"], vert["blue"] = np.asarray(colors, np.uint8).reshape(-1, 3).T
+    faces = np.empty(len(triangles), [("n", "u1"), ("v", "<i4", (3,))])
+    faces["n"], faces["v"] = 3, np.asarray(triangles, np.int32).reshape(-1, 3)
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(vert)}", "property float x",
+              "property float y", "property float z", "property uchar red", "property uchar green",
+              "property uchar blue", f"element face {len(faces)}", "property list uchar int vertex_indices",
+              "end_header"]
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(("\n".join(header) + "\n").encode("ascii"))
+            f.write(vert.tobytes())
+            f.write(faces.tobytes())
+    return Path(path)
+
+
+def load_mesh_ply(path: Path) -> dict[str, np.ndarray]:
+    """A mesh written by `save_mesh_ply`: ``vertices`` (V, 3) float32, ``colors`` (V, 3) uint8, ``triangles``
+    (T, 3) int32 (indices checked)."""
+    vert_dtype = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    face_dtype = [("n", "u1"), ("v", "<i4", (3,))]
+    try:
+        with open(path, "rb") as f:
+            lines = []
+            while not lines or lines[-1] != "end_header":
+                line = f.readline()
+                if not line or len(lines) > 64:
+                    raise ValueError("no end_header")
+                lines.append(line.decode("ascii").strip())
+            counts = {l.split()[1]: int(l.split()[2]) for l in lines if l.startswith("element")}
+            data = f.read()
+        size = counts["vertex"] * 15 + counts["face"] * 13
+        if len(data) != size:
+            raise ValueError(f"{len(data)} bytes of data, expected {size}")
+        vert = np.frombuffer(data, vert_dtype, counts["vertex"])
+        faces = np.frombuffer(data, face_dtype, counts["face"], offset=counts["vertex"] * 15)
+        if (faces["n"] != 3).any() or (faces["v"] < 0).any() or (faces["v"] >= len(vert)).any():
+            raise ValueError("bad faces")
+    except (ValueError, KeyError, IndexError, UnicodeDecodeError) as e:
+        raise ArtifactError(f"{path}: corrupt mesh PLY ({type(e).__name__}: {e}); rerun its stage") from None
+    return {"vertices": np.column_stack([vert["x"], vert["y"], vert["z"]]),
+            "colors": np.column_stack([vert["red"], vert["green"], vert["blue"]]),
+            "triangles": np.ascontiguousarray(faces["v"])}

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fullview.io.artifacts import save_json, save_ply
+from fullview.io.artifacts import atomic_path, save_json, save_mesh_ply, save_ply
 
 log = logging.getLogger(__name__)
 
@@ -244,6 +244,30 @@ def write_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray | None 
         if arr is not None and np.shape(arr) != (n, 3):
             raise ValueError(f"{name} has shape {np.shape(arr)}, expected ({n}, 3)")
     return save_ply(path, points, colors, normals)
+
+
+def write_mesh(path: Path, vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray) -> Path:
+    """A coloured triangle mesh as binary PLY (``.ply``: float32 xyz, uint8 rgb, int32 faces) or Wavefront OBJ
+    (``.obj``: ``v x y z r g b`` with colours in [0, 1], the vertex-colour extension MeshLab, Blender and open3d
+    read; 1-based ``f`` lines), with shapes and indices checked."""
+    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+    triangles = np.asarray(triangles, np.int64)
+    if np.shape(colors) != vertices.shape:
+        raise ValueError(f"colors has shape {np.shape(colors)}, expected ({len(vertices)}, 3)")
+    if triangles.ndim != 2 or triangles.shape[1] != 3 or (triangles.size and (
+            triangles.min() < 0 or triangles.max() >= len(vertices))):
+        raise ValueError(f"triangles must be (T, 3) indices below {len(vertices)}")
+    path = Path(path)
+    if path.suffix == ".ply":
+        return save_mesh_ply(path, vertices, triangles, colors)
+    if path.suffix != ".obj":
+        raise ValueError(f"{path}: a mesh is written as .ply or .obj")
+    v = np.column_stack([vertices, np.asarray(colors, np.float64) / 255.0])
+    with atomic_path(path) as tmp, open(tmp, "w") as f:
+        f.write(f"# fullview dense mesh: {len(vertices)} vertices, {len(triangles)} triangles\n")
+        np.savetxt(f, v, fmt="v %.6f %.6f %.6f %.4f %.4f %.4f")
+        np.savetxt(f, triangles + 1, fmt="f %d %d %d")
+    return path
 
 
 def sparse_point_normals(points: np.ndarray, centers: np.ndarray, *, knn: int = 16,

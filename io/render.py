@@ -153,3 +153,22 @@ def render_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, *, no
     log.info("rendered %d points (%s) to %s", len(points),
              "back faces culled" if normals is not None else f"{len(pts)} below the ceiling cut", path)
     return Path(path)
+
+
+def render_mesh(path: Path, vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray, **kwargs) -> Path:
+    """Render a triangle mesh (RGB uint8 vertex ``colors``) like `render_point_cloud`: each triangle is splatted at
+    its centre with its mean colour, shaded by the angle of its normal to the scene's up direction (so that walls,
+    floor and edges read as surfaces), and back faces are culled. Keywords as for `render_point_cloud`."""
+    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+    tri = np.asarray(triangles, np.int64).reshape(-1, 3)
+    if len(tri) < 3:
+        raise ValueError(f"need at least 3 triangles to render, got {len(tri)}")
+    corners = vertices[tri]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    up, e1, _ = _up_and_axes(corners.mean(1), kwargs.get("up"))
+    light = up + 0.5 * e1
+    shade = 0.55 + 0.45 * np.abs(normals @ (light / np.linalg.norm(light)))
+    cols = np.asarray(colors, np.float64).reshape(-1, 3)[tri].mean(1) * shade[:, None]
+    return render_point_cloud(path, corners.mean(1), np.clip(cols, 0, 255).astype(np.uint8), normals=normals,
+                              **kwargs)

@@ -11,7 +11,8 @@ Layout (``FILES`` is the single table of names; nothing else in fullview spells 
         epipoles/epipoles.npz                relative poses of every pair
         registration/registration.npz, registration.json
         triangulation/sparse.npz, sparse.ply (model 0), summary.json, models/<k>/{cameras,images,points3D,...}.txt
-        densify/dense.ply, dense_preview.png, summary.json, depth/<stem>.npz, depth/<stem>.png
+        densify/dense.ply, dense_preview.png, summary.json, depth/<stem>.npz, depth/<stem>.png,
+                dense_mesh.ply, dense_mesh_preview.png   (the trimmed Poisson mesh, densify.mesh)
         eval/metrics.json                                    (fullview eval)
         colmap_<render type>/model/                          (fullview compare: cached COLMAP reference)
         compare_<render type>/colmap.json, colmap.md, top_view.png   (fullview compare)
@@ -44,8 +45,8 @@ from typing import Iterator
 import numpy as np
 
 from fullview.io.render import save_png
-from fullview.io.artifacts import (ArtifactError, apply_umask, load_npz, load_ply, save_bytes, save_json, save_npz,
-                                   save_ply, save_text)
+from fullview.io.artifacts import (ArtifactError, apply_umask, load_mesh_ply, load_npz, load_ply, save_bytes,
+                                   save_json, save_mesh_ply, save_npz, save_ply, save_text)
 from fullview.sfm.camera import pixels_to_bearings
 
 log = logging.getLogger(__name__)
@@ -72,6 +73,8 @@ FILES: dict[str, tuple[str, str]] = {
     "dense_cloud": ("densify", "dense.ply"),
     "dense_preview": ("densify", "dense_preview.png"),
     "dense_summary": ("densify", "summary.json"),
+    "dense_mesh": ("densify", "dense_mesh.ply"),
+    "dense_mesh_preview": ("densify", "dense_mesh_preview.png"),
     "eval_metrics": ("eval", "metrics.json"),
     "colmap_reference": ("colmap_{render_type}", "model"),
     "colmap_reference_images": ("colmap_{render_type}", "panoramas"),
@@ -211,6 +214,11 @@ class Workspace:
         """Columns of the fused cloud (x, y, z, nx, ny, nz, red, green, blue), or None when there is none."""
         path = self.path("dense_cloud")
         return load_ply(path) if path.exists() else None
+
+    def load_dense_mesh(self) -> dict[str, np.ndarray] | None:
+        """The trimmed mesh of the dense cloud (``vertices``, ``colors``, ``triangles``), or None when there is none."""
+        path = self.path("dense_mesh")
+        return load_mesh_ply(path) if path.exists() else None
 
     def load_json(self, artifact: str, **fields) -> dict | None:
         path = self.path(artifact, **fields)
@@ -395,6 +403,9 @@ class StageWriter:
     def save_dense(self, *, points, colors, normals, summary: dict) -> None:
         save_ply(self.path("dense_cloud"), points, colors, normals)
         save_json(self.path("dense_summary"), summary)
+
+    def save_dense_mesh(self, *, vertices, triangles, colors) -> Path:
+        return save_mesh_ply(self.path("dense_mesh"), vertices, triangles, colors)
 
     def save_json(self, artifact: str, obj, **fields) -> Path:
         return save_json(self.path(artifact, **fields), obj)

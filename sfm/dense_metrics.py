@@ -126,6 +126,27 @@ def cloud_accuracy_completeness(points: np.ndarray, surface: np.ndarray, tau: fl
             "tau": float(tau)}
 
 
+def sample_mesh_surface(vertices: np.ndarray, triangles: np.ndarray, spacing: float, *, seed: int = 0,
+                        max_samples: int = 4_000_000) -> np.ndarray:
+    """Points spread uniformly over a triangle mesh's surface, about one per ``spacing``² of area (at most
+    ``max_samples``): triangles drawn by area, positions uniform inside each (seeded, reproducible)."""
+    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+    corners = vertices[np.asarray(triangles, np.int64).reshape(-1, 3)]
+    if len(corners) == 0:
+        return np.zeros((0, 3))
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    if not area.sum() > 0:
+        return corners.reshape(-1, 3)
+    count = int(np.clip(np.ceil(area.sum() / spacing**2), 1, max_samples))
+    rng = np.random.default_rng(seed)
+    tri = rng.choice(len(corners), count, p=area / area.sum())
+    u, v = rng.random(count), rng.random(count)
+    flip = u + v > 1  # fold the unit square onto the triangle
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    a, b, c = corners[tri, 0], corners[tri, 1], corners[tri, 2]
+    return a + u[:, None] * (b - a) + v[:, None] * (c - a)
+
+
 def _finite_median(values: np.ndarray) -> float | None:
     """Median, or None when it is infinite (beyond a KD-tree query's distance bound)."""
     m = float(np.median(values))
@@ -135,12 +156,15 @@ def _finite_median(values: np.ndarray) -> float | None:
 def dense_metrics(*, range_est: Sequence[np.ndarray | None], valid_est: Sequence[np.ndarray | None],
                   range_gt: Sequence[np.ndarray], R_gt_cam_from_world: np.ndarray, t_gt_cam_from_world: np.ndarray,
                   sim: Similarity, points: np.ndarray | None, scene_size: float, names: Sequence[str],
-                  tau_rel: float = 0.01) -> dict:
-    """Per-panorama range errors and fused-cloud accuracy / completeness at τ = ``tau_rel`` · ``scene_size``.
+                  tau_rel: float = 0.01, mesh: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+    """Per-panorama range errors and fused-cloud (and mesh) accuracy / completeness at τ = ``tau_rel`` ·
+    ``scene_size``.
 
     ``range_est[k]`` / ``valid_est[k]``: the estimated range map of panorama k (None if it has none); ``sim`` takes
     the reconstruction onto the ground truth (its scale converts ranges). ``points`` (N, 3): the fused cloud in the
-    reconstruction's frame (None: no cloud metrics). The surface is sampled every τ / 3 from the true range maps.
+    reconstruction's frame (None: no cloud metrics); ``mesh``: (vertices (V, 3), triangles (T, 3)) in that frame,
+    measured by its surface sampled uniformly every τ / 3 (None: no mesh metrics). The true surface is sampled every
+    τ / 3 from the true range maps.
     """
     per_view = {}
     for k, name in enumerate(names):
@@ -153,10 +177,18 @@ def dense_metrics(*, range_est: Sequence[np.ndarray | None], valid_est: Sequence
         out["min_valid_share"] = float(min(v["valid_share"] for v in per_view.values()))
     tau = tau_rel * scene_size
     out["scene_size"] = float(scene_size)
-    if points is not None:
+    surface = None
+    if points is not None or mesh is not None:
         surface = surface_samples(range_gt, R_gt_cam_from_world, t_gt_cam_from_world, spacing=tau / 3)
+    if points is not None:
         out["cloud"] = {"points": int(len(points)), "surface_samples": int(len(surface)),
                         **cloud_accuracy_completeness(sim.apply(np.asarray(points, np.float64)), surface, tau)}
+    if mesh is not None:
+        vertices, triangles = mesh
+        samples = sample_mesh_surface(sim.apply(np.asarray(vertices, np.float64)), triangles, tau / 3)
+        out["mesh"] = {"vertices": int(len(vertices)), "triangles": int(len(triangles)),
+                       "mesh_samples": int(len(samples)), "surface_samples": int(len(surface)),
+                       **cloud_accuracy_completeness(samples, surface, tau)}
     return out
 
 

@@ -165,6 +165,20 @@ class DensifyOptions:
     plane_tolerance: float = setting(0.03, "relative range difference within which a border depth lies on a plane",
                                      gt=0.0, le=0.5)
     seed: int = setting(0, "seed of the plane RANSAC of textureless filling", ge=0, le=2**31 - 1)
+    mesh: bool = setting(True, "write densify/dense_mesh.ply: a Poisson mesh of the fused cloud, trimmed to what the "
+                         "views support")
+    mesh_depth: int = setting(0, "Poisson octree depth of the mesh", ge=5, le=12,
+                              zero_means="cells about two voxels wide (at most 11)")
+    mesh_density_quantile: float = setting(0.02, "mesh vertices below this quantile of Poisson density are dropped",
+                                           ge=0.0, lt=1.0)
+    mesh_max_distance_voxels: float = setting(3.0, "mesh triangles with a vertex farther than this many voxels from "
+                                              "a dense point are dropped", gt=0.0, le=1000.0)
+    mesh_support_tolerance: float = setting(0.03, "relative range tolerance of a view observing (or seeing through) "
+                                            "a mesh triangle", gt=0.0, le=1.0)
+    mesh_window_px: int = setting(3, "pixel window of the mesh's visibility tests in the range maps", ge=1, le=31,
+                                  odd=True)
+    mesh_min_component_triangles: int = setting(50, "connected mesh pieces with fewer triangles are dropped", ge=0,
+                                                le=1_000_000_000)
     RULES: ClassVar[list[Rule]] = [
         ("min_triangulation_angle_deg < max_triangulation_angle_deg",
          lambda o: o.min_triangulation_angle_deg < o.max_triangulation_angle_deg),

@@ -35,6 +35,7 @@ from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimat
                                 mask_below_latitude, pair_min_depth_ratio, range_error_per_pixel, scene_size)
 from fullview.sfm.dense_metrics import voxel_downsample
 from fullview.sfm.options import DensifyOptions
+from fullview.stages import mesh_step
 from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
@@ -82,8 +83,10 @@ def run(ctx: StageContext) -> dict:
         "width": int(width), "median_pair_time_s": float(np.median([p["time_s"] for p in pair_log])),
         "valid_share": {names[k]: float(np.mean(m[1])) for k, m in maps.items()},
         "filled_share": filled,
-        "pair_log": pair_log, "wall_time_s": round(time.perf_counter() - t_start, 2),
+        "pair_log": pair_log,
+        "mesh": mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel),
     }
+    summary["wall_time_s"] = round(time.perf_counter() - t_start, 2)  # mesh included
     ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=summary)
     return summary
 

@@ -3,6 +3,7 @@ import dataclasses
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from fullview.io.artifacts import FORMAT_KEY, load_ply
 from fullview.io.config import load_config
@@ -76,6 +77,23 @@ def test_depth_maps_are_saved_per_panorama(reconstructed):
     assert preview is not None and preview.std() > 10
 
 
+def test_dense_mesh_is_saved_with_its_summary_and_preview(reconstructed):
+    dataset, ws, pipeline = reconstructed
+    mesh = ws.load_dense_mesh()
+    summary = ws.read_manifest("densify")["summary"]["mesh"]
+    assert summary["triangles"] == len(mesh["triangles"]) > 1000 and summary["vertices"] == len(mesh["vertices"])
+    assert 0.0 <= summary["trimmed_share"] < 1.0
+    assert mesh["triangles"].max() < len(mesh["vertices"]) and np.ptp(mesh["colors"].astype(int)) > 50
+    # every vertex lies near the fused cloud (the distance trim), whatever Poisson closed
+    cloud = load_ply(ws.path("dense_cloud"))
+    xyz = np.column_stack([cloud["x"], cloud["y"], cloud["z"]])
+    dist, _ = cKDTree(xyz).query(mesh["vertices"])
+    assert dist.max() <= 3.5 * ws.read_manifest("densify")["summary"]["voxel_size"]
+    preview = cv2.imread(str(ws.path("dense_mesh_preview")))
+    assert preview is not None and preview.std() > 10
+    assert "dense_mesh.ply" in ws.read_manifest("densify")["outputs"]
+
+
 def test_eval_reports_dense_metrics(reconstructed):
     dataset, ws, pipeline = reconstructed
     metrics = evaluate(pipeline)
@@ -87,6 +105,8 @@ def test_eval_reports_dense_metrics(reconstructed):
     assert d["cloud"]["accuracy"] > 0.85
     assert d["cloud"]["completeness"] > 0.5
     assert np.isclose(d["cloud"]["tau"], 0.01 * d["scene_size"])
+    assert d["mesh"]["accuracy"] > 0.85 and d["mesh"]["completeness"] > 0.5
+    assert d["mesh"]["triangles"] == len(ws.load_dense_mesh()["triangles"])
     # without ground truth: each panorama's ranges against what the others predict (accurate maps agree)
     agreement = metrics["dense_agreement"]
     assert set(agreement["per_image"]) == set(dataset.image_names) and agreement["median_agreement"] > 0.8

@@ -9,7 +9,7 @@ import pycolmap
 import pytest
 
 from fullview.cli import main
-from fullview.io.artifacts import load_ply
+from fullview.io.artifacts import load_mesh_ply, load_ply
 from fullview.io.exports import read_nerfstudio
 
 DENSE = ["--set", "densify.working_width=512", "--set", "densify.rect_height=256", "--set",
@@ -74,6 +74,22 @@ def test_ply_export_has_colours_and_normals(reconstructed):
         normals = np.column_stack([cloud["nx"], cloud["ny"], cloud["nz"]])
         assert len(cloud["x"]) > 100 and cloud["red"].dtype == np.uint8
         assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)
+
+
+def test_ply_export_has_the_dense_mesh_as_ply_and_obj(reconstructed):
+    import open3d as o3d
+    _, ws, _ = reconstructed
+    assert _export(reconstructed, "ply") == 0
+    ours = load_mesh_ply(ws / "tiny" / "densify" / "dense_mesh.ply")
+    folder = ws / "tiny" / "export_ply" / "0"
+    corners = ours["vertices"][ours["triangles"]]
+    for name in ("dense_mesh.ply", "dense_mesh.obj"):  # read back by another tool (it may renumber vertices)
+        mesh = o3d.io.read_triangle_mesh(str(folder / name))
+        triangles = np.asarray(mesh.triangles)
+        assert len(triangles) == len(ours["triangles"]) > 100, name
+        assert np.allclose(np.asarray(mesh.vertices)[triangles], corners, atol=1e-5), name
+        assert np.allclose(np.asarray(mesh.vertex_colors)[triangles] * 255, ours["colors"][ours["triangles"]],
+                           atol=0.6), name
 
 
 def test_export_to_a_chosen_folder_and_refusals(reconstructed, tmp_path, capsys):

@@ -106,6 +106,23 @@ def test_3d_canvas_is_not_blank(page, tmp_path):
     assert drawn.mean() > 0.01 and img.std() > 5, (drawn.mean(), img.std())  # a blank canvas gives 0
 
 
+def test_the_mesh_is_shown_when_chosen(page, reconstructed, tmp_path):
+    mesh = reconstructed[0].ws.load_dense_mesh()
+    assert not page.is_disabled("#cloud option[value=mesh]")
+    page.select_option("#cloud", "mesh")
+    page.wait_for_function("window.fullview.shown && window.fullview.shown.kind === 'mesh'", timeout=15000)
+    shown = page.evaluate("window.fullview.shown")
+    assert shown["triangles"] == len(mesh["triangles"]) and shown["vertices"] == len(mesh["vertices"])
+    assert f"{len(mesh['triangles']):,} triangles" in page.inner_text("#budget-label")
+    time.sleep(1.0)
+    shot = tmp_path / "mesh.png"
+    page.locator("#scene3d").screenshot(path=str(shot))
+    import cv2
+    img = cv2.imread(str(shot))
+    drawn = np.abs(img.astype(int) - np.array([0x1a, 0x17, 0x15])).sum(axis=2) > 30
+    assert drawn.mean() > 0.01 and not page.problems, page.problems
+
+
 # ------------------------------------------------------------------------------------------------ tour
 def test_clicking_a_camera_opens_its_panorama(page, reconstructed):
     names, _ = _poses(reconstructed[0])

@@ -70,6 +70,7 @@ class SceneData:
                 .get("unregistered_reasons", {}),
                 "R_display_from_world": display_rotation(R[reg], centers[reg]).tolist(),
                 "has_sparse": source == "triangulation", "has_dense": stages["densify"]["state"] == "fresh",
+                "has_mesh": stages["densify"]["state"] == "fresh" and self.ws.path("dense_mesh").exists(),
                 "pairs": self._pairs(names)}
 
     def _links(self, n: int) -> np.ndarray:
@@ -107,6 +108,15 @@ class SceneData:
             return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
         return (np.column_stack([cloud["x"], cloud["y"], cloud["z"]]),
                 np.column_stack([cloud["red"], cloud["green"], cloud["blue"]]))
+
+    def mesh(self) -> bytes:
+        """The dense mesh as bytes: uint32 vertex and triangle counts, float32 xyz (world frame), uint8 rgb, zero
+        padding to a multiple of 4 bytes, uint32 vertex indices (three per triangle); empty counts when none."""
+        return _mesh_bytes(self.ws.root, self.generation(), self)
+
+    def load_mesh(self) -> dict[str, np.ndarray] | None:
+        with self.ws.reading():
+            return self.ws.load_dense_mesh()
 
     def matches(self, a: str, b: str) -> list[list[float]]:
         """Inlier matches of a verified pair as [x_a, y_a, x_b, y_b] pixels of the full-size panoramas."""
@@ -173,6 +183,18 @@ def _cloud_bytes(root, kind: str, generation: str, scene: SceneData) -> bytes:
     order = np.random.default_rng(POINT_SEED).permutation(len(points))
     head = np.array([len(points)], "<u4").tobytes()
     return head + points[order].astype("<f4").tobytes() + colors[order].astype(np.uint8).tobytes()
+
+
+@lru_cache(maxsize=2)
+def _mesh_bytes(root, generation: str, scene: SceneData) -> bytes:
+    mesh = scene.load_mesh()
+    if mesh is None:
+        return np.zeros(2, "<u4").tobytes()
+    vertices, colors, triangles = mesh["vertices"], mesh["colors"], mesh["triangles"]
+    head = np.array([len(vertices), len(triangles)], "<u4").tobytes()
+    rgb = colors.astype(np.uint8).tobytes()
+    pad = bytes(-len(rgb) % 4)  # the page views the indices as a Uint32Array, which needs 4-byte alignment
+    return head + vertices.astype("<f4").tobytes() + rgb + pad + triangles.astype("<u4").tobytes()
 
 
 def _hand_f(b_a: np.ndarray, b_b: np.ndarray, threshold_rad: float) -> np.ndarray:

@@ -97,6 +97,8 @@ class _Handler(BaseHTTPRequestHandler):
                 if kind not in ("sparse", "dense"):
                     return self._error(HTTPStatus.NOT_FOUND, "unknown cloud")
                 return self._send(self.app.scene.points(kind), "application/octet-stream")
+            if path == "/api/mesh":
+                return self._send(self.app.scene.mesh(), "application/octet-stream")
             if path == "/api/matches":
                 return self._json(self.app.scene.matches(query["a"], query["b"]))
             if path == "/api/hand_points":

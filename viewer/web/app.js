@@ -73,6 +73,19 @@ async function getCloud(kind) {
   return (clouds[kind] = { positions, colors, count });
 }
 
+// The dense mesh: uint32 vertex and triangle counts, float32 xyz, uint8 rgb (padded to 4 bytes), uint32 indices.
+let meshData = null;
+async function getMesh() {
+  if (meshData) return meshData;
+  const buf = await (await fetch('/api/mesh')).arrayBuffer();
+  const [nv, nt] = new Uint32Array(buf, 0, 2);
+  const positions = new Float32Array(buf.slice(8, 8 + 12 * nv));
+  const colors = new Uint8Array(buf.slice(8 + 12 * nv, 8 + 15 * nv));
+  const start = 8 + 15 * nv + ((4 - ((15 * nv) % 4)) % 4);
+  const index = new Uint32Array(buf.slice(start, start + 12 * nt));
+  return (meshData = { positions, colors, index, vertices: nv, triangles: nt });
+}
+
 function showMessage(text, id = 'message') {
   const el = document.getElementById(id);
   el.hidden = !text;
@@ -90,6 +103,8 @@ function initScene() {
   const scene = new THREE.Scene();
   scene.background = new THREE.Color(0x15171a);
   const camera = new THREE.PerspectiveCamera(60, 1, 0.001, 1000);
+  scene.add(new THREE.AmbientLight(0xffffff, 1.6), camera);  // lights for the mesh (points ignore them)
+  camera.add(new THREE.DirectionalLight(0xffffff, 1.4));
   const controls = new OrbitControls(camera, canvas);
   const group = new THREE.Group();
   scene.add(group);
@@ -149,10 +164,13 @@ function line(points, color) {
 }
 
 async function showCloud(kind) {
+  if (kind === 'mesh' && !state.model.has_mesh) kind = 'dense';
   if (kind === 'dense' && !state.model.has_dense) kind = 'sparse';
   if (kind === 'sparse' && !state.model.has_sparse) return;
+  if (kind === 'mesh') return showMesh();
   const cloud = await getCloud(kind);
   if (scene3d.points) scene3d.group.remove(scene3d.points);
+  document.getElementById('budget').disabled = false;
   const geometry = new THREE.BufferGeometry();
   geometry.setAttribute('position', new THREE.BufferAttribute(cloud.positions, 3));
   geometry.setAttribute('color', new THREE.BufferAttribute(cloud.colors, 3, true));
@@ -163,7 +181,26 @@ async function showCloud(kind) {
   const slider = document.getElementById('budget');
   slider.max = Math.max(1000, cloud.count);
   applyBudget();
+  hooks.shown = { kind, points: cloud.count };
   fitBudgetToFrameRate();
+}
+
+// The trimmed Poisson mesh, vertex-coloured and lit from the viewer's side (both faces: one looks at walls from
+// inside and outside); the point budget does not apply.
+async function showMesh() {
+  const mesh = await getMesh();
+  if (scene3d.points) scene3d.group.remove(scene3d.points);
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute('position', new THREE.BufferAttribute(mesh.positions, 3));
+  geometry.setAttribute('color', new THREE.BufferAttribute(mesh.colors, 3, true));
+  geometry.setIndex(new THREE.BufferAttribute(mesh.index, 1));
+  geometry.computeVertexNormals();
+  const material = new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide });
+  scene3d.points = new THREE.Mesh(geometry, material);
+  scene3d.group.add(scene3d.points);
+  document.getElementById('budget').disabled = true;
+  document.getElementById('budget-label').textContent = `${mesh.triangles.toLocaleString()} triangles`;
+  hooks.shown = { kind: 'mesh', triangles: mesh.triangles, vertices: mesh.vertices };
 }
 
 // Halve the point budget until the scene renders at 30 fps or more (the slider can raise it again).
@@ -193,7 +230,8 @@ function measureFps(ms = 700) {
 function applyBudget() {
   const slider = document.getElementById('budget');
   const n = Math.min(Number(slider.value), Number(slider.max));
-  if (scene3d.points) scene3d.points.geometry.setDrawRange(0, n);  // clouds come shuffled: a prefix is a subsample
+  if (!scene3d.points || scene3d.points.isMesh) return;
+  scene3d.points.geometry.setDrawRange(0, n);  // clouds come shuffled: a prefix is a subsample
   document.getElementById('budget-label').textContent = `${n.toLocaleString()} points`;
 }
 
@@ -605,6 +643,7 @@ async function main() {
     }
     initScene();
     buildScene(state.model);
+    document.querySelector('#cloud option[value=mesh]').disabled = !state.model.has_mesh;
     document.getElementById('cloud').value = state.model.has_dense ? 'dense' : 'sparse';
     await showCloud(document.getElementById('cloud').value);
     document.getElementById('cloud').addEventListener('change', (e) => showCloud(e.target.value));

@@ -1,0 +1,231 @@
+"""A coloured triangle mesh from the dense reconstruction: screened Poisson on the fused cloud, trimmed to what the
+views support.
+
+Poisson (open3d) needs oriented normals and closes every hole: it caps openings (doorways, windows, the unseen
+nadir), bridges gaps and grows blobs from outliers. Three trims remove what the data does not support:
+
+1. **density**: vertices whose Poisson density (how many samples shaped them) is below a low quantile;
+2. **distance**: triangles with a vertex farther than a few voxels from any dense point (invented surface);
+3. **visibility**: every triangle centre is projected into every range map (equirectangular, ranges from the
+   camera centre). A view *contradicts* the triangle when it sees clearly beyond it along that ray (free space: the
+   whole pixel window around the ray is ranged and farther than the triangle) and *supports* it when a ranged pixel
+   of the window lies within the relative tolerance of the triangle's distance. A triangle is kept when at least
+   one view supports it and no more views contradict than support it; views that see something nearer (occlusion)
+   or nothing say nothing.
+
+Vertex colours are the colours of the nearest dense points. Pure numpy / scipy / open3d, no file access; every
+step is deterministic (single-threaded Poisson, fixed orders).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from scipy.ndimage import maximum_filter, minimum_filter
+from scipy.spatial import cKDTree
+
+from fullview.sfm.camera import bearings_to_pixels
+
+log = logging.getLogger(__name__)
+
+MIN_POISSON_DEPTH, MAX_POISSON_DEPTH = 5, 11  # automatic octree depth bounds (11: ~2 GiB on a large scene)
+POISSON_SCALE = 1.1  # open3d's default: the octree spans the cloud's box times this
+
+
+@dataclass(kw_only=True)
+class MeshParams:
+    depth: int = 0  # Poisson octree depth; 0 = cells about two voxels wide
+    density_quantile: float = 0.02  # vertices below this quantile of Poisson density are dropped
+    max_distance_voxels: float = 3.0  # triangles with a vertex farther than this from a dense point are dropped
+    support_tolerance: float = 0.03  # relative range tolerance of a view's support / free-space test
+    window_px: int = 3  # pixel window (side) of the visibility tests, absorbs sub-pixel projection and edges
+    min_component_triangles: int = 50  # connected pieces with fewer triangles are dropped (noise islands)
+
+
+@dataclass(kw_only=True)
+class Mesh:
+    vertices: np.ndarray  # (V, 3) float64, the cloud's frame
+    triangles: np.ndarray  # (T, 3) int32 vertex indices, counter-clockwise seen from outside (normals' side)
+    vertex_colors: np.ndarray  # (V, 3) uint8 RGB
+    stats: dict = field(default_factory=dict)
+
+
+def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray, R_cam_from_world: np.ndarray,
+                    t_cam_from_world: np.ndarray, range_maps: Sequence[np.ndarray | None], *, voxel_size: float,
+                    params: MeshParams = MeshParams()) -> Mesh:
+    """The trimmed, coloured Poisson mesh of a fused cloud.
+
+    ``points`` / ``colors`` (uint8 RGB) / ``normals`` (N, 3): the fused cloud (the normals' signs do not matter:
+    they are turned towards the cameras that see the points); ``R_cam_from_world`` (K, 3, 3), ``t_cam_from_world`` (K, 3) and ``range_maps[k]`` (H, W) ranges
+    (NaN or ≤ 0: invalid; None: no map) of the same cameras; ``voxel_size``: the cloud's spacing."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(points) < 16:
+        raise ValueError(f"a mesh needs at least 16 dense points, got {len(points)}")
+    if not voxel_size > 0:
+        raise ValueError(f"voxel_size must be > 0, got {voxel_size}")
+    depth = params.depth or auto_poisson_depth(points, voxel_size)
+    normals = orient_normals_to_views(points, normals, R_cam_from_world, t_cam_from_world, range_maps,
+                                      tolerance=params.support_tolerance, window_px=params.window_px)
+    vertices, triangles, density = poisson_surface(points, normals, depth)
+    stats = {"poisson_depth": int(depth), "poisson_vertices": int(len(vertices)),
+             "poisson_triangles": int(len(triangles))}
+    if len(triangles) == 0:
+        raise ValueError(f"Poisson reconstruction (depth {depth}) of {len(points)} points gave no surface")
+    keep = np.ones(len(triangles), bool)
+    low = density < np.quantile(density, params.density_quantile)
+    keep &= _drop("density", ~low[triangles].any(1), keep, stats)
+    near = _near_points(vertices, points, params.max_distance_voxels * voxel_size)
+    keep &= _drop("distance", near[triangles].all(1), keep, stats)
+    supported = np.ones(len(triangles), bool)
+    if any(m is not None for m in range_maps):  # without any range map there is nothing to check against
+        supported[keep] = view_support(vertices[triangles[keep]].mean(1), R_cam_from_world, t_cam_from_world,
+                                       range_maps, tolerance=params.support_tolerance, window_px=params.window_px)
+    keep &= _drop("visibility", supported, keep, stats)
+    keep &= _drop("small_pieces", _large_components(triangles, keep, params.min_component_triangles), keep, stats)
+    vertices, triangles = _compact(vertices, triangles[keep])
+    vertex_colors = _nearest_colors(vertices, points, colors)
+    stats.update(vertices=int(len(vertices)), triangles=int(len(triangles)),
+                 trimmed_share=float(1.0 - len(triangles) / max(stats["poisson_triangles"], 1)))
+    log.info("mesh: Poisson depth %d, %d triangles, %d kept (trimmed: %s)", depth, stats["poisson_triangles"],
+             len(triangles), ", ".join(f"{k} {v}" for k, v in stats.items() if k.startswith("trimmed_by_")))
+    return Mesh(vertices=vertices, triangles=triangles.astype(np.int32), vertex_colors=vertex_colors, stats=stats)
+
+
+def auto_poisson_depth(points: np.ndarray, voxel_size: float) -> int:
+    """Octree depth whose cells are about two voxels of the cloud wide (finer only fits noise)."""
+    extent = float(np.max(points.max(0) - points.min(0))) * POISSON_SCALE
+    depth = int(np.ceil(np.log2(max(extent / (2.0 * voxel_size), 1.0))))
+    return int(np.clip(depth, MIN_POISSON_DEPTH, MAX_POISSON_DEPTH))
+
+
+def orient_normals_to_views(points: np.ndarray, normals: np.ndarray, R_cam_from_world: np.ndarray,
+                            t_cam_from_world: np.ndarray, range_maps: Sequence[np.ndarray | None], *,
+                            tolerance: float, window_px: int) -> np.ndarray:
+    """Normals turned towards the nearest camera that observes each point (its range map ranges it within
+    ``tolerance``), else towards the nearest camera. One viewpoint for the whole cloud (what outlier removal
+    used) turns the walls between rooms the wrong way, and Poisson then inflates them into closed bubbles."""
+    normals = np.asarray(normals, np.float64).reshape(-1, 3).copy()
+    R = np.asarray(R_cam_from_world, np.float64)
+    centers = -np.einsum("kba,kb->ka", R, np.asarray(t_cam_from_world, np.float64))
+    best = np.full(len(points), np.inf)  # distance to the nearest observing camera
+    towards = np.zeros_like(normals)
+    for k, rng in enumerate(range_maps):
+        if rng is None:
+            continue
+        near, far, _ = _window_ranges(np.asarray(rng, np.float64), window_px)
+        offset = centers[k] - points
+        dist = np.linalg.norm(offset, axis=1)
+        idx = _pixel_index(points @ R[k].T + t_cam_from_world[k], rng.shape)
+        seen = (near.ravel()[idx] <= dist * (1 + tolerance)) & (far.ravel()[idx] >= dist * (1 - tolerance))
+        better = seen & (dist < best)
+        best[better], towards[better] = dist[better], offset[better]
+    unseen = ~np.isfinite(best)
+    if unseen.any():
+        _, nearest = cKDTree(centers).query(points[unseen])
+        towards[unseen] = centers[nearest] - points[unseen]
+    flip = np.einsum("na,na->n", normals, towards) < 0
+    normals[flip] *= -1
+    return normals
+
+
+def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Screened Poisson reconstruction (open3d, one thread: reproducible): vertices, triangles, densities."""
+    import open3d as o3d  # heavy import, only where a mesh is made
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64).reshape(-1, 3))
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+            pcd, depth=int(depth), scale=POISSON_SCALE, linear_fit=False, n_threads=1)
+    return (np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles, np.int64),
+            np.asarray(density, np.float64))
+
+
+def view_support(centres: np.ndarray, R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray,
+                 range_maps: Sequence[np.ndarray | None], *, tolerance: float, window_px: int) -> np.ndarray:
+    """(T,) bool: surface points (triangle centres) that some view observes within ``tolerance`` (relative range)
+    and that no more views see through than observe them (see the module docstring)."""
+    support = np.zeros(len(centres), np.int32)
+    contradict = np.zeros(len(centres), np.int32)
+    for k, rng in enumerate(range_maps):
+        if rng is None or len(centres) == 0:
+            continue
+        near, far, through = _window_ranges(np.asarray(rng, np.float64), window_px)
+        x_cam = centres @ np.asarray(R_cam_from_world[k], np.float64).T + t_cam_from_world[k]
+        dist = np.linalg.norm(x_cam, axis=1)
+        idx = _pixel_index(x_cam, rng.shape)
+        support += (near.ravel()[idx] <= dist * (1 + tolerance)) & (far.ravel()[idx] >= dist * (1 - tolerance))
+        contradict += through.ravel()[idx] > dist * (1 + tolerance)
+    return (support > 0) & (contradict <= support)
+
+
+def _pixel_index(x_cam: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Flat index of the equirectangular pixel (of a map of ``shape``) each camera-frame point projects into."""
+    height, width = shape
+    pix = bearings_to_pixels(x_cam, width, height)
+    cols = np.clip(pix[:, 0].astype(np.int64), 0, width - 1)
+    rows = np.clip(pix[:, 1].astype(np.int64), 0, height - 1)
+    return rows * width + cols
+
+
+def _window_ranges(rng: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel over its window (wrapping in longitude): the nearest and the farthest valid range (±inf where
+    none), and the nearest range when every pixel of the window is valid (0 otherwise: no free-space claim)."""
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(rng) & (rng > 0)
+    modes = ("nearest", "wrap")  # rows clamp at the poles, columns wrap around the seam
+    near = minimum_filter(np.where(valid, rng, np.inf), size=window, mode=modes)
+    far = maximum_filter(np.where(valid, rng, -np.inf), size=window, mode=modes)
+    through = minimum_filter(np.where(valid, rng, 0.0), size=window, mode=modes)
+    return near, far, through
+
+
+def _near_points(vertices: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
+    dist, _ = cKDTree(points).query(vertices, distance_upper_bound=radius)
+    return np.isfinite(dist)
+
+
+def _large_components(triangles: np.ndarray, keep: np.ndarray, min_triangles: int) -> np.ndarray:
+    """(T,) bool: kept triangles in edge-connected pieces of at least ``min_triangles`` kept triangles."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    out = np.zeros(len(triangles), bool)
+    kept = np.flatnonzero(keep)
+    if len(kept) == 0:
+        return out
+    tri = triangles[kept]
+    edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    owner = np.tile(np.arange(len(kept)), 3)
+    _, edge_id = np.unique(edges[:, 0] * (int(triangles.max()) + 1) + edges[:, 1], return_inverse=True)
+    # triangles sharing an edge are joined through that edge's node (bipartite triangle-edge graph)
+    n = len(kept) + int(edge_id.max()) + 1
+    graph = coo_matrix((np.ones(len(owner)), (owner, len(kept) + edge_id)), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    sizes = np.bincount(labels[:len(kept)])
+    out[kept] = sizes[labels[:len(kept)]] >= min_triangles
+    return out
+
+
+def _drop(reason: str, ok: np.ndarray, keep: np.ndarray, stats: dict) -> np.ndarray:
+    stats[f"trimmed_by_{reason}"] = int(np.sum(keep & ~ok))
+    return ok
+
+
+def _compact(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop vertices no triangle uses; renumber the triangles (order kept)."""
+    used = np.unique(triangles)
+    renumber = np.full(len(vertices), -1, np.int64)
+    renumber[used] = np.arange(len(used))
+    return vertices[used], renumber[triangles].reshape(-1, 3)
+
+
+def _nearest_colors(vertices: np.ndarray, points: np.ndarray, colors: np.ndarray) -> np.ndarray:
+    if len(vertices) == 0:
+        return np.zeros((0, 3), np.uint8)
+    _, idx = cKDTree(points).query(vertices)
+    return np.asarray(colors, np.uint8).reshape(-1, 3)[idx]

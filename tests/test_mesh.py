@@ -1,0 +1,138 @@
+"""The trimmed Poisson mesh of the dense stage (`fullview.sfm.dense.mesh`): accurate on a box room, trimmed where the
+views see through it, reproducible."""
+
+import numpy as np
+import pytest
+
+from fullview.sfm.camera import pixel_grid_bearings
+from fullview.sfm.dense.mesh import MeshParams, mesh_from_dense, view_support
+from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
+
+ROOM_MIN, ROOM_MAX = np.array([-3.0, -1.5, -2.5]), np.array([3.0, 1.5, 2.5])  # a box room, y down
+CENTERS = np.array([[-1.2, 0.0, -0.8], [1.0, 0.1, -0.5], [0.2, -0.1, 1.1]])
+WIDTH = 160
+VOXEL = 0.1
+BLOB_CENTER, BLOB_RADIUS = np.array([1.8, 0.2, -0.5]), 0.4  # a fake blob of points in front of camera 1
+
+
+def box_range_map(center, width=WIDTH):
+    """Range from `center` (inside the room) to its walls for every pixel of an identity-rotation panorama."""
+    dirs = pixel_grid_bearings(width, width // 2).reshape(-1, 3)
+    with np.errstate(divide="ignore"):
+        t = np.where(dirs > 0, (ROOM_MAX - center) / dirs, (ROOM_MIN - center) / dirs)
+    return t.min(1).reshape(width // 2, width).astype(np.float32)
+
+
+def box_normals(points):
+    """Inward normals of the walls the points lie on (towards the cameras)."""
+    gap = np.stack([points - ROOM_MIN, ROOM_MAX - points], 1)  # (N, 2, 3)
+    side, axis = np.unravel_index(gap.reshape(len(points), -1).argmin(1), (2, 3))
+    normals = np.zeros_like(points)
+    normals[np.arange(len(points)), axis] = np.where(side == 0, 1.0, -1.0)
+    return normals
+
+
+def distance_to_box(points):
+    inside = np.minimum(points - ROOM_MIN, ROOM_MAX - points)
+    return np.abs(inside).min(1)
+
+
+@pytest.fixture(scope="module")
+def room():
+    R = np.repeat(np.eye(3)[None], len(CENTERS), 0)
+    t = -CENTERS
+    maps = [box_range_map(c) for c in CENTERS]
+    points = np.concatenate([backproject_range_map(m, R[k], t[k]) for k, m in enumerate(maps)])
+    points = voxel_downsample(points, VOXEL)[0]
+    colors = np.clip((points - ROOM_MIN) / (ROOM_MAX - ROOM_MIN) * 255, 0, 255).astype(np.uint8)
+    return points, colors, box_normals(points), R, t, maps
+
+
+def test_mesh_of_a_box_room_is_accurate_and_complete(room):
+    points, colors, normals, R, t, maps = room
+    mesh = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL)
+    assert len(mesh.triangles) > 1000
+    d = distance_to_box(mesh.vertices)
+    assert np.percentile(d, 99) < VOXEL and d.max() < 3 * VOXEL
+    # every wall sample has mesh nearby: the trims removed nothing the views support
+    dist, _ = _nearest(mesh.vertices, points)
+    assert np.mean(dist < 2 * VOXEL) > 0.99
+    # colours come from the nearest dense points
+    _, idx = _nearest(mesh.vertices, points, reverse=True)
+    assert np.array_equal(mesh.vertex_colors, colors[idx])
+    assert mesh.stats["triangles"] == len(mesh.triangles) and 0 <= mesh.stats["trimmed_share"] < 0.2
+
+
+def test_normals_of_either_sign_give_the_same_mesh(room):
+    points, colors, normals, R, t, maps = room
+    flipped = normals * np.where(np.random.default_rng(2).random(len(normals)) < 0.5, -1.0, 1.0)[:, None]
+    a = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL)
+    b = mesh_from_dense(points, colors, flipped, R, t, maps, voxel_size=VOXEL)
+    assert a.vertices.tobytes() == b.vertices.tobytes() and a.triangles.tobytes() == b.triangles.tobytes()
+
+
+def test_a_blob_the_views_see_through_is_trimmed(room):
+    points, colors, normals, R, t, maps = room
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(3000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    blob = BLOB_CENTER + BLOB_RADIUS * dirs  # dense points the range maps do not have: they see the walls behind
+    all_points = np.concatenate([points, blob])
+    all_normals = np.concatenate([normals, dirs])
+    all_colors = np.concatenate([colors, np.full((len(blob), 3), 200, np.uint8)])
+    mesh = mesh_from_dense(all_points, all_colors, all_normals, R, t, maps, voxel_size=VOXEL)
+    near_blob = np.linalg.norm(mesh.vertices - BLOB_CENTER, axis=1) < 1.5 * BLOB_RADIUS
+    assert not near_blob.any()
+    assert mesh.stats["trimmed_by_visibility"] > 200  # Poisson did make the blob; the views removed it
+    # ... and without the range maps nothing would have removed it
+    kept = mesh_from_dense(all_points, all_colors, all_normals, R, t, [None] * 3, voxel_size=VOXEL)
+    assert (np.linalg.norm(kept.vertices - BLOB_CENTER, axis=1) < 1.5 * BLOB_RADIUS).any()
+
+
+def test_view_support_free_space_and_occlusion():
+    maps = [box_range_map(c) for c in CENTERS[:1]]
+    R, t = np.eye(3)[None], -CENTERS[:1]
+    wall = np.array([[3.0, 0.0, 0.0]])  # on the wall: observed
+    free = np.array([[2.0, 0.0, -0.3]])  # between the camera and the wall: seen through
+    ok = view_support(np.concatenate([wall, free]), R, t, maps, tolerance=0.03, window_px=3)
+    assert ok.tolist() == [True, False]
+
+
+def test_mesh_is_reproducible(room):
+    points, colors, normals, R, t, maps = room
+    a = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6))
+    b = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6))
+    assert a.vertices.tobytes() == b.vertices.tobytes() and a.triangles.tobytes() == b.triangles.tobytes()
+    assert a.vertex_colors.tobytes() == b.vertex_colors.tobytes()
+
+
+def _nearest(a, b, reverse=False):
+    from scipy.spatial import cKDTree
+    return cKDTree(a).query(b) if not reverse else cKDTree(b).query(a)
+
+
+def test_mesh_ply_round_trip_and_corruption(tmp_path):
+    from fullview.io.artifacts import ArtifactError, load_mesh_ply, save_mesh_ply
+    rng = np.random.default_rng(1)
+    vertices, colors = rng.random((7, 3)), rng.integers(0, 256, (7, 3)).astype(np.uint8)
+    triangles = np.array([[0, 1, 2], [2, 3, 4], [4, 5, 6]])
+    path = save_mesh_ply(tmp_path / "m.ply", vertices, triangles, colors)
+    mesh = load_mesh_ply(path)
+    assert np.array_equal(mesh["triangles"], triangles) and np.array_equal(mesh["colors"], colors)
+    assert np.allclose(mesh["vertices"], vertices, atol=1e-7)
+    path.write_bytes(path.read_bytes()[:-5])
+    with pytest.raises(ArtifactError, match="m.ply: corrupt mesh PLY"):
+        load_mesh_ply(path)
+
+
+def test_mesh_samples_are_uniform_on_the_surface():
+    from fullview.sfm.dense_metrics import sample_mesh_surface
+    # a 2 x 1 rectangle in z = 0 made of one large and two small triangles: samples follow area, not triangles
+    vertices = np.array([[0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0], [1, 1, 0]], float)
+    triangles = np.array([[0, 1, 2], [0, 2, 4], [0, 4, 3]])
+    samples = sample_mesh_surface(vertices, triangles, 0.02)
+    assert len(samples) == 5000 and np.all(samples[:, 2] == 0)
+    assert samples[:, 0].min() >= 0 and samples[:, 0].max() <= 2 and samples[:, 1].min() >= 0
+    hist = np.histogram2d(samples[:, 0], samples[:, 1], bins=(4, 2), range=((0, 2), (0, 1)))[0]
+    assert hist.min() > 0.8 * hist.mean()
+    assert np.array_equal(samples, sample_mesh_surface(vertices, triangles, 0.02))
