@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
+from distributed import KilledWorker, WorkerPlugin, as_completed, worker_client
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -31,8 +32,8 @@ from fullview.stages.runner import Pipeline, RunnerError
 
 log = logging.getLogger(__name__)
 
-STAGE_RETRIES = 1  # a stage task that raised is tried once more (a transient error); a worker death is counted
-#                    by the scheduler's distributed.scheduler.allowed-failures instead
+STAGE_RETRIES = 1  # a stage task that raised (not a fullview error: those are results) is tried once more; a
+#                    worker's death is counted by the scheduler's distributed.scheduler.allowed-failures instead
 
 
 class BatchError(FullviewError, ValueError):
@@ -68,9 +69,8 @@ def run_batch(datasets: list[Dataset], config: Config, workspace: Path, client, 
               force: bool = False, progress: bool = True) -> list[DatasetOutcome]:
     """Run the pipeline (up to `until`) on every dataset on the cluster of `client`; one dataset's failure does not
     stop the others. Returns one outcome per dataset, in the order given."""
-    from distributed import as_completed
-
     check_batch(datasets)
+    client.register_plugin(WorkerLogging(), name="fullview-logging")
     stages = list(PIPELINE[:PIPELINE.index(until) + 1] if until else PIPELINE)
     batch_id = uuid.uuid4().hex[:8]  # unique task keys: a long-lived cluster must not hand back an older result
     outcomes = {ds.name: DatasetOutcome(name=ds.name) for ds in datasets}
@@ -109,6 +109,10 @@ def _record_stage(outcome: DatasetOutcome, stage: str, future) -> bool:
         log.error("%s: %s", outcome.name, outcome.reason)
         return True
     result = future.result()
+    if "error" in result:
+        outcome.reason = f"{stage}: {result['error']}"
+        log.error("%s: %s", outcome.name, outcome.reason)
+        return True
     summary = result["summary"]
     if result["ran"]:
         outcome.ran.append(stage)
@@ -122,8 +126,6 @@ def _record_stage(outcome: DatasetOutcome, stage: str, future) -> bool:
 
 def task_error(error: BaseException, stage: str) -> str:
     """A stage task's error in one line: the message of a fullview error, else what happened."""
-    from distributed import KilledWorker
-
     if isinstance(error, KilledWorker):
         return f"its worker died every time it ran {stage} ({error})"
     if isinstance(error, FullviewError):
@@ -133,9 +135,13 @@ def task_error(error: BaseException, stage: str) -> str:
 
 def run_stage_task(dataset: Dataset, workspace: Path, config: Config, stage: str, force: bool) -> dict:
     """One stage of one dataset, on a worker: run when stale (or forced), under the workspace lock, its fan-out on
-    this cluster. Returns {"ran", "wall_time_s", "summary"} (the manifest's)."""
+    this cluster. Returns {"ran", "wall_time_s", "summary"} (the manifest's), or {"error": one line} for a fullview
+    error (bad input, a busy workspace)."""
     pipeline = Pipeline(dataset, Workspace(workspace, dataset.name), config, map=cluster_map)
-    ran = pipeline.run(only=stage) if force else pipeline.run(until=stage)
+    try:
+        ran = pipeline.run(only=stage) if force else pipeline.run(until=stage)
+    except FullviewError as e:  # bad input explains itself and fails the same way again: a result, not a retry
+        return {"error": " ".join(str(e).split())}
     if ran and ran != [stage]:
         # Only `stage` can be stale here: its upstream stages were just brought up to date by earlier tasks.
         log.warning("%s: reran %s (changed meanwhile)", dataset.name, ", ".join(ran[:-1]))
@@ -150,8 +156,6 @@ def cluster_map(fn: Callable[[Any], Any], items: Iterable[Any], *, threads: int 
     """The stages' fan-out on the cluster this task runs on: one task per item, results in order. The calling task
     secedes from its worker's thread pool meanwhile, so its subtasks can run there too (no deadlock on a full
     cluster). A worker dying under a subtask only reruns that subtask."""
-    from distributed import worker_client
-
     items = list(items)
     with worker_client() as client:
         futures = client.map(fn, items, pure=False)
@@ -160,6 +164,21 @@ def cluster_map(fn: Callable[[Any], Any], items: Iterable[Any], *, threads: int 
                 yield future.result()
         finally:
             client.cancel([f for f in futures if not f.done()])
+
+
+class WorkerLogging(WorkerPlugin):
+    """A worker plugin: fullview's warnings and errors on a worker are printed, marked as coming from one (without
+    it a worker's root logger has no handler and only Python's last-resort one prints warnings, bare)."""
+
+    def setup(self, worker) -> None:
+        logger = logging.getLogger("fullview")
+        if not any(getattr(h, "fullview_worker", False) for h in logger.handlers):
+            handler = logging.StreamHandler()
+            handler.fullview_worker = True
+            handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s worker %(name)s: %(message)s",
+                                                   datefmt="%H:%M:%S"))
+            handler.setLevel(logging.WARNING)
+            logger.addHandler(handler)
 
 
 def _short(summary: dict) -> str:
