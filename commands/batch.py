@@ -66,6 +66,8 @@ def cluster_client(scheduler: str | None, workers: int | None) -> Iterator:
     with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES,
                           "distributed.nanny.pre-spawn-environ": WORKER_ENVIRON}):
         if scheduler is not None:
+            if workers is not None:
+                raise BatchError("batch: --workers sizes the local cluster; it cannot be combined with --scheduler")
             try:
                 client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
             except (OSError, TimeoutError, ValueError) as e:

@@ -76,6 +76,7 @@ def run_batch(datasets: list[Dataset], config: Config, workspace: Path, client, 
     outcomes = {ds.name: DatasetOutcome(name=ds.name) for ds in datasets}
     by_name = {ds.name: ds for ds in datasets}
     started = {ds.name: time.perf_counter() for ds in datasets}
+    tasks: dict[str, tuple[str, int]] = {}  # task key -> (dataset, stage index)
 
     def submit(name: str, k: int):
         future = client.submit(run_stage_task, by_name[name], Path(workspace), config, stages[k], force,
@@ -83,7 +84,6 @@ def run_batch(datasets: list[Dataset], config: Config, workspace: Path, client, 
         tasks[future.key] = (name, k)
         return future
 
-    tasks: dict[str, tuple[str, int]] = {}
     pending = as_completed([submit(ds.name, 0) for ds in datasets])
     with logging_redirect_tqdm(), \
             tqdm(total=len(datasets), desc="batch", unit="dataset", disable=not progress) as bar:
@@ -116,9 +116,9 @@ def _record_stage(outcome: DatasetOutcome, stage: str, future) -> bool:
     summary = result["summary"]
     if result["ran"]:
         outcome.ran.append(stage)
-    for key, attr in (("registered", "registered"), ("points", "points")):
+    for key in ("registered", "points"):  # registration's, then triangulation's
         if isinstance(summary.get(key), int):
-            setattr(outcome, attr, summary[key])
+            setattr(outcome, key, summary[key])
     state = f"done in {result['wall_time_s']:.1f} s" if result["ran"] else "fresh"
     log.info("%s: %-13s %s %s", outcome.name, stage, state, _short(summary))
     return False

@@ -142,4 +142,8 @@ def test_batch_bad_input_is_one_line(datasets, tmp_path, capsys):
     assert code == 2 and "same folder name" in err and datasets[0].name in err
     code, err = run(datasets[0], datasets[0])
     assert code == 2 and "given twice" in err
+    code, err = run(datasets[0], "--workers", "0")
+    assert code == 2 and "at least one worker" in err
+    code, err = run(datasets[0], "--workers", "2", "--scheduler", "tcp://127.0.0.1:8786")
+    assert code == 2 and "cannot be combined with --scheduler" in err
     assert not (tmp_path / "ws").exists()  # refused before any cluster or workspace
