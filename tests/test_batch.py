@@ -108,7 +108,10 @@ def test_batch_survives_a_killed_worker_with_the_serial_run_bytes(datasets, tmp_
     for path in good:
         outcome = by_name[path.name]
         assert outcome.status == "ok", outcome.reason
-        assert outcome.ran == list(PIPELINE[:PIPELINE.index(UNTIL) + 1])
+        expected = list(PIPELINE[:PIPELINE.index(UNTIL) + 1])
+        if path.name == found["dataset"] and KILL_STAGE not in outcome.ran:
+            expected.remove(KILL_STAGE)  # killed just after its swap: committed, so its rerun found it fresh
+        assert outcome.ran == expected
         assert outcome.registered == 4 and outcome.points > 100
         # The stage task that died held the workspace lock: its retry could take it (an fcntl lock dies with its
         # process), and every artifact is the serial run's, byte for byte (manifest sha256 and fingerprints).
