@@ -22,7 +22,7 @@ INPUTS = ("images", "masks")
 
 def run(ctx: StageContext) -> dict:
     names = ctx.dataset.image_names
-    ctx.dataset.validate_inputs()  # read every header here once, not in each task (the dataset travels with them)
+    ctx.dataset.image_sizes  # noqa: B018 — every header read once here, not in each task (the dataset travels)
     # One task per image. Locally OpenCV releases the GIL inside SIFT, so two images at a time use both cores (more
     # would only hold more full-size panoramas in memory).
     jobs = ctx.map(partial(extract_image, ctx.dataset, ctx.options, ctx.out), names, threads=2)
