@@ -142,6 +142,16 @@ def cmd_view(args) -> int:
     return 0
 
 
+def cmd_batch(args) -> int:
+    from fullview.commands.batch import batch
+    from fullview.stages.batch import summary_table
+    config_path = args.config if args.config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None)
+    outcomes = batch(args.datasets, args.glob, load_config(config_path, args.set or []), args.workspace,
+                     scheduler=args.scheduler, workers=args.workers, until=args.until, force=args.force)
+    print(summary_table(outcomes))
+    return 1 if any(o.status != "ok" for o in outcomes) else 0
+
+
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder (images/, optional hand_points.yaml, ground_truth/)")
     p.add_argument("-w", "--workspace", type=Path, default=Path("workspace"), help="workspace root")
@@ -162,6 +172,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="rerun every stage")
     p.add_argument("--wait", action="store_true", help="wait for another run on this workspace instead of failing")
     p.set_defaults(func=cmd_run)
+    p = sub.add_parser("batch", help="run many datasets on a Dask cluster (local processes by default)")
+    p.add_argument("datasets", type=Path, nargs="*", help="dataset folders (each gets WORKSPACE/<folder name>)")
+    p.add_argument("--glob", metavar="PATTERN", help="also every folder this pattern matches, e.g. 'data/*'")
+    p.add_argument("-w", "--workspace", type=Path, default=Path("workspace"), help="workspace root")
+    p.add_argument("-c", "--config", type=Path, default=None, help="pipeline.yaml (default: ./pipeline.yaml)")
+    p.add_argument("--set", action="append", metavar="STAGE.KEY=VALUE", help="override a config value")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="use this cluster instead of a local one")
+    p.add_argument("--workers", type=int, default=None, help="local cluster: worker processes (default: cores)")
+    p.add_argument("--until", choices=PIPELINE, help="stop after this stage")
+    p.add_argument("--force", action="store_true", help="rerun every stage")
+    p.set_defaults(func=cmd_batch)
     p = sub.add_parser("status", help="fresh / stale / missing per stage")
     _common(p)
     p.add_argument("--verify", action="store_true", help="also check every output's sha256, not only its size")

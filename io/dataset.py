@@ -102,6 +102,14 @@ class Dataset:
             if other != name:  # artifacts are named by stem: two such images would overwrite each other's
                 raise DatasetError(f"{self.images_dir}: images {other!r} and {name!r} share a file stem; rename one")
 
+    def __getstate__(self) -> dict:
+        # Picklable for cluster workers (fullview batch), with what it has already read and validated.
+        return {k: v for k, v in self.__dict__.items() if k != "_sizes_lock"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._sizes_lock = threading.Lock()
+
     @property
     def name(self) -> str:
         return self.root.resolve().name

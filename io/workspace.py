@@ -418,6 +418,8 @@ class StageWriter:
 
     def commit_manifest(self, record: dict) -> dict:
         """Write manifest.json (the record plus size and sha256 of every output); the transaction may commit."""
+        for p in self.dir.rglob(".*.tmp"):  # an atomic write cut short (a fan-out task killed on another worker)
+            p.unlink()
         outputs = {}
         for p in sorted(self.dir.rglob("*")):
             if p.is_file() and not p.is_symlink() and p.name != MANIFEST_NAME:

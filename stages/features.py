@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import logging
-import os
-from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import numpy as np
 from tqdm import tqdm
 
-from fullview.io.workspace import FEATURES_VERSION
+from fullview.io.dataset import Dataset
+from fullview.io.workspace import FEATURES_VERSION, StageWriter
 from fullview.sfm.features import Features, detect_features
 from fullview.stages.protocol import StageContext
 
@@ -22,26 +22,28 @@ INPUTS = ("images", "masks")
 
 def run(ctx: StageContext) -> dict:
     names = ctx.dataset.image_names
-    # OpenCV releases the GIL inside SIFT, so two images at a time use both cores.
-    with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
-        counts = dict(tqdm(pool.map(lambda name: _extract(ctx, name), names), total=len(names), desc="features",
-                           unit="image"))
+    ctx.dataset.image_sizes  # noqa: B018 — every header read once here, not in each task (the dataset travels)
+    # One task per image. Locally OpenCV releases the GIL inside SIFT, so two images at a time use both cores (more
+    # would only hold more full-size panoramas in memory).
+    jobs = ctx.map(partial(extract_image, ctx.dataset, ctx.options, ctx.out), names, threads=2)
+    counts = dict(tqdm(jobs, total=len(names), desc="features", unit="image"))
     log.info("features per image: min %d, median %d, max %d", min(counts.values()),
              int(np.median(list(counts.values()))), max(counts.values()))
     return {"images": len(counts), "min_features": min(counts.values()), "per_image": counts}
 
 
-def _extract(ctx: StageContext, name: str) -> tuple[str, int]:
-    """Detect and save one image's features; returns (name, count)."""
-    full_w, full_h = ctx.dataset.image_sizes[name]
+def extract_image(dataset: Dataset, options, out: StageWriter, name: str) -> tuple[str, int]:
+    """Detect and save one image's features; returns (name, count). A task of its own: picklable arguments, and it
+    writes only its own file into the transaction's folder (a retried task rewrites it whole)."""
+    full_w, full_h = dataset.image_sizes[name]
     # Never upsample: a working width above the native width means "native".
-    image = ctx.dataset.load_image(name, width=min(ctx.options.working_width or full_w, full_w))
-    feats = detect_features(image, ctx.options)
+    image = dataset.load_image(name, width=min(options.working_width or full_w, full_w))
+    feats = detect_features(image, options)
     scale = full_w / image.shape[1]
-    feats = keep_unmasked(feats, ctx.dataset.load_mask(name), scale)
+    feats = keep_unmasked(feats, dataset.load_mask(name), scale)
     colors = sample_colors(image, feats.pixels)  # detection pixels are working-image pixels
-    ctx.out.save_features(name, pixels=feats.pixels * scale, bearings=feats.bearings, descriptors=feats.descriptors,
-                          scales=feats.scales * scale, colors=colors, image_size=np.array([full_w, full_h]))
+    out.save_features(name, pixels=feats.pixels * scale, bearings=feats.bearings, descriptors=feats.descriptors,
+                      scales=feats.scales * scale, colors=colors, image_size=np.array([full_w, full_h]))
     return name, len(feats.bearings)
 
 

@@ -4,11 +4,24 @@ its transaction."""
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Callable, Iterable, Iterator, Protocol
 
 from fullview.io.dataset import Dataset
 from fullview.io.workspace import StageWriter, Workspace
+
+# How a stage fans work out: map(fn, items, threads=None) -> the results in the order of `items`. `fn` must be
+# picklable (a top-level function, or a functools.partial of one) because a cluster runs it in other processes.
+Mapper = Callable[..., Iterator[Any]]
+
+
+def thread_map(fn: Callable[[Any], Any], items: Iterable[Any], *, threads: int | None = None) -> Iterator[Any]:
+    """The local executor: a thread pool in this process (OpenCV and numpy release the GIL). `threads` caps the
+    pool (memory-heavy work); a cluster executor ignores it."""
+    with ThreadPoolExecutor(max_workers=min(threads or os.cpu_count() or 1, os.cpu_count() or 1)) as pool:
+        yield from pool.map(fn, items)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -17,6 +30,7 @@ class StageContext:
     dataset: Dataset  # the input images, hand points, ground truth
     ws: Workspace  # read access to the upstream stages' artifacts
     out: StageWriter  # the only way to write this stage's artifacts
+    map: Mapper = thread_map  # fan-out of independent work (images, blocks of pairs): threads or a Dask cluster
 
 
 class Stage(Protocol):

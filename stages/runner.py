@@ -30,7 +30,7 @@ from fullview.io.dataset import Dataset
 from fullview.io.errors import FullviewError
 from fullview.io.workspace import StageWriter, Workspace
 from fullview.stages import PIPELINE
-from fullview.stages.protocol import StageContext
+from fullview.stages.protocol import Mapper, StageContext, thread_map
 
 log = logging.getLogger(__name__)
 
@@ -120,8 +120,9 @@ def run_cached(ws: Workspace, folder: str, record: dict, produce: Callable[[Stag
 class Pipeline:
     """Fingerprints, status and execution of the stages for one dataset and config."""
 
-    def __init__(self, dataset: Dataset, workspace: Workspace, config: Config):
+    def __init__(self, dataset: Dataset, workspace: Workspace, config: Config, *, map: Mapper = thread_map):
         self.dataset, self.ws, self.config = dataset, workspace, config
+        self.map = map  # how stages fan work out: local threads, or a Dask cluster under `fullview batch`
         self._fingerprints: dict[str, str] = {}
 
     # ---------------------------------------------------------------- fingerprints
@@ -270,7 +271,8 @@ class Pipeline:
         # a loaded 2-core machine); stages parallelise over pairs or images themselves where it pays.
         with self.ws.locked(command=f"fullview run ({stage})"), self.ws.transaction(stage) as out, \
                 threadpool_limits(limits=1, user_api="blas"):
-            summary = module.run(StageContext(options=self.config[stage], dataset=self.dataset, ws=self.ws, out=out))
+            summary = module.run(StageContext(options=self.config[stage], dataset=self.dataset, ws=self.ws, out=out,
+                                              map=self.map))
             manifest = out.commit_manifest({
                 **record,
                 "fingerprint": fingerprint,
