@@ -120,7 +120,7 @@ class TriangulationOptions:
 
 @dataclass(frozen=True, kw_only=True)
 class DensifyOptions:
-    neighbours: int = setting(3, "stereo partners per camera (best by inlier count, short baselines discounted)",
+    neighbours: int = setting(2, "stereo partners per camera (best by inlier count, short baselines discounted)",
                               ge=1, le=64)
     min_epipole_separation_deg: float = setting(
         30.0, "a camera's partners lie in baseline directions at least this far apart (their epipoles differ)",
