@@ -103,9 +103,9 @@ def msac_costs(Fs: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: floa
 class RansacOptions:
     threshold_rad: float  # inlier threshold on the angular epipolar error
     max_iterations: int = FilterOptions.max_iterations  # hard cap on hypotheses (default from the settings)
-    min_iterations: int = 100  # never stop earlier than this
+    min_iterations: int = 64  # never stop earlier than this (an all-inlier 8-point sample at 95% inliers needs ~13)
     confidence: float = FilterOptions.confidence  # adaptive stopping confidence (default from the settings)
-    batch_size: int = 256  # hypotheses evaluated together (vectorised)
+    batch_size: int = 64  # hypotheses evaluated together (vectorised); the stopping rule is checked after each batch
     head_share: float = 0.25  # guided samples draw from this leading share of the (quality-ordered) matches
     local_optimization_steps: int = 4  # iterative re-fits on inliers of each new best model
     refine: bool = True  # final non-linear refinement of R, t on the inliers
@@ -274,7 +274,8 @@ def refine_f(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: float) 
 
     The Jacobian is a forward difference like scipy's '2-point', but its 5 perturbed models are evaluated in one
     batch (the refinement runs once per pair, and scipy's per-column calls dominated its cost)."""
-    R, T = decompose_f_svd(F)[0]  # any of the four decompositions spans the same F up to sign
+    R, t = decompose_f_svd(F)[0]  # any of the four decompositions spans the same F up to sign
+    T = -R.T @ t  # F = [T]× Rᵀ takes camera j's centre in camera i (starting from t itself began off F)
     tangent = tangent_basis(T[None])[0]
     residuals = lambda x: _sine_residuals_batch(_f_from_params(R, T, x[None], tangent), b_i, b_j)[0]  # noqa: E731
 
