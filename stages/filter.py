@@ -9,6 +9,7 @@ feature index space (SIFT features, then hand observations; see `Workspace.load_
 from __future__ import annotations
 
 import logging
+from functools import lru_cache
 
 import numpy as np
 from tqdm import tqdm
@@ -24,6 +25,7 @@ log = logging.getLogger(__name__)
 VERSION = 1
 UPSTREAM = ("matches",)
 INPUTS = ("hand_points", "images")  # images: gravity from vertical lines (filter.upright: vanishing)
+DESCRIPTOR_CACHE = 16  # images whose descriptors guided matching keeps in memory
 GRAVITY_WIDTH = 2048  # images are read at most this wide to find their vertical lines
 GRAVITY_MIN_LINES = 12  # fewer supporting vertical segments: gravity unknown (measured on the textured synthetic room:
 # 6-9 segments gave 2-20° errors; real Theta panoramas and the plain home give 16-130 segments within 0.2°)
@@ -34,8 +36,10 @@ def run(ctx: StageContext) -> dict:
     obs = ctx.ws.load_observations(ctx.dataset)
     num_sift = [int(o["num_sift"]) for o in obs]
     guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)
-    descriptors = ([ctx.ws.load_features(n)["descriptors"] for n in ctx.dataset.image_names]
-                   if options.guided_matching else None)
+    # Guided matching reads descriptors per pair, the recent ones cached (pairs arrive grouped by their first image),
+    # so they are never all in memory at once.
+    descriptors = (lru_cache(maxsize=DESCRIPTOR_CACHE)(lambda k: ctx.ws.load_features(ctx.dataset.image_names[k])
+                                                        ["descriptors"]) if options.guided_matching else None)
     guided_counts = []
     raw = ctx.ws.load_matches()
     threshold = np.radians(options.threshold_deg)
@@ -58,7 +62,7 @@ def run(ctx: StageContext) -> dict:
                                    threshold, options, seed=options.seed + k, gravity=(gravity[i], gravity[j]))
         good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
         if descriptors is not None and len(good) >= options.min_inliers:
-            good, added = _add_guided(good, descriptors[i], descriptors[j], obs[i]["bearings"], obs[j]["bearings"],
+            good, added = _add_guided(good, descriptors(i), descriptors(j), obs[i]["bearings"], obs[j]["bearings"],
                                       F, threshold, guided)
             guided_counts.append(added)
         flat = len(good) >= min(minimum, options.min_inliers) and has_no_baseline(
