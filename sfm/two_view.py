@@ -103,9 +103,9 @@ def msac_costs(Fs: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: floa
 class RansacOptions:
     threshold_rad: float  # inlier threshold on the angular epipolar error
     max_iterations: int = FilterOptions.max_iterations  # hard cap on hypotheses (default from the settings)
-    min_iterations: int = 64  # never stop earlier than this (an all-inlier 8-point sample at 95% inliers needs ~13)
+    min_iterations: int = 100  # never stop earlier than this
     confidence: float = FilterOptions.confidence  # adaptive stopping confidence (default from the settings)
-    batch_size: int = 64  # hypotheses evaluated together (vectorised); the stopping rule is checked after each batch
+    batch_size: int = 256  # hypotheses evaluated together (vectorised)
     head_share: float = 0.25  # guided samples draw from this leading share of the (quality-ordered) matches
     local_optimization_steps: int = 4  # iterative re-fits on inliers of each new best model
     refine: bool = True  # final non-linear refinement of R, t on the inliers
