@@ -22,6 +22,15 @@ def pair_list(num_images: int, mode: str = MatchesOptions.pairs, window: int = M
     raise ValueError(f"unknown pair mode {mode!r} (expected 'exhaustive' or 'sequential')")
 
 
+def pair_blocks(pairs: list[tuple[int, int]], block_images: int) -> list[list[int]]:
+    """Indices into `pairs` grouped so that a group's pairs touch at most 2 x `block_images` images: pair (i, j) goes
+    to block (i // block_images, j // block_images). Streaming the groups bounds the descriptors in memory."""
+    groups: dict[tuple[int, int], list[int]] = {}
+    for k, (i, j) in enumerate(pairs):
+        groups.setdefault((i // block_images, j // block_images), []).append(k)
+    return [groups[key] for key in sorted(groups)]
+
+
 def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int, allowed=None):
     """One pass over the distance matrix, in row blocks.
 

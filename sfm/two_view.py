@@ -48,23 +48,54 @@ def estimate_f_linear(b_i: np.ndarray, b_j: np.ndarray, weights: np.ndarray | No
 
 
 # --------------------------------------------------------------------------------------------- errors
+def _epipolar_sines(Fs: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, design: np.ndarray) -> np.ndarray:
+    """(B, N) sine of the larger of each correspondence's two angles to the epipolar circles, for F (B, 3, 3).
+
+    Three matrix products (the normals of all hypotheses at once, and b_iᵀ F b_j as vec(F) against the design
+    matrix) rather than stacked 3×3 products: this scores every RANSAC hypothesis."""
+    count, n = len(Fs), len(b_i)
+    n_i = (Fs.reshape(3 * count, 3) @ b_j.T).reshape(count, 3, n)  # normals of the epipolar planes in camera i
+    n_j = (np.swapaxes(Fs, 1, 2).reshape(3 * count, 3) @ b_i.T).reshape(count, 3, n)  # ... in camera j
+    num = np.abs(Fs.reshape(count, 9) @ design.T)
+    n_i *= n_i
+    n_j *= n_j
+    norm2 = np.minimum(n_i.sum(axis=1), n_j.sum(axis=1))  # the smaller normal gives the larger angle
+    num /= np.sqrt(np.maximum(norm2, 1e-24))
+    return num
+
+
 def epipolar_angular_errors(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray) -> np.ndarray:
     """Symmetric angular distance (radians) of each bearing to the other's epipolar great circle.
 
     The epipolar plane of b_j in camera i has normal F b_j; b_i's angle to that plane is asin(|b_i·n|/|n|).
     Returns the larger of the two angles. Batched: F (B,3,3) with bearings (N,3) gives (B, N).
     """
-    n_i = F @ b_j.T  # (..., 3, N) normals of the epipolar planes in camera i
-    n_j = np.swapaxes(F, -1, -2) @ b_i.T  # normals in camera j
-    num = np.abs((n_i * b_i.T).sum(axis=-2))
-    s_i = num / np.maximum(np.sqrt((n_i * n_i).sum(axis=-2)), 1e-12)
-    s_j = num / np.maximum(np.sqrt((n_j * n_j).sum(axis=-2)), 1e-12)
-    return np.arcsin(np.clip(np.maximum(s_i, s_j), 0.0, 1.0))
+    F = np.asarray(F, dtype=np.float64)
+    sines = _epipolar_sines(F.reshape(-1, 3, 3), b_i, b_j, _design_matrix(b_i, b_j))
+    return np.arcsin(np.minimum(sines, 1.0)).reshape(F.shape[:-2] + (len(b_i),))
 
 
 def _msac_scores(errors: np.ndarray, threshold: float) -> np.ndarray:
     """MSAC cost (lower is better): truncated squared error."""
     return np.minimum(errors, threshold) ** 2
+
+
+SCORE_CHUNK = 64  # hypotheses scored together: their (64, 3, N) normals stay in cache
+
+
+def msac_costs(Fs: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: float) -> np.ndarray:
+    """(B,) summed MSAC cost of hypotheses Fs (B, 3, 3): the same figure as `_msac_scores(epipolar_angular_errors)`
+    summed, cheaper: the arcsine is taken only below the threshold (above it every error costs threshold²)."""
+    design = _design_matrix(b_i, b_j)
+    sin_threshold, out = np.sin(threshold), np.empty(len(Fs))
+    for start in range(0, len(Fs), SCORE_CHUNK):
+        sines = _epipolar_sines(Fs[start:start + SCORE_CHUNK], b_i, b_j, design)
+        inside = sines < sin_threshold
+        errors = np.arcsin(sines[inside])
+        scores = np.full(sines.shape, threshold * threshold)
+        scores[inside] = errors * errors
+        out[start:start + SCORE_CHUNK] = scores.sum(axis=1)
+    return out
 
 
 # --------------------------------------------------------------------------------------------- robust estimation
@@ -149,7 +180,7 @@ def ransac_f(b_i: np.ndarray, b_j: np.ndarray, options: RansacOptions) -> FResul
         batch = min(options.batch_size, options.max_iterations - drawn)
         samples = _draw_samples(rng, batch, n, options.head_share)
         Fs = estimate_f_linear(b_i[samples], b_j[samples])
-        costs = _msac_scores(epipolar_angular_errors(Fs, b_i, b_j), thr).sum(axis=1)
+        costs = msac_costs(Fs, b_i, b_j, thr)
         drawn += batch
         k = int(np.argmin(costs))
         if costs[k] < best_cost:
@@ -209,25 +240,53 @@ def _finish(b_i, b_j, F, threshold, refine, iterations) -> FResult:
 
 
 # --------------------------------------------------------------------------------------------- refinement
-def _f_from_params(R0: np.ndarray, t0: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """F = [T]× Rᵀ with R = exp(ω) R0 and T on the sphere around t0 (2 tangent parameters)."""
-    R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
-    u, v = tangent_basis(t0[None])[0]
-    T = normalize(t0 + x[3] * u + x[4] * v)
-    return skew(T) @ R.T
+def _rotations_from_rotvecs(w: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula, batched: (K, 3) rotation vectors -> (K, 3, 3)."""
+    angle = np.linalg.norm(w, axis=1)
+    small = angle < 1e-12
+    axis = w / np.where(small, 1.0, angle)[:, None]
+    K = skew(axis)
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+
+
+def _f_from_params(R0: np.ndarray, t0: np.ndarray, x: np.ndarray, tangent: np.ndarray | None = None) -> np.ndarray:
+    """F = [T]× Rᵀ with R = exp(ω) R0 and T on the sphere around t0 (2 tangent parameters); x (5,) or (K, 5)."""
+    u, v = tangent_basis(t0[None])[0] if tangent is None else tangent
+    xs = np.atleast_2d(x)
+    R = _rotations_from_rotvecs(xs[:, :3]) @ R0
+    T = normalize(t0 + xs[:, 3:4] * u + xs[:, 4:5] * v)
+    F = skew(T) @ np.swapaxes(R, 1, 2)
+    return F[0] if np.ndim(x) == 1 else F
+
+
+def _sine_residuals_batch(Fs: np.ndarray, b_i: np.ndarray, b_j: np.ndarray) -> np.ndarray:
+    """(K, 2N) signed sines of both bearings' angles to the other's epipolar circle, for F (K, 3, 3)."""
+    count, n = len(Fs), len(b_i)
+    n_i = (Fs.reshape(3 * count, 3) @ b_j.T).reshape(count, 3, n)
+    n_j = (np.swapaxes(Fs, 1, 2).reshape(3 * count, 3) @ b_i.T).reshape(count, 3, n)
+    num = Fs.reshape(count, 9) @ _design_matrix(b_i, b_j).T
+    return np.concatenate([num / np.sqrt((n_i * n_i).sum(axis=1)), num / np.sqrt((n_j * n_j).sum(axis=1))], axis=1)
 
 
 def refine_f(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: float) -> np.ndarray:
-    """Non-linear refinement of (R, T) minimising angular epipolar errors with a robust loss."""
-    R, T = decompose_f_svd(F)[0]  # any of the four decompositions spans the same F up to sign
-    def residuals(x):
-        Fx = _f_from_params(R, T, x)
-        n_i = b_j @ Fx.T
-        n_j = b_i @ Fx
-        num = np.einsum("na,na->n", b_i, n_i)
-        return np.concatenate([num / np.linalg.norm(n_i, axis=1), num / np.linalg.norm(n_j, axis=1)])
-    sol = least_squares(residuals, np.zeros(5), loss="soft_l1", f_scale=threshold / 2, method="trf", max_nfev=50)
-    return project_to_essential(_f_from_params(R, T, sol.x))
+    """Non-linear refinement of (R, T) minimising angular epipolar errors with a robust loss.
+
+    The Jacobian is a forward difference like scipy's '2-point', but its 5 perturbed models are evaluated in one
+    batch (the refinement runs once per pair, and scipy's per-column calls dominated its cost)."""
+    R, t = decompose_f_svd(F)[0]  # any of the four decompositions spans the same F up to sign
+    T = -R.T @ t  # F = [T]× Rᵀ takes camera j's centre in camera i (starting from t itself began off F)
+    tangent = tangent_basis(T[None])[0]
+    residuals = lambda x: _sine_residuals_batch(_f_from_params(R, T, x[None], tangent), b_i, b_j)[0]  # noqa: E731
+
+    def jacobian(x):
+        steps = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
+        rows = _sine_residuals_batch(_f_from_params(R, T, np.vstack([x, x + np.diag(steps)]), tangent), b_i, b_j)
+        return ((rows[1:] - rows[0]) / steps[:, None]).T
+
+    sol = least_squares(residuals, np.zeros(5), jac=jacobian, loss="soft_l1", f_scale=threshold / 2, method="trf",
+                        max_nfev=50)
+    return project_to_essential(_f_from_params(R, T, sol.x, tangent))
 
 
 # --------------------------------------------------------------------------------------------- decomposition

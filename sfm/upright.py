@@ -258,7 +258,7 @@ def ransac_f_upright(b_i: np.ndarray, b_j: np.ndarray, options: tv.RansacOptions
         drawn += batch
         if valid.any():
             Fs = Fs[valid]
-            costs = tv._msac_scores(tv.epipolar_angular_errors(Fs, b_i, b_j), thr).sum(axis=1)
+            costs = tv.msac_costs(Fs, b_i, b_j, thr)
             k = int(np.argmin(costs))
             if costs[k] < best_cost:
                 best_F, best_cost = _local_optimization_upright(b_i, b_j, Fs[k], thr,

@@ -9,6 +9,7 @@ feature index space (SIFT features, then hand observations; see `Workspace.load_
 from __future__ import annotations
 
 import logging
+from functools import lru_cache
 
 import numpy as np
 from tqdm import tqdm
@@ -24,6 +25,7 @@ log = logging.getLogger(__name__)
 VERSION = 1
 UPSTREAM = ("matches",)
 INPUTS = ("hand_points", "images")  # images: gravity from vertical lines (filter.upright: vanishing)
+DESCRIPTOR_CACHE = 16  # images whose descriptors guided matching keeps in memory
 GRAVITY_WIDTH = 2048  # images are read at most this wide to find their vertical lines
 GRAVITY_MIN_LINES = 12  # fewer supporting vertical segments: gravity unknown (measured on the textured synthetic room:
 # 6-9 segments gave 2-20° errors; real Theta panoramas and the plain home give 16-130 segments within 0.2°)
@@ -34,26 +36,35 @@ def run(ctx: StageContext) -> dict:
     obs = ctx.ws.load_observations(ctx.dataset)
     num_sift = [int(o["num_sift"]) for o in obs]
     guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)
-    descriptors = ([ctx.ws.load_features(n)["descriptors"] for n in ctx.dataset.image_names]
-                   if options.guided_matching else None)
+    # Guided matching reads descriptors per pair, the recent ones cached (pairs arrive grouped by their first image),
+    # so they are never all in memory at once.
+    descriptors = (lru_cache(maxsize=DESCRIPTOR_CACHE)(lambda k: ctx.ws.load_features(ctx.dataset.image_names[k])
+                                                        ["descriptors"]) if options.guided_matching else None)
     guided_counts = []
     raw = ctx.ws.load_matches()
     threshold = np.radians(options.threshold_deg)
     inliers, Fs, seeded, num_hand, no_baseline, weak = [], [], [], [], [], []
     gravity = _gravity(ctx, options.upright)
     min_upright = options.min_inliers_upright
+    early_rejected = 0
     for k, (i, j) in enumerate(tqdm(raw.pairs, desc="filter", unit="pair")):
         hand = ctx.dataset.hand_pair_matches(num_sift, i, j) if options.use_hand_points else np.zeros((0, 2), int)
         use_seed = len(hand) >= options.min_hand_points
-        F, keep = _verify_pair(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], hand if use_seed else None,
-                               threshold, options, seed=options.seed + k, gravity=(gravity[i], gravity[j]))
-        good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
-        if descriptors is not None and len(good) >= options.min_inliers:
-            good, added = _add_guided(good, descriptors[i], descriptors[j], obs[i]["bearings"], obs[j]["bearings"],
-                                      F, threshold, guided)
-            guided_counts.append(added)
         upright_pair = not use_seed and np.isfinite(gravity[[i, j]]).all()
         minimum = min_upright if upright_pair else options.min_inliers
+        if not use_seed and len(raw.matches[k]) + len(hand) < min(minimum, options.min_inliers):
+            # Early rejection: even if every match were an inlier the pair could neither verify nor be flagged as
+            # without baseline (guided matching only extends pairs that already have min_inliers): no RANSAC.
+            F, keep = np.zeros((3, 3)), np.zeros(len(raw.matches[k]), bool)
+            early_rejected += 1
+        else:
+            F, keep = _verify_pair(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], hand if use_seed else None,
+                                   threshold, options, seed=options.seed + k, gravity=(gravity[i], gravity[j]))
+        good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
+        if descriptors is not None and len(good) >= options.min_inliers:
+            good, added = _add_guided(good, descriptors(i), descriptors(j), obs[i]["bearings"], obs[j]["bearings"],
+                                      F, threshold, guided)
+            guided_counts.append(added)
         flat = len(good) >= min(minimum, options.min_inliers) and has_no_baseline(
             obs[i]["bearings"][good[:, 0]], obs[j]["bearings"][good[:, 1]], threshold)
         if flat:
@@ -80,7 +91,7 @@ def run(ctx: StageContext) -> dict:
     return {"pairs": len(raw.pairs), "verified_pairs": int((counts > 0).sum()), "seeded_pairs": int(sum(seeded)),
             "median_inliers": int(np.median(counts)) if len(counts) else 0,
             "no_baseline_pairs": [[names[i], names[j]] for (i, j), f in zip(raw.pairs, no_baseline) if f],
-            "guided_matches_added": int(sum(guided_counts)),
+            "guided_matches_added": int(sum(guided_counts)), "early_rejected_pairs": early_rejected,
             "upright_images": int(np.isfinite(gravity).all(axis=1).sum())}
 
 

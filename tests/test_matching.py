@@ -71,3 +71,12 @@ def test_guided_filter_adds_inliers_and_keeps_poses(tiny_dataset, make_pipeline,
     from fullview.sfm.rotations import rotation_angle_deg
     ea, eb = base.ws.load_epipoles(), guided.ws.load_epipoles()
     assert rotation_angle_deg(ea["R_j_from_i"], eb["R_j_from_i"]).max() < 0.1
+
+
+@pytest.mark.parametrize("num_images,mode,block", [(7, "exhaustive", 3), (40, "exhaustive", 16), (9, "sequential", 2)])
+def test_pair_blocks_cover_every_pair_once_with_few_images(num_images, mode, block):
+    from fullview.sfm.matching import pair_blocks
+    pairs = pair_list(num_images, mode, window=3)
+    blocks = pair_blocks(pairs, block)
+    assert sorted(k for b in blocks for k in b) == list(range(len(pairs)))
+    assert all(len({i for k in b for i in pairs[k]}) <= 2 * block for b in blocks)

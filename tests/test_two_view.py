@@ -106,3 +106,34 @@ def test_seeded_fit_keeps_the_hand_points_model_on_a_doorway_pair():
     assert rotation_angle_deg(pose.R_j_from_i, data["R_j_from_i"]) < 1.0
     assert angle_between_deg(pose.t_j_from_i, data["t_j_from_i"]) < 1.0
     assert res.inliers.sum() >= 100
+
+
+def _large_rotation_scene(seed):
+    """Bearings of a pair whose relative rotation is large (tens of degrees about every axis)."""
+    rng = np.random.default_rng(seed)
+    R = Rotation.from_euler("xyz", rng.uniform(-1.5, 1.5, 3)).as_matrix()
+    c_j = normalize(rng.normal(size=3))
+    P = rng.normal(size=(200, 3)) * 4
+    return normalize(P), normalize(P @ R.T - R @ c_j), skew(c_j) @ R.T
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_refinement_starts_at_and_keeps_an_exact_f(seed):
+    """Noise-free data: the refinement must not move an exact F (it once started from [t]× Rᵀ instead of
+    [−Rᵀt]× Rᵀ, a different matrix whenever the rotation is not small, and could end far off)."""
+    b_i, b_j, F = _large_rotation_scene(seed)
+    refined = tv.refine_f(F, b_i, b_j, np.radians(0.35))
+    assert min(np.linalg.norm(refined - F), np.linalg.norm(refined + F)) < 1e-7
+    assert tv.epipolar_angular_errors(refined, b_i, b_j).max() < 1e-9
+
+
+def test_batched_msac_costs_equal_the_reference_formula():
+    b_i, b_j, *_ = _scene(2, n=400, noise=0.3 * PIXEL, outliers=0.4)
+    Fs = tv.estimate_f_linear(b_i[np.arange(80).reshape(10, 8)], b_j[np.arange(80).reshape(10, 8)])
+    Fs = np.concatenate([Fs] * 8)  # more hypotheses than one scoring chunk
+    thr = np.radians(0.35)
+    reference = np.minimum(tv.epipolar_angular_errors(Fs, b_i, b_j), thr) ** 2
+    assert np.allclose(tv.msac_costs(Fs, b_i, b_j, thr), reference.sum(axis=1), rtol=1e-12, atol=0)
+    # the batched errors equal the per-hypothesis ones
+    assert np.allclose(tv.epipolar_angular_errors(Fs, b_i, b_j)[3], tv.epipolar_angular_errors(Fs[3], b_i, b_j),
+                       rtol=0, atol=1e-14)
