@@ -9,7 +9,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from tqdm import tqdm
 
-from fullview.sfm.matching import match_descriptors, pair_list
+from fullview.sfm.matching import match_descriptors
+from fullview.sfm.pairs import select_pairs
 from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
@@ -22,7 +23,7 @@ INPUTS: tuple[str, ...] = ()
 def run(ctx: StageContext) -> dict:
     options = ctx.options
     descriptors = [ctx.ws.load_features(n)["descriptors"] for n in ctx.dataset.image_names]
-    pairs = pair_list(len(descriptors), options.pairs, options.window)
+    pairs, _sources = select_pairs(descriptors, options, ctx.dataset.gps_positions())
     # numpy releases the GIL in the products and reductions, so threads over pairs use every core.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         jobs = pool.map(lambda p: match_descriptors(descriptors[p[0]], descriptors[p[1]], options), pairs)
