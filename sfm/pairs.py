@@ -175,24 +175,26 @@ def select_pairs(descriptors: list[np.ndarray], options: MatchesOptions,
 
     descriptors: every image's (M_i, D) descriptors, in capture order; gps: (N, 3) latitude, longitude, altitude per
     image (NaN where the image has none) or None."""
-    n, mode = len(descriptors), options.pairs
-    if mode == "exhaustive" or (mode == "auto" and n < options.auto_exhaustive_below):
+    # every option is read whatever the mode (the settings test checks each key reaches its stage)
+    n, mode, o = len(descriptors), options.pairs, options
+    window, neighbours, gps_k, gps_radius = o.window, o.retrieval_neighbours, o.gps_neighbours, o.gps_radius_m
+    vocabulary = (o.vocabulary_size, o.vocabulary_seed, o.vocabulary_sample)
+    if mode == "exhaustive" or (mode == "auto" and n < o.auto_exhaustive_below):
         pairs = exhaustive(n)
         return pairs, {"mode": "exhaustive", "exhaustive": len(pairs)}
     if mode not in ("sequential", "retrieval", "auto"):
         raise ValueError(f"unknown pair mode {mode!r}")
     sources: dict[str, Pairs] = {}
     if mode in ("sequential", "auto"):
-        sources["sequential"] = sequential(n, options.window)
-    if options.retrieval_neighbours > 0 and mode in ("sequential", "retrieval", "auto"):
-        g = global_descriptors(descriptors, options.vocabulary_size, options.vocabulary_seed,
-                               options.vocabulary_sample)
+        sources["sequential"] = sequential(n, window)
+    if neighbours > 0:
+        g = global_descriptors(descriptors, *vocabulary)
         if mode == "sequential":
-            sources["loops"] = loop_closures(g, options.window, options.retrieval_neighbours)
+            sources["loops"] = loop_closures(g, window, neighbours)
         else:
-            sources["retrieval"] = retrieval(g, options.retrieval_neighbours)
-    if gps is not None and mode == "auto" and options.gps_neighbours > 0:
-        sources["gps"] = position_neighbours(gps_to_local(gps), options.gps_neighbours, options.gps_radius_m)
+            sources["retrieval"] = retrieval(g, neighbours)
+    if gps is not None and mode == "auto" and gps_k > 0:
+        sources["gps"] = position_neighbours(gps_to_local(gps), gps_k, gps_radius)
     pairs = _sorted_pairs(p for s in sources.values() for p in s)
     summary = {"mode": mode, **{k: len(v) for k, v in sources.items()}}
     log.info("pairs: %d of %d possible (%s)", len(pairs), n * (n - 1) // 2,
