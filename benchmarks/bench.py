@@ -55,11 +55,12 @@ def synth_dataset(work: Path, views: int, width: int, seed: int) -> Path:
     return path
 
 
-def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = False) -> dict:
+def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = False, reuse: bool = False) -> dict:
+    """reuse: keep fresh stages of an earlier run (their manifests hold the times measured then)."""
     ws = work / "ws" / label
     settings = ["-c", str(ROOT / "pipeline.yaml")] + [a for item in extra for a in ("--set", item)]
     cmd = [sys.executable, "-m", "fullview", "run", str(dataset), "-w", str(ws), *settings,
-           "--until", "densify" if dense else "triangulation", "--force"]
+           "--until", "densify" if dense else "triangulation", *([] if reuse else ["--force"])]
     t0 = time.perf_counter()
     proc = run(cmd)
     wall = time.perf_counter() - t0
@@ -87,15 +88,15 @@ def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = 
     return out
 
 
-def colmap(dataset: Path, work: Path, label: str, matcher: str = "exhaustive") -> dict:
+def colmap(dataset: Path, work: Path, label: str, matcher: str = "exhaustive", reuse: bool = False) -> dict:
     proc = run([sys.executable, str(Path(__file__).resolve()), "--colmap-worker", str(dataset),
-                str(work / "colmap" / label), "--colmap-matcher", matcher])
+                str(work / "colmap" / label), "--colmap-matcher", matcher, *(["--reuse"] if reuse else [])])
     if proc.returncode:
         return {"error": proc.stderr[-2000:]}
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def colmap_worker(dataset: Path, work: Path, matcher: str = "exhaustive") -> None:
+def colmap_worker(dataset: Path, work: Path, matcher: str = "exhaustive", reuse: bool = False) -> None:
     """Runs in its own process so that its peak memory is its own."""
     from fullview.io.colmap import load_reconstruction, model_arrays
     from fullview.io.dataset import Dataset
@@ -104,10 +105,14 @@ def colmap_worker(dataset: Path, work: Path, matcher: str = "exhaustive") -> Non
     from fullview.commands.compare import colmap_reference
 
     ds = Dataset(dataset)
+    t0 = time.perf_counter()
     model_dir, manifest = colmap_reference(ds, Workspace(work, ds.name), render_type="spherical", matcher=matcher,
-                                           force=True)
+                                           force=not reuse)
+    rss_file = work / "bench_peak_rss_mb.json"  # this process's peak is COLMAP's only when COLMAP ran here
+    if time.perf_counter() - t0 >= 0.9 * manifest["wall_time_s"]:
+        rss_file.write_text(json.dumps(round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)))
     out = {"wall_time_s": round(manifest["wall_time_s"], 2), "matcher": matcher,
-           "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+           "peak_rss_mb": json.loads(rss_file.read_text()) if rss_file.exists() else None,
            "registered": 0, "points": 0}
     if model_dir is not None:
         rec = load_reconstruction(model_dir)
@@ -214,14 +219,15 @@ def scale_rows(args) -> list[dict]:
     for kind, views, matcher, settings in scenes:
         dataset = scale_dataset(args.work, kind, views, args.seed)
         label = f"scale-{kind}{views}"
-        row = {"scene": label, "views": views, "ours": ours(dataset, args.work, label, settings)}
+        row = {"scene": label, "views": views, "ours": ours(dataset, args.work, label, settings, reuse=args.reuse)}
         from fullview.io.workspace import Workspace
         manifest = Workspace(args.work / "ws" / label, dataset.name).read_manifest("matches") or {}
         row["ours"]["pairs"] = (manifest.get("summary") or {}).get("pairs")
         if not args.no_colmap:
-            row["colmap"] = colmap(dataset, args.work, label, matcher)
+            row["colmap"] = colmap(dataset, args.work, label, matcher, reuse=args.reuse)
         log.info("%s: %s", label, json.dumps(row)[:400])
         rows.append(row)
+        save_scale(rows, args.tag)  # after every row: a long run stopped early keeps what it measured
     return rows
 
 
@@ -294,15 +300,20 @@ def scale_plot(rows: list[dict], summary: dict, path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
-def scale_main(args) -> int:
-    rows = scale_rows(args)
+def save_scale(rows: list[dict], tag: str) -> tuple[Path, dict]:
     summary = scale_summary(rows)
     RESULTS.mkdir(parents=True, exist_ok=True)
     stamp = dt.datetime.now().strftime("%Y-%m-%d")
-    out = RESULTS / f"{stamp}-scale{args.tag}.json"
+    out = RESULTS / f"{stamp}-scale{tag}.json"
     out.write_text(json.dumps({"date": dt.datetime.now().isoformat(timespec="seconds"), "width": SCALE_WIDTH,
                                "rows": rows, "fits": summary}, indent=2) + "\n")
-    scale_plot(rows, summary, RESULTS / f"{stamp}-scale{args.tag}-time-vs-views.png")
+    scale_plot(rows, summary, RESULTS / f"{stamp}-scale{tag}-time-vs-views.png")
+    return out, summary
+
+
+def scale_main(args) -> int:
+    out, summary = save_scale(scale_rows(args), args.tag)
+    rows = json.loads(out.read_text())["rows"]
     print(scale_table(rows, summary))
     print(f"\nratio = ours sparse-pipeline wall time / COLMAP wall time, same run. Results: {out}")
     return 0
@@ -387,9 +398,11 @@ def main() -> int:
                         "(0: none)")
     parser.add_argument("--colmap-worker", nargs=2, type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--colmap-matcher", default="exhaustive", help=argparse.SUPPRESS)
+    parser.add_argument("--reuse", action="store_true", help="--scale: keep the results of an earlier run whose "
+                        "stages (ours) and COLMAP reference are still fresh (times as measured then)")
     args = parser.parse_args()
     if args.colmap_worker:
-        colmap_worker(*args.colmap_worker, matcher=args.colmap_matcher)
+        colmap_worker(*args.colmap_worker, matcher=args.colmap_matcher, reuse=args.reuse)
         return 0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     if args.scale:
