@@ -504,8 +504,8 @@ def exif_gps(path: Path) -> tuple[float, float, float] | None:
         lat = sum(float(v) / 60**k for k, v in enumerate(gps[2])) * (-1 if gps.get(1) == "S" else 1)
         lon = sum(float(v) / 60**k for k, v in enumerate(gps[4])) * (-1 if gps.get(3) == "W" else 1)
         alt = float(gps.get(6, 0.0)) * (-1 if gps.get(5) in (1, b"\x01") else 1)
-    except (OSError, ValueError, TypeError, ZeroDivisionError, PIL.Image.DecompressionBombError) as e:
-        log.warning("%s: EXIF GPS ignored (%s)", path, e)
+    except Exception as e:  # noqa: BLE001 — PIL's EXIF parser raises many kinds; GPS is optional, never fatal
+        log.warning("%s: EXIF GPS ignored (%s: %s)", path, type(e).__name__, e)
         return None
     return (lat, lon, alt) if np.isfinite([lat, lon, alt]).all() and abs(lat) <= 90 and abs(lon) <= 180 else None
 
