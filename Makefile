@@ -73,7 +73,7 @@ test: setup
 	$(PY) -m pytest tests
 
 bench: setup
-	$(PY) benchmarks/bench.py
+	$(PY) benchmarks/bench.py $(BENCH_ARGS)
 
 clean:
 	rm -rf $(WORKSPACE)

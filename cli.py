@@ -192,8 +192,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--views", type=int, default=6)
     p.add_argument("--width", type=int, default=2048)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--scene", choices=("room", "home"), default="room",
-                   help="room: one textured room; home: rooms with plain walls and doorways (hard case)")
+    p.add_argument("--scene", choices=("room", "home", "corridor"), default="room",
+                   help="room: one textured room; home: rooms with plain walls and doorways (hard case); corridor: "
+                        "a long walk through textured bays (sparse view graph)")
     p.add_argument("--rooms", type=int, default=4, help="rooms of the home (views must be 1-3 per room)")
     p.add_argument("--closed-door", type=int, default=None, metavar="K",
                    help="home: close the doorway between room K and K+1 (0-based) with a windowed door leaf, splitting the walk")

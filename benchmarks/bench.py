@@ -8,7 +8,13 @@ For every scene, in one process tree and one run:
   the cached reference of `fullview compare` (forced to rerun): wall time, peak memory and the same metrics.
 Prints a table with the ratio ours/COLMAP, writes benchmarks/results/<date>.json and a plot of time against views.
 
-    python benchmarks/bench.py [--views 2 6 12 24] [--width 2048] [--no-colmap] [--no-real]
+    python benchmarks/bench.py [--views 2 6 12 24] [--width 2048] [--no-colmap] [--no-real] [--scale]
+
+`--scale` runs only the scaling rows instead (not part of the default `make bench`: COLMAP's exhaustive matching on
+96 views and the 200-view walk take long on 2 cores): the synthetic room at 6, 24, 48 and 96 views and the corridor
+walk of 200 views (`fullview synth --scene corridor`), all at 1024x512, ours with `matches.pairs: auto` (the
+pipeline.yaml default), COLMAP exhaustive on the room and sequential on the walk; plots time against views
+(log-log), fits the growth exponent over the rows with >= 48 views and projects time and memory to 1,000 views.
 """
 
 from __future__ import annotations
@@ -49,11 +55,12 @@ def synth_dataset(work: Path, views: int, width: int, seed: int) -> Path:
     return path
 
 
-def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = False) -> dict:
+def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = False, reuse: bool = False) -> dict:
+    """reuse: keep fresh stages of an earlier run (their manifests hold the times measured then)."""
     ws = work / "ws" / label
     settings = ["-c", str(ROOT / "pipeline.yaml")] + [a for item in extra for a in ("--set", item)]
     cmd = [sys.executable, "-m", "fullview", "run", str(dataset), "-w", str(ws), *settings,
-           "--until", "densify" if dense else "triangulation", "--force"]
+           "--until", "densify" if dense else "triangulation", *([] if reuse else ["--force"])]
     t0 = time.perf_counter()
     proc = run(cmd)
     wall = time.perf_counter() - t0
@@ -81,15 +88,15 @@ def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = 
     return out
 
 
-def colmap(dataset: Path, work: Path, label: str) -> dict:
+def colmap(dataset: Path, work: Path, label: str, matcher: str = "exhaustive", reuse: bool = False) -> dict:
     proc = run([sys.executable, str(Path(__file__).resolve()), "--colmap-worker", str(dataset),
-                str(work / "colmap" / label)])
+                str(work / "colmap" / label), "--colmap-matcher", matcher, *(["--reuse"] if reuse else [])])
     if proc.returncode:
         return {"error": proc.stderr[-2000:]}
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def colmap_worker(dataset: Path, work: Path) -> None:
+def colmap_worker(dataset: Path, work: Path, matcher: str = "exhaustive", reuse: bool = False) -> None:
     """Runs in its own process so that its peak memory is its own."""
     from fullview.io.colmap import load_reconstruction, model_arrays
     from fullview.io.dataset import Dataset
@@ -98,9 +105,14 @@ def colmap_worker(dataset: Path, work: Path) -> None:
     from fullview.commands.compare import colmap_reference
 
     ds = Dataset(dataset)
-    model_dir, manifest = colmap_reference(ds, Workspace(work, ds.name), render_type="spherical", force=True)
-    out = {"wall_time_s": round(manifest["wall_time_s"], 2),
-           "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+    t0 = time.perf_counter()
+    model_dir, manifest = colmap_reference(ds, Workspace(work, ds.name), render_type="spherical", matcher=matcher,
+                                           force=not reuse)
+    rss_file = work / "bench_peak_rss_mb.json"  # this process's peak is COLMAP's only when COLMAP ran here
+    if time.perf_counter() - t0 >= 0.9 * manifest["wall_time_s"]:
+        rss_file.write_text(json.dumps(round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)))
+    out = {"wall_time_s": round(manifest["wall_time_s"], 2), "matcher": matcher,
+           "peak_rss_mb": json.loads(rss_file.read_text()) if rss_file.exists() else None,
            "registered": 0, "points": 0}
     if model_dir is not None:
         rec = load_reconstruction(model_dir)
@@ -177,6 +189,136 @@ def viewer_timing(dataset: Path, ws: Path) -> dict:
         proc.wait()
 
 
+SCALE_VIEWS = (6, 24, 48, 96)  # the synthetic room
+WALK_VIEWS = 200  # the corridor walk
+SCALE_WIDTH = 1024
+SCALE_FIT_FROM = 48  # the growth exponent is fitted on the rows with at least this many views
+PROJECT_TO = 1000
+# The corridor's cameras are level by construction; its busy textures give the vanishing-point gravity estimate
+# (filter.upright: vanishing) too few clean vertical lines at this width, so the walk takes gravity as the image's
+# down axis, as a zenith-corrected Theta capture would.
+WALK_SETTINGS = ["filter.upright=level"]
+
+
+def scale_dataset(work: Path, kind: str, views: int, seed: int) -> Path:
+    path = work / "datasets" / f"{kind}{views}_w{SCALE_WIDTH}_s{seed}"
+    if not (path / "images").exists():
+        proc = run([sys.executable, "-m", "fullview", "synth", str(path), "--scene", kind, "--views", str(views),
+                    "--width", str(SCALE_WIDTH), "--seed", str(seed)])
+        if proc.returncode:
+            raise RuntimeError(proc.stderr[-2000:])
+    return path
+
+
+def scale_rows(args) -> list[dict]:
+    """Ours (auto pairs) and COLMAP on the room at args.scale_views and on the corridor walk."""
+    rows = []
+    scenes = [("room", v, "exhaustive", []) for v in args.scale_views]
+    if args.walk_views:
+        scenes.append(("corridor", args.walk_views, "sequential", WALK_SETTINGS))
+    for kind, views, matcher, settings in scenes:
+        dataset = scale_dataset(args.work, kind, views, args.seed)
+        label = f"scale-{kind}{views}"
+        row = {"scene": label, "views": views, "ours": ours(dataset, args.work, label, settings, reuse=args.reuse)}
+        from fullview.io.workspace import Workspace
+        manifest = Workspace(args.work / "ws" / label, dataset.name).read_manifest("matches") or {}
+        row["ours"]["pairs"] = (manifest.get("summary") or {}).get("pairs")
+        if not args.no_colmap:
+            row["colmap"] = colmap(dataset, args.work, label, matcher, reuse=args.reuse)
+        log.info("%s: %s", label, json.dumps(row)[:400])
+        rows.append(row)
+        save_scale(rows, args.tag)  # after every row: a long run stopped early keeps what it measured
+    return rows
+
+
+def growth_fit(views: list[int], values: list[float]) -> dict | None:
+    """value ≈ a · views^exponent, least squares in log-log; None with fewer than two usable points."""
+    v, y = np.asarray(views, float), np.asarray(values, float)
+    ok = np.isfinite(y) & (y > 0)
+    if ok.sum() < 2:
+        return None
+    exponent, log_a = np.polyfit(np.log(v[ok]), np.log(y[ok]), 1)
+    return {"exponent": round(float(exponent), 3), "a": float(np.exp(log_a)), "views": [int(x) for x in v[ok]],
+            f"projected_{PROJECT_TO}": round(float(np.exp(log_a) * PROJECT_TO**exponent), 1)}
+
+
+def scale_summary(rows: list[dict]) -> dict:
+    fit_rows = [r for r in rows if r["views"] >= SCALE_FIT_FROM]
+    views = [r["views"] for r in fit_rows]
+    side = {"ours": lambda r: r["ours"].get("sparse_time_s"), "colmap": lambda r: r.get("colmap", {}).get("wall_time_s")}
+    out = {f"{k}_time": growth_fit(views, [f(r) or np.nan for r in fit_rows]) for k, f in side.items()}
+    out["ours_memory"] = growth_fit(views, [r["ours"].get("peak_rss_mb") or np.nan for r in fit_rows])
+    out["colmap_memory"] = growth_fit(views, [r.get("colmap", {}).get("peak_rss_mb") or np.nan for r in fit_rows])
+    return out
+
+
+def scale_table(rows: list[dict], summary: dict) -> str:
+    head = ("scene", "views", "ours pairs", "ours reg", "colmap reg", "ours AUC@1", "colmap AUC@1", "ours s",
+            "colmap s", "ratio", "ours MB", "colmap MB")
+    lines = [" | ".join(head), " | ".join("---" for _ in head)]
+    for r in rows:
+        o, c = r["ours"], r.get("colmap", {})
+        ratio = o.get("sparse_time_s", 0) / c["wall_time_s"] if c.get("wall_time_s") else None
+        lines.append(" | ".join([
+            r["scene"], str(r["views"]), str(o.get("pairs", "—")), str(o.get("registered", "err")),
+            str(c.get("registered", "—")), fmt(o.get("metrics", {}).get("auc@1"), ".1f"),
+            fmt(c.get("metrics", {}).get("auc@1"), ".1f"), fmt(o.get("sparse_time_s"), ".1f"),
+            fmt(c.get("wall_time_s"), ".1f"), fmt(ratio, ".2f"), fmt(o.get("peak_rss_mb"), ".0f"),
+            fmt(c.get("peak_rss_mb"), ".0f")]))
+    for key, fit in summary.items():
+        if fit:
+            unit = "MB" if key.endswith("memory") else "s"
+            lines.append(f"\n{key}: exponent {fit['exponent']} over views {fit['views']}, projected to "
+                         f"{PROJECT_TO} views: {fit[f'projected_{PROJECT_TO}']} {unit}")
+    return "\n".join(lines)
+
+
+def scale_plot(rows: list[dict], summary: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    v = np.array([r["views"] for r in rows], float)
+    for key, label, marker, get in (("ours", "fullview (auto pairs)", "o", lambda r: r["ours"].get("sparse_time_s")),
+                                    ("colmap", "COLMAP SPHERICAL", "s",
+                                     lambda r: r.get("colmap", {}).get("wall_time_s"))):
+        t = np.array([get(r) or np.nan for r in rows], float)
+        if np.isfinite(t).any():
+            ax.loglog(v, t, marker, label=label)
+            fit = summary.get(f"{key}_time")
+            if fit:
+                xs = np.geomspace(min(fit["views"]), PROJECT_TO, 20)
+                ax.loglog(xs, fit["a"] * xs ** fit["exponent"], "--", alpha=0.6,
+                          label=f"{key} fit ≥{SCALE_FIT_FROM} views: exponent {fit['exponent']}")
+    ax.set_xlabel("views")
+    ax.set_ylabel("wall time (s)")
+    ax.set_title(f"time against views ({SCALE_WIDTH}×{SCALE_WIDTH // 2}; room, corridor walk)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def save_scale(rows: list[dict], tag: str) -> tuple[Path, dict]:
+    summary = scale_summary(rows)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    stamp = dt.datetime.now().strftime("%Y-%m-%d")
+    out = RESULTS / f"{stamp}-scale{tag}.json"
+    out.write_text(json.dumps({"date": dt.datetime.now().isoformat(timespec="seconds"), "width": SCALE_WIDTH,
+                               "rows": rows, "fits": summary}, indent=2) + "\n")
+    scale_plot(rows, summary, RESULTS / f"{stamp}-scale{tag}-time-vs-views.png")
+    return out, summary
+
+
+def scale_main(args) -> int:
+    out, summary = save_scale(scale_rows(args), args.tag)
+    rows = json.loads(out.read_text())["rows"]
+    print(scale_table(rows, summary))
+    print(f"\nratio = ours sparse-pipeline wall time / COLMAP wall time, same run. Results: {out}")
+    return 0
+
+
 def fmt(x, spec=".2f"):
     return "—" if x is None else format(x, spec)
 
@@ -249,12 +391,22 @@ def main() -> int:
     parser.add_argument("--no-real", action="store_true")
     parser.add_argument("--no-home", action="store_true", help="skip the hard synthetic home (30 views, 12 rooms)")
     parser.add_argument("--work", type=Path, default=ROOT / "workspace" / "bench")
+    parser.add_argument("--scale", action="store_true", help="run only the scaling rows (see the module doc)")
+    parser.add_argument("--scale-views", type=int, nargs="*", default=list(SCALE_VIEWS))
+    parser.add_argument("--tag", default="", help="--scale: suffix of the result files (runs split in parts)")
+    parser.add_argument("--walk-views", type=int, default=WALK_VIEWS, help="--scale: views of the corridor walk "
+                        "(0: none)")
     parser.add_argument("--colmap-worker", nargs=2, type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--colmap-matcher", default="exhaustive", help=argparse.SUPPRESS)
+    parser.add_argument("--reuse", action="store_true", help="--scale: keep the results of an earlier run whose "
+                        "stages (ours) and COLMAP reference are still fresh (times as measured then)")
     args = parser.parse_args()
     if args.colmap_worker:
-        colmap_worker(*args.colmap_worker)
+        colmap_worker(*args.colmap_worker, matcher=args.colmap_matcher, reuse=args.reuse)
         return 0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    if args.scale:
+        return scale_main(args)
     rows = []
     for views in args.views:
         dataset = synth_dataset(args.work, views, args.width, args.seed)

@@ -36,7 +36,8 @@ from fullview.io.workspace import StageWriter, Workspace, folder_of
 from fullview.sfm import two_view
 from fullview.sfm.camera import bearings_to_lonlat
 from fullview.sfm.features import FACE_NAMES, face_keypoints_to_bearings, native_face_size, owned_by_face, render_faces
-from fullview.sfm.matching import match_descriptors, pair_list
+from fullview.sfm.matching import match_descriptors
+from fullview.sfm.pairs import select_pairs
 from fullview.sfm.options import FilterOptions
 from fullview.stages.runner import Pipeline, RunnerError, record_fingerprint
 
@@ -121,7 +122,9 @@ def _check(dataset: Dataset, ws: Workspace, pipeline: Pipeline, out: StageWriter
     cap = fcfg.max_features_per_face if max_features is None else max_features
     names = dataset.image_names
     pairs, ours_raw, ours_verified, ours_seeded, ours_features = _ours(dataset, ws)
-    if [tuple(p) for p in pair_list(len(names), mcfg.pairs, mcfg.window)] != pairs:
+    descriptors = [ws.load_features(n)["descriptors"] for n in names]
+    config_pairs, _ = select_pairs(descriptors, mcfg, dataset.gps_positions())
+    if config_pairs != pairs:
         raise RunnerError(f"{ws.root}: the matches artifact's pair list differs from the config's; rerun matches")
     geometry, groups = _write_faces(dataset, fcfg, out)
     log.info("COLMAP SIFT (CPU) on %d faces, max %s features per face", sum(map(len, groups.values())),

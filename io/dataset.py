@@ -202,6 +202,14 @@ class Dataset:
                 self._sizes = {name: image_size(self.image_path(name)) for name in self.image_names}
         return self._sizes
 
+    def gps_positions(self) -> np.ndarray | None:
+        """(N, 3) latitude, longitude (degrees, north/east positive) and altitude (m, 0 when absent) from every
+        image's EXIF GPS tags, in image order, NaN rows for images without; None when no image has any."""
+        rows = [exif_gps(self.image_path(n)) for n in self.image_names]
+        if all(r is None for r in rows):
+            return None
+        return np.array([r if r is not None else (np.nan,) * 3 for r in rows], np.float64)
+
     def load_image(self, name: str, width: int = 0) -> np.ndarray:
         """BGR uint8 image, resized to `width` (keeping 2:1) when width > 0."""
         native_w, native_h = self.image_sizes[name]  # also validates the file before it is decoded
@@ -488,6 +496,26 @@ def read_image(path: Path, reduction: int = 1) -> np.ndarray:
         raise DatasetError(f"cannot read image {path} (missing, corrupt or not an image)")
     _check_two_to_one(path, image.shape[1], image.shape[0])
     return image
+
+
+_GPS_IFD = 0x8825  # EXIF GPSInfo; tags 1-6: LatitudeRef, Latitude, LongitudeRef, Longitude, AltitudeRef, Altitude
+
+
+def exif_gps(path: Path) -> tuple[float, float, float] | None:
+    """(latitude, longitude, altitude) from the image's EXIF GPS tags, or None (no tags, or unreadable ones: GPS
+    only proposes pairs, so a broken tag is logged and ignored rather than an error)."""
+    try:
+        with PIL.Image.open(path) as im:
+            gps = im.getexif().get_ifd(_GPS_IFD)
+        if 2 not in gps or 4 not in gps:
+            return None
+        lat = sum(float(v) / 60**k for k, v in enumerate(gps[2])) * (-1 if gps.get(1) == "S" else 1)
+        lon = sum(float(v) / 60**k for k, v in enumerate(gps[4])) * (-1 if gps.get(3) == "W" else 1)
+        alt = float(gps.get(6, 0.0)) * (-1 if gps.get(5) in (1, b"\x01") else 1)
+    except Exception as e:  # noqa: BLE001 — PIL's EXIF parser raises many kinds; GPS is optional, never fatal
+        log.warning("%s: EXIF GPS ignored (%s: %s)", path, type(e).__name__, e)
+        return None
+    return (lat, lon, alt) if np.isfinite([lat, lon, alt]).all() and abs(lat) <= 90 and abs(lon) <= 180 else None
 
 
 def image_size(path: Path) -> tuple[int, int]:

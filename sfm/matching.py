@@ -2,24 +2,12 @@
 
 from __future__ import annotations
 
-from itertools import combinations
-
 import numpy as np
 
 from fullview.sfm.options import MatchesOptions
 
 
 BLOCK_ROWS = 4096  # rows per matrix-product block (bounds memory)
-
-
-def pair_list(num_images: int, mode: str = MatchesOptions.pairs, window: int = MatchesOptions.window
-              ) -> list[tuple[int, int]]:
-    """Image pairs (i < j): 'exhaustive', or 'sequential' (each image with its next `window` images)."""
-    if mode == "exhaustive":
-        return list(combinations(range(num_images), 2))
-    if mode == "sequential":
-        return [(i, j) for i in range(num_images) for j in range(i + 1, min(num_images, i + 1 + window))]
-    raise ValueError(f"unknown pair mode {mode!r} (expected 'exhaustive' or 'sequential')")
 
 
 def pair_blocks(pairs: list[tuple[int, int]], block_images: int) -> list[list[int]]:

@@ -50,11 +50,27 @@ class FeaturesOptions:
 
 @dataclass(frozen=True, kw_only=True)
 class MatchesOptions:
-    pairs: str = setting("exhaustive", "which pairs are matched", choices=("exhaustive", "sequential"))
-    window: int = setting(3, "sequential: partners after each image", ge=1, le=100_000)
+    pairs: str = setting("auto", "which pairs are matched. sequential: the window plus loop closures by retrieval; "
+                         "retrieval: top neighbours by VLAD; auto: exhaustive below auto_exhaustive_below images, "
+                         "else window + retrieval (+ GPS)", choices=("auto", "exhaustive", "sequential", "retrieval"))
+    window: int = setting(3, "sequential / auto: partners after each image in capture order", ge=1, le=100_000)
+    auto_exhaustive_below: int = setting(40, "auto: match every pair below this many images (<= 780 pairs)",
+                                         ge=2, le=100_000)
+    retrieval_neighbours: int = setting(10, "retrieval / auto / sequential loop closures: most similar images "
+                                        "matched with each image", ge=1, le=100_000, zero_means="no retrieval")
+    vocabulary_size: int = setting(64, "retrieval: k-means words of the VLAD vocabulary (trained per dataset)",
+                                   ge=2, le=4096)
+    vocabulary_sample: int = setting(1000, "retrieval: descriptors per image that train the vocabulary", ge=10,
+                                     le=1_000_000)
+    vocabulary_seed: int = setting(0, "retrieval: seed of the vocabulary's sample and k-means start", ge=0, le=2**31)
+    gps_neighbours: int = setting(8, "auto: nearest images by EXIF GPS position matched with each image (those "
+                                  "with GPS)", ge=1, le=100_000, zero_means="no GPS pairs")
+    gps_radius_m: float = setting(0.0, "auto: also match every image within this GPS distance (m)", ge=0.0,
+                                  le=100_000.0, zero_means="off")
     ratio: float = setting(0.8, "Lowe's ratio test on descriptor distances", gt=0.0, le=1.0)
     mutual: bool = setting(True, "keep only mutual nearest neighbours")
-    RULES: ClassVar[list[Rule]] = []
+    RULES: ClassVar[list[Rule]] = [
+        ("retrieval_neighbours > 0 when pairs is retrieval", lambda o: o.pairs != "retrieval" or o.retrieval_neighbours > 0)]
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -1,13 +1,16 @@
 """Stage 2 — putative matches: ratio test and mutual check for every pair of the pair list.
 
-Descriptors are streamed: pairs are matched in blocks (`sfm.matching.pair_blocks`), each block a task that loads
-only its images' descriptors (at most 2 x `BLOCK_IMAGES`), so the peak does not grow with the number of panoramas;
-the tasks run on the stage's fan-out (`StageContext.map`: local threads, or a Dask cluster under `fullview batch`).
+The pair list comes from `sfm.pairs.select_pairs` (`matches.pairs`: exhaustive for small sets, else the capture
+order, retrieval and GPS). Descriptors are streamed: retrieval reads each image's descriptors when it needs them,
+and pairs are matched in blocks (`sfm.matching.pair_blocks`), each block a task that loads only its images'
+descriptors (at most 2 x `BLOCK_IMAGES`), so the peak does not grow with the number of panoramas; the tasks run on
+the stage's fan-out (`StageContext.map`: local threads, or a Dask cluster under `fullview batch`).
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
 
@@ -15,8 +18,9 @@ import numpy as np
 from tqdm import tqdm
 
 from fullview.io.workspace import Workspace
-from fullview.sfm.matching import match_descriptors, pair_blocks, pair_list
+from fullview.sfm.matching import match_descriptors, pair_blocks
 from fullview.sfm.options import MatchesOptions
+from fullview.sfm.pairs import select_pairs
 from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
@@ -28,10 +32,23 @@ BLOCK_IMAGES = 16  # images per side of a block of pairs: at most 2 x 16 images'
 MIN_BLOCKS_PER_SIDE = 4  # small datasets are still cut into this many image blocks, so the tasks use every core
 
 
+class StoredDescriptors(Sequence):
+    """Every image's descriptors, read from the workspace when indexed (never all in memory at once)."""
+
+    def __init__(self, ws: Workspace, names: list[str]):
+        self.ws, self.names = ws, names
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        return self.ws.load_features(self.names[k])["descriptors"]
+
+
 def run(ctx: StageContext) -> dict:
     options = ctx.options
     names = ctx.dataset.image_names
-    pairs = pair_list(len(names), options.pairs, options.window)
+    pairs, sources = select_pairs(StoredDescriptors(ctx.ws, names), options, ctx.dataset.gps_positions())
     block_images = max(1, min(BLOCK_IMAGES, -(-len(names) // MIN_BLOCKS_PER_SIDE)))
     blocks = pair_blocks(pairs, block_images)
     jobs = ctx.map(partial(match_block, ctx.ws.root, names, options), [[pairs[k] for k in b] for b in blocks])
@@ -43,7 +60,8 @@ def run(ctx: StageContext) -> dict:
             bar.update(len(block))
     ctx.out.save_matches(pairs, per_pair)
     counts = [len(m) for m in per_pair]
-    return {"pairs": len(pairs), "median_matches": int(np.median(counts)) if counts else 0}
+    return {"pairs": len(pairs), "pair_sources": sources,
+            "median_matches": int(np.median(counts)) if counts else 0}
 
 
 def match_block(ws_root: Path, names: list[str], options: MatchesOptions, pairs: list[tuple[int, int]]

@@ -16,6 +16,7 @@ from tqdm import tqdm
 
 from fullview.sfm.camera import bearings_to_pixels
 from fullview.synth.geometry import SceneGeometry, face_frame, face_normal
+from fullview.synth.corridor import layout_corridor
 from fullview.synth.home import HomeLayout, layout_home
 from fullview.synth.layout import layout_boxes, place_cameras, room_markers
 from fullview.synth.render import CHUNK_RAYS, SUPERSAMPLE, cast_rays, render_view
@@ -109,11 +110,12 @@ def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point
     texture resolution on ``width``) and camera k does not depend on ``views`` > k. ``kind="home"``: a flat of
     ``rooms`` rooms with plain walls and doorways, 1-3 level cameras per room (``views`` in [rooms, 3 * rooms]);
     ``closed_door=k`` closes the doorway between room k and k + 1 with a door that has a window (impassable for
-    the walk and for matching, see ``fullview.synth.home``; ``crossing_hand_points`` picks tracks across it). The
-    same arguments give bit-identical output.
+    the walk and for matching, see ``fullview.synth.home``; ``crossing_hand_points`` picks tracks across it).
+    ``kind="corridor"``: a long textured corridor divided into bays, walked by ``views`` level cameras in order
+    (sparse view graph, see ``fullview.synth.corridor``). The same arguments give bit-identical output.
     """
-    if kind not in ("room", "home"):
-        raise ValueError(f"kind must be 'room' or 'home', got {kind!r}")
+    if kind not in ("room", "home", "corridor"):
+        raise ValueError(f"kind must be 'room', 'home' or 'corridor', got {kind!r}")
     if not isinstance(views, (int, np.integer)) or views < 1:
         raise ValueError(f"views must be a positive integer, got {views!r}")
     if not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -132,6 +134,11 @@ def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point
         geometry = build_geometry(boxes, texel=texel_for_width(width), seed=s_tex, markers=home.markers,
                                   marker_names=home.marker_names, marker_faces=home.marker_faces,
                                   plain_boxes=home.plain_boxes)
+        t1 = time.perf_counter()
+    elif kind == "corridor":
+        corridor = layout_corridor(layout_rng, views)
+        boxes, rots, centers = corridor.boxes, corridor.R_world_from_cam, corridor.centers
+        geometry = build_geometry(boxes, texel=texel_for_width(width), seed=s_tex)
         t1 = time.perf_counter()
     else:
         boxes = layout_boxes(layout_rng)

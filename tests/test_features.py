@@ -100,7 +100,7 @@ def test_opencv_sift_offset_is_corrected():
 
 @pytest.mark.parametrize("mode,expected", [("exhaustive", 10), ("sequential", 7)])
 def test_pair_list(mode, expected):
-    from fullview.sfm.matching import pair_list
+    from fullview.sfm.pairs import pair_list
     pairs = pair_list(5, mode, window=2)
     assert len(pairs) == expected and all(i < j for i, j in pairs)
 

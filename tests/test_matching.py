@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from fullview.sfm.matching import match_descriptors, pair_list
+from fullview.sfm.matching import match_descriptors
+from fullview.sfm.pairs import pair_list
 from fullview.sfm.options import MatchesOptions
 
 
