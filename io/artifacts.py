@@ -107,6 +107,28 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+def _write_ply(path: Path, header: list[str], *blocks: np.ndarray) -> Path:
+    """Atomically write a binary PLY: its header lines (without the ``ply`` / ``end_header`` frame) then the blocks."""
+    lines = ["ply", "format binary_little_endian 1.0", *header, "end_header"]
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(("\n".join(lines) + "\n").encode("ascii"))
+            for block in blocks:
+                f.write(block.tobytes())
+    return Path(path)
+
+
+def _read_ply_header(f) -> list[str]:
+    """The header lines of an open PLY, up to ``end_header`` (a ValueError when there is none)."""
+    lines: list[str] = []
+    while not lines or lines[-1] != "end_header":
+        line = f.readline()
+        if not line or len(lines) > 64:
+            raise ValueError("no end_header")
+        lines.append(line.decode("ascii").strip())
+    return lines
+
+
 def save_ply(path: Path, points: np.ndarray, colors: np.ndarray | None = None,
              normals: np.ndarray | None = None) -> Path:
     """Binary little-endian PLY with float32 xyz, optional float32 normals and uint8 rgb."""
@@ -123,25 +145,15 @@ def save_ply(path: Path, points: np.ndarray, colors: np.ndarray | None = None,
     if colors is not None:
         rec["red"], rec["green"], rec["blue"] = np.asarray(colors, np.uint8).reshape(-1, 3).T
     ply_type = {"<f4": "float", "u1": "uchar"}
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
-    header += [f"property {ply_type[t]} {n}" for n, t in fields] + ["end_header"]
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(rec.tobytes())
-    return Path(path)
+    header = [f"element vertex {len(points)}"] + [f"property {ply_type[t]} {n}" for n, t in fields]
+    return _write_ply(path, header, rec)
 
 
 def load_ply(path: Path) -> dict[str, np.ndarray]:
     """Read a binary PLY written by `save_ply` into named columns."""
     try:
         with open(path, "rb") as f:
-            lines = []
-            while not lines or lines[-1] != "end_header":
-                line = f.readline()
-                if not line or len(lines) > 64:
-                    raise ValueError("no end_header")
-                lines.append(line.decode("ascii").strip())
+            lines = _read_ply_header(f)
             count = int(next(l for l in lines if l.startswith("element vertex")).split()[-1])
             props = [l.split() for l in lines if l.startswith("property")]
             dtype = [(p[2], {"float": "<f4", "uchar": "u1"}[p[1]]) for p in props]
@@ -160,16 +172,10 @@ def save_mesh_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray, color
     vert["red"], vert["green"], vert["blue"] = np.asarray(colors, np.uint8).reshape(-1, 3).T
     faces = np.empty(len(triangles), [("n", "u1"), ("v", "<i4", (3,))])
     faces["n"], faces["v"] = 3, np.asarray(triangles, np.int32).reshape(-1, 3)
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(vert)}", "property float x",
-              "property float y", "property float z", "property uchar red", "property uchar green",
-              "property uchar blue", f"element face {len(faces)}", "property list uchar int vertex_indices",
-              "end_header"]
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(vert.tobytes())
-            f.write(faces.tobytes())
-    return Path(path)
+    header = [f"element vertex {len(vert)}", "property float x", "property float y", "property float z",
+              "property uchar red", "property uchar green", "property uchar blue", f"element face {len(faces)}",
+              "property list uchar int vertex_indices"]
+    return _write_ply(path, header, vert, faces)
 
 
 def load_mesh_ply(path: Path) -> dict[str, np.ndarray]:
@@ -179,12 +185,7 @@ def load_mesh_ply(path: Path) -> dict[str, np.ndarray]:
     face_dtype = [("n", "u1"), ("v", "<i4", (3,))]
     try:
         with open(path, "rb") as f:
-            lines = []
-            while not lines or lines[-1] != "end_header":
-                line = f.readline()
-                if not line or len(lines) > 64:
-                    raise ValueError("no end_header")
-                lines.append(line.decode("ascii").strip())
+            lines = _read_ply_header(f)
             counts = {l.split()[1]: int(l.split()[2]) for l in lines if l.startswith("element")}
             data = f.read()
         size = counts["vertex"] * 15 + counts["face"] * 13

@@ -168,14 +168,9 @@ def _fill_textureless(ctx: StageContext, images, maps, R, t, centers) -> dict[st
     cams = sorted(maps)
     neighbours = fusion_neighbours(centers[cams], config.fusion_views)
     options = planes.PlaneOptions(fit_tolerance=config.plane_tolerance)
-    views = []
-    for k in cams:
-        height, width = maps[k][0].shape
-        observable = mask_below_latitude(np.ones((height, width), np.float32), np.ones((height, width), bool),
-                                         config.min_latitude_deg, config.max_latitude_deg)[1]
-        observable = apply_mask(np.zeros((height, width), np.float32), observable,
-                                ctx.dataset.load_mask(names[k]))[1]
-        views.append(planes.view_of(R[k], t[k], maps[k][0], observable, images[k], min(config.fill_width, width)))
+    observable = [_observable(config, ctx.dataset.load_mask(names[k]), maps[k][0].shape) for k in cams]
+    views = [planes.view_of(R[k], t[k], maps[k][0], observable[a], images[k],
+                            min(config.fill_width, maps[k][0].shape[1])) for a, k in enumerate(cams)]
     fills = [planes.fill_plane_ranges(views[a], [views[b] for b in neighbours[a]], options, config.seed + k)
              for a, k in enumerate(tqdm(cams, desc="planes", unit="pano"))]
     shares = {}
@@ -187,16 +182,19 @@ def _fill_textureless(ctx: StageContext, images, maps, R, t, centers) -> dict[st
         rng, valid = maps[k]
         fill = cv2.resize(np.where(kept, fill, np.nan), (rng.shape[1], rng.shape[0]),
                           interpolation=cv2.INTER_NEAREST)
-        new = ~valid & np.isfinite(fill) & _observable_at(views[a], rng.shape)
+        new = ~valid & np.isfinite(fill) & observable[a]
         maps[k] = (np.where(new, fill, rng).astype(np.float32), valid | new)
         shares[names[k]] = float(new.mean())
         log.info("planes: %s %.0f%% filled, %.0f%% valid", names[k], 100 * new.mean(), 100 * np.mean(maps[k][1]))
     return shares
 
 
-def _observable_at(view: planes.View, shape: tuple[int, int]) -> np.ndarray:
-    """A view's observable area at a range map's size."""
-    return cv2.resize(view.observable.astype(np.uint8), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST) > 0
+def _observable(config: DensifyOptions, mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+    """Where a range map may hold a range: inside the latitude caps and the image mask (True = keep)."""
+    anywhere = np.ones(shape, bool)
+    inside = mask_below_latitude(np.zeros(shape, np.float32), anywhere, config.min_latitude_deg,
+                                 config.max_latitude_deg)[1]
+    return apply_mask(np.zeros(shape, np.float32), inside, mask)[1]
 
 
 # ------------------------------------------------------------------------------------------------ fusion

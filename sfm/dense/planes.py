@@ -28,11 +28,6 @@ import numpy as np
 from fullview.sfm.camera import bearings_to_pixels_f32, pixel_grid_bearings
 
 RANSAC_HYPOTHESES = 128  # plane hypotheses per region (fit_region_plane)
-# Planes per region. More (3) let leaking regions be filled (a wall and the ceiling together), but the home's
-# ceilings then got a wall's plane (nearest in the image) or a slightly wrong plane from the leftovers (nearest along
-# the ray) that the views confirmed, since every view made the same choice: one plane, and a leaking region is left.
-MAX_PLANES_PER_REGION = 1
-MIN_PART = 0.1  # ... each explaining at least this share of them
 MIN_SPREAD_RATIO = 0.15  # a region's plane inliers must spread this much across their main direction
 REFINE_SHRINK = (1.0, 0.5, 0.25, 0.25)  # inlier bands of the successive least-squares refinements (x fit_tolerance)
 RING_OFFSETS = [(dy, dx) for r in (2, 4, 6) for dy, dx in
@@ -232,22 +227,17 @@ def _region_evidence(labels: np.ndarray, range_map: np.ndarray) -> tuple[np.ndar
 def fit_region_planes(points: np.ndarray, bearings: np.ndarray, center: np.ndarray, ranges: np.ndarray,
                       rng: np.random.Generator, options: PlaneOptions
                       ) -> tuple[list[tuple[np.ndarray, float]], np.ndarray]:
-    """The planes through a region's border points and the plane of each point (−1: none). A region whose edges
-    leak holds a wall and the ceiling, say, and a ceiling may have two heights: planes are found one after the other
-    on the points left (``fit_region_plane``), each explaining at least ``MIN_PART`` of them; none unless together
-    they explain ``min_share``."""
-    owner = np.full(len(points), -1)
-    planes: list[tuple[np.ndarray, float]] = []
-    while len(planes) < MAX_PLANES_PER_REGION and (owner < 0).sum() >= max(options.min_evidence, 3):
-        left = np.flatnonzero(owner < 0)
-        found = fit_region_plane(points[left], bearings[left], center, ranges[left], rng, options)
-        if found is None or found[2].sum() < MIN_PART * len(points):
-            break
-        owner[left[found[2]]] = len(planes)
-        planes.append(found[:2])
-    if np.mean(owner >= 0) < options.min_share:
+    """The plane through a region's border points, as a list of at most one (normal, offset), and the plane of each
+    point (0, or −1: none); no plane unless it explains ``min_share`` of them.
+
+    One plane per region: a region whose edges leak (a wall and the ceiling together) is left empty. Up to three
+    planes per region were measured: the home's ceilings then got a wall's plane (nearest in the image) or a slightly
+    wrong plane from the leftovers (nearest along the ray), and the views confirmed it, since every view made the
+    same choice."""
+    found = fit_region_plane(points, bearings, center, ranges, rng, options)
+    if found is None or found[2].mean() < options.min_share:
         return [], np.full(len(points), -1)
-    return planes, owner
+    return [found[:2]], np.where(found[2], 0, -1)
 
 
 def fit_region_plane(points: np.ndarray, bearings: np.ndarray, center: np.ndarray, ranges: np.ndarray,
@@ -294,27 +284,21 @@ def _plane_inliers(normals, offsets, points, bearings, center, ranges, tolerance
     return np.abs(r - ranges[None]) <= tolerance * ranges[None]
 
 
-def _nearest_plane_along_rays(planes: list[tuple[np.ndarray, float]], bearings: np.ndarray, center: np.ndarray,
-                              options: PlaneOptions) -> tuple[np.ndarray, np.ndarray]:
-    """Per ray: the nearest of the planes it meets in front and not at a grazing angle (index, −1 if none) and its
-    range. Seen from inside a room, the surfaces meeting at its corners are the nearest of their planes along every
-    ray (a wall's plane continues behind the ceiling)."""
-    normals = np.array([p[0] for p in planes])
-    cos = bearings @ normals.T
+def _ray_plane_ranges(normal: np.ndarray, offset: float, bearings: np.ndarray, center: np.ndarray,
+                      options: PlaneOptions) -> np.ndarray:
+    """Per ray (N, 3) from ``center``: the range where it meets the plane, NaN behind or at a grazing angle."""
+    cos = bearings @ normal
     with np.errstate(divide="ignore", invalid="ignore"):
-        r = (np.array([p[1] for p in planes]) - normals @ center)[None] / cos
-    r = np.where((r > 0) & (np.abs(cos) >= np.sin(np.radians(options.min_incidence_deg))), r, np.inf)
-    which = np.argmin(r, axis=1)
-    best = r[np.arange(len(r)), which]
-    return np.where(np.isfinite(best), which, -1), best
+        r = (offset - normal @ center) / cos
+    return np.where((r > 0) & (np.abs(cos) >= np.sin(np.radians(options.min_incidence_deg))), r, np.nan)
 
 
 def fill_plane_ranges(ref: View, others: list[View], options: PlaneOptions, seed: int
                       ) -> tuple[np.ndarray, np.ndarray]:
     """((h, w) float32 ranges, (h, w) int32 units) that textureless filling gives the reduced-grid pixels of ``ref``
-    without a stereo range (NaN elsewhere). Each edge-bounded region whose border depths lie on planes gets, per
-    pixel, the nearest of its planes along the ray (``_nearest_plane_along_rays``), kept where the views agree
-    (``check_against_views``); a unit is one plane of one region (0: none), what ``confirmed_by_views`` confirms."""
+    without a stereo range (NaN elsewhere). Each edge-bounded region whose border depths lie on one plane gets that
+    plane where its rays meet it, kept where the views agree (``check_against_views``); a unit is the region label
+    of a filled pixel (0: none), what ``confirmed_by_views`` confirms."""
     h, w = ref.range_map.shape
     out = np.full((h, w), np.nan, np.float32)
     units = np.zeros((h, w), np.int32)
@@ -329,26 +313,25 @@ def fill_plane_ranges(ref: View, others: list[View], options: PlaneOptions, seed
     order = np.argsort(labels.ravel(), kind="stable")  # pixels by region
     pixel_starts = np.searchsorted(labels.ravel()[order], np.arange(len(sizes) + 1))
     rng = np.random.default_rng(seed)
-    fill_pix, fill_ranges, fill_units = [], [], []
+    fill_pix, fill_ranges = [], []
     for lab in np.flatnonzero((sizes >= options.min_region_pixels) & (np.diff(starts) >= options.min_evidence)):
         if lab == 0:
             continue
         sel = slice(starts[lab], starts[lab + 1])
         b, r = bearings[rows[sel], cols[sel]], ref.range_map[rows[sel], cols[sel]].astype(np.float64)
-        planes, owner = fit_region_planes(center + b * r[:, None], b, center, r, rng, options)
+        planes, _ = fit_region_planes(center + b * r[:, None], b, center, r, rng, options)
         if not planes:
             continue
         pix = order[pixel_starts[lab]:pixel_starts[lab + 1]]
         pix = pix[fillable[pix]]
-        which, rr = _nearest_plane_along_rays(planes, bearings.reshape(-1, 3)[pix], center, options)
-        ok = which >= 0
+        rr = _ray_plane_ranges(*planes[0], bearings.reshape(-1, 3)[pix], center, options)
+        ok = np.isfinite(rr)
         fill_pix.append(pix[ok]), fill_ranges.append(rr[ok])
-        fill_units.append(which[ok] + 1 + MAX_PLANES_PER_REGION * lab)
     if not fill_pix:
         return out, units
-    pix, rr, unit = np.concatenate(fill_pix), np.concatenate(fill_ranges), np.concatenate(fill_units)
+    pix, rr = np.concatenate(fill_pix), np.concatenate(fill_ranges)
     keep = check_against_views(center + bearings.reshape(-1, 3)[pix] * rr[:, None], ref.color.reshape(-1, 3)[pix],
                                others, [exposure_gain(ref, o) for o in others], options)
     out.ravel()[pix[keep]] = rr[keep]
-    units.ravel()[pix[keep]] = unit[keep]
+    units.ravel()[pix[keep]] = labels.ravel()[pix[keep]]
     return out, units
