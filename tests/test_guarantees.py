@@ -10,6 +10,7 @@ import signal
 import stat
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -34,6 +35,22 @@ def _subprocess(*args, **kw) -> subprocess.Popen:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen([sys.executable, "-m", "fullview", *map(str, args)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env, **kw)
+
+
+def _stderr_until(proc: subprocess.Popen, text: str, timeout: float) -> str:
+    """The process's stderr lines up to the first containing `text` (all of it if the process ends first)."""
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: _read_until(proc.stderr, text, lines), daemon=True)
+    reader.start()
+    reader.join(timeout)
+    return "".join(lines)
+
+
+def _read_until(stream, text: str, lines: list[str]) -> None:
+    for line in iter(stream.readline, ""):
+        lines.append(line)
+        if text in line:
+            return
 
 
 def _status(capsys, dataset, ws, settings) -> dict[str, str]:
@@ -66,11 +83,12 @@ def test_1_wait_takes_the_lock_when_the_holder_releases_it(tiny_dataset, tmp_pat
     with ws.locked(command="holder"):
         waiting = _subprocess("run", tiny_dataset, "-w", tmp_path / "ws", "--until", "features", "--wait",
                               *tiny_set_args)
-        time.sleep(3.0)
+        # Release only once the run says it waits: on a loaded machine its start-up alone can take seconds.
+        first_lines = _stderr_until(waiting, "waiting for pid", timeout=120)
         assert waiting.poll() is None  # still waiting
     _, err = waiting.communicate(timeout=120)
-    assert waiting.returncode == 0, err
-    assert "waiting for pid" in err
+    assert waiting.returncode == 0, first_lines + err
+    assert "waiting for pid" in first_lines
 
 
 def test_1_concurrent_runs_leave_a_valid_fresh_workspace(tiny_dataset, tmp_path, tiny_set_args, capsys):
