@@ -65,3 +65,22 @@ def test_add_observations_joins_tracks_and_refuses_a_second_feature_of_one_image
     assert merged.num_tracks == more.num_tracks - 1 and merged.num_observations == more.num_observations
     images, _ = merged.observations(merged.feature_to_track(0, 3)[0])
     assert images.tolist() == [0, 1, 2, 3]
+
+
+def test_a_group_no_pair_joins_is_placed_by_2d3d_matching_not_left_a_model_of_its_own():
+    rng = np.random.default_rng(5)
+    centres = np.column_stack([rng.uniform(0, 6, 10), rng.uniform(-0.2, 0.2, 10), rng.uniform(0, 3, 10)])
+    R, X, feature_of, bearings = _world(rng, centres, reach=6.0)
+    links, matches = _links(R, centres, feature_of)
+    group = links.pairs >= 6
+    links.weights[group[:, 0] != group[:, 1]] = 0.0  # no pair between images 0-5 and 6-9: two groups
+    point_descriptors = rng.normal(size=(len(X), 128)).astype(np.float32)
+    point_descriptors /= np.linalg.norm(point_descriptors, axis=1, keepdims=True)
+    tracks, _ = build_tracks({tuple(p): matches[tuple(p)] for p, w in zip(links.pairs, links.weights) if w > 0},
+                             [len(b) for b in bearings])
+    without = build_models(links=links, tracks=tracks, bearings=bearings, options=RegistrationOptions())
+    assert without.sizes() == [6, 4]
+    models = build_models(links=links, tracks=tracks, bearings=bearings, options=RegistrationOptions(),
+                          descriptors=[point_descriptors[f] for f in feature_of])
+    assert models.sizes() == [10] and sorted(models.matched) == [6, 7, 8, 9]
+    _assert_matches_truth(models, 0, R, centres, tol_deg=1e-6, tol_rel=1e-7)

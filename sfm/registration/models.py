@@ -34,6 +34,7 @@ from fullview.sfm.registration.rigid_parts import estimate_join, rigid_parts
 from fullview.sfm.registration.view_graph import bridges, component_labels, largest_component
 from fullview.sfm.resection import ResectionOptions, resect
 from fullview.sfm.matching import match_descriptors
+from fullview.sfm.rotations import rotation_angle_deg
 from fullview.sfm.tracks import Tracks, add_observations
 from fullview.sfm.triangulation import angular_errors, gather_bearings, triangulate_multiview
 
@@ -148,7 +149,8 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
             return m
         placed = reg.registered & ~_behind_contradicted_bridges(reg, in_group, pairs, num_images)
         averaged, centers = placed, reg.centers
-        if reg.flexible_modes > 0:
+        joining = (options.min_join_points, options.unjoined_parts)  # read on every run, used on flexible layouts
+        if reg.flexible_modes > 0 and joining:
             averaged, placed, centers = _join_rigid_parts(state, m, reg, placed, pairs, tracks, bearings, options,
                                                           descriptors)
         open_pairs |= in_group & (inside & ~placed)[pairs].all(axis=1)
@@ -465,8 +467,9 @@ def _add_matches(state: ModelSet, m: int, b: int, features: np.ndarray, tracks_m
 
 def _absorb_a_model_by_matching(state: ModelSet, links: PairLinks, bearings, options: RegistrationOptions,
                                 descriptors) -> bool:
-    """Move a smaller model into a larger one when 2D-3D matching places every one of its images there (models
-    whose images share no track: merging by common points cannot see them). True if one was moved."""
+    """Move a smaller model into a larger one when 2D-3D matching places its images there (models whose images share
+    no track: merging by common points cannot see them): every image of it, or at least two whose poses agree on
+    one similarity, which then carries the rest. True if one was moved."""
     order = _by_size(state)
     for a_rank, a in enumerate(order):
         for b in order[a_rank + 1:]:
@@ -475,17 +478,47 @@ def _absorb_a_model_by_matching(state: ModelSet, links: PairLinks, bearings, opt
                 continue
             saved = (state.R_cam_from_world.copy(), state.centers.copy())
             placed = _match_round(state, a, images, bearings, descriptors, options, commit=False)
-            if len(placed) < len(images):
+            sim = None
+            if 2 <= len(placed) < len(images):
+                sim = _similarity_of_poses(saved[0][placed], saved[1][placed], state.R_cam_from_world[placed],
+                                           state.centers[placed])
+            if len(placed) < len(images) and sim is None:
                 state.R_cam_from_world, state.centers = saved
                 continue
-            state.model_id[images] = -1
-            _match_round(state, a, images, bearings, descriptors, options)
+            if sim is not None:
+                M, scale, shift = sim
+                state.R_cam_from_world[images] = saved[0][images] @ M.T
+                state.centers[images] = scale * saved[1][images] @ M.T + shift
+            state.model_id[images] = a
+            _match_round(state, a, np.array(placed), bearings, descriptors, options)
             state.merges.append({"images": images.tolist(), "points": 0})
-            log.info("model %d (%d images) moved into model %d by 2D-3D matching", b, len(images), a)
+            log.info("model %d (%d images) moved into model %d by 2D-3D matching of %d of its images", b,
+                     len(images), a, len(placed))
             _adjust_model(state, a, state.tracks, bearings, options)
             _grow(state, a, links, bearings, options, descriptors)
             return True
     return False
+
+
+def _similarity_of_poses(R_b, C_b, R_a, C_a, max_rotation_deg: float = 1.0, max_centre_error: float = 0.05):
+    """(M, scale, shift) with x_a = scale M x_b + shift taking camera poses (R_b, C_b) of one frame onto (R_a, C_a)
+    of another (two or more cameras), or None when the cameras disagree on it (rotations beyond `max_rotation_deg`,
+    centres beyond `max_centre_error` of their spread)."""
+    per_camera = np.einsum("kba,kbc->kac", R_a, R_b)  # M = R_aᵀ R_b for each camera
+    U, _, Vt = np.linalg.svd(per_camera.sum(axis=0))
+    M = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    if rotation_angle_deg(per_camera, np.broadcast_to(M, per_camera.shape)).max() > max_rotation_deg:
+        return None
+    src = (C_b - C_b.mean(0)) @ M.T
+    dst = C_a - C_a.mean(0)
+    spread = np.linalg.norm(dst, axis=1).mean()
+    if not spread > 0 or not (src * src).sum() > 0:
+        return None
+    scale = float((src * dst).sum() / (src * src).sum())
+    shift = C_a.mean(0) - scale * C_b.mean(0) @ M.T
+    if scale <= 0 or np.linalg.norm(scale * C_b @ M.T + shift - C_a, axis=1).max() > max_centre_error * spread:
+        return None
+    return M, scale, shift
 
 
 # --------------------------------------------------------------------------------------------- merging
