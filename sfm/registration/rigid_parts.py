@@ -36,6 +36,9 @@ MIN_SCALE, MAX_SCALE = 0.1, 10.0  # a join's scale outside this range is a degen
 # its joint), not a measurement
 JOIN_SAMPLES = 400  # RANSAC samples of a join with free shift (a join at a shared camera tries every observation)
 MAX_SCALE_SPREAD = 0.05  # a join is kept when its scale is determined to this fraction by the threshold's noise
+DISTINCT_SCALE = 0.1  # scales further apart than this (relative) are rival hypotheses ...
+AMBIGUITY_RATIO = 2.0  # ... and the best must gather this many times the tracks a rival fits that it does not: one
+# unknown fits a few chance matches (2D-3D matches through a doorway) at some scale, a true join stands out
 HARD_WEIGHT = 1e3  # weight of the exact constraints of a join (shared camera, bridging pair) against point rows
 
 
@@ -134,11 +137,13 @@ def estimate_join(*, R_cam_from_world: np.ndarray, centers: np.ndarray, main: np
         return None
     samples = _samples(len(u), sample_size, seed)
     best, best_inliers = None, np.zeros(len(u), bool)
+    hypotheses = []  # (scale, inlier mask) of every sample, for the ambiguity check
     for sample in samples:
         x = _solve(hard_A, hard_b, A.reshape(-1, 3, 4)[sample].reshape(-1, 4), b.reshape(-1, 3)[sample].ravel())
         if x is None:
             continue
         inliers = _errors(x, u, point, camera, moved_point) <= threshold_rad
+        hypotheses.append((x[0], inliers))
         if inliers.sum() > best_inliers.sum():
             best, best_inliers = x, inliers
     if best is None:
@@ -156,6 +161,12 @@ def estimate_join(*, R_cam_from_world: np.ndarray, centers: np.ndarray, main: np
             break
         best, best_inliers = x, inliers
     agreeing = len(np.unique(track[best_inliers]))
+    rival = max((len(np.unique(track[inl & ~best_inliers])) for sc, inl in hypotheses
+                 if abs(np.log(sc / best[0])) > np.log(1.0 + DISTINCT_SCALE)), default=0)
+    if agreeing < AMBIGUITY_RATIO * rival:
+        log.info("part of %d camera(s) not joined: scale %.3f (%d tracks) and another scale (%d tracks) both fit",
+                 part.sum(), best[0], agreeing, rival)
+        return None
     spread = _scale_spread(best, hard_A, A, u, point, camera, moved_point, best_inliers) * threshold_rad
     if not spread <= MAX_SCALE_SPREAD * best[0]:
         log.info("part of %d camera(s) not joined: its scale is undetermined (%.3f ± %.3f from %d tracks)",
