@@ -69,7 +69,7 @@ def run(ctx: StageContext) -> dict:
                "resected": [names[k] for k in models.resected],
                "merged": [{"images": [names[k] for k in m["images"]], "points": m["points"]} for m in models.merges],
                "joined_parts": [{"images": [names[k] for k in j["images"]], "tracks": j["tracks"],
-                                 "scale": j["scale"]} for j in models.joins],
+                                 "scale": j["scale"], "confirmed": j.get("confirmed", False)} for j in models.joins],
                "matched_2d3d": [names[k] for k in models.matched],
                "model": options.model, "inlier_pairs": int(pair_ok.sum()), "epipole_cost": float(models.epipole_cost)}
     ctx.out.save_registration(report=summary, image_names=names, registered=model_id == 0, model_id=model_id,

@@ -216,6 +216,7 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
             join = estimate_join(R_cam_from_world=R, centers=C, main=main, part=part, main_points=main_points,
                                  part_points=part_points, tracks=tracks, bearings=bearings, pairs=pairs[used],
                                  directions=directions[used], extra=extra,
+                                 kept=_averaged_placement(part, main, C, reg.centers, pairs[used]),
                                  threshold_rad=np.radians(options.resection_threshold_deg),
                                  min_tracks=options.min_join_points, seed=options.seed)
             if join is None:
@@ -224,7 +225,7 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
             new = part & ~main
             C[new] = join.scale * C[new] + join.shift
             state.joins.append({"model": m, "images": np.flatnonzero(new).tolist(), "tracks": join.num_tracks,
-                                "scale": join.scale})
+                                "scale": join.scale, "confirmed": join.confirmed})
             log.info("joined a rigid part of %d image(s) to model %d: scale %.3f, %d tracks agree (%d cross "
                      "observations)", new.sum(), m, join.scale, join.num_tracks, join.num_observations)
             break
@@ -246,6 +247,19 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
 def _touches(part: np.ndarray, cameras: np.ndarray, used_pairs: np.ndarray) -> bool:
     """Whether a part shares a camera with `cameras` (N,) bool or has a used pair into them."""
     return bool((part & cameras).any() or (part[used_pairs] & cameras[used_pairs][:, ::-1]).any())
+
+
+def _averaged_placement(part: np.ndarray, main: np.ndarray, C: np.ndarray, averaged: np.ndarray, used_pairs
+                        ) -> np.ndarray | None:
+    """(scale, shift) keeping averaging's placement of a part relative to the main cameras it touches (shared, or
+    at the other end of a used pair), as they stand now; None when it touches none."""
+    touching = part & main
+    if not touching.any():
+        across = used_pairs[(main[used_pairs] & part[used_pairs][:, ::-1]).any(axis=1)]
+        touching[across[main[across]]] = True
+    if not touching.any():
+        return None
+    return np.concatenate([[1.0], (C[touching] - averaged[touching]).mean(axis=0)])
 
 
 def _keep_a_guessed_part(state: ModelSet, m: int, candidates: list[np.ndarray], main: np.ndarray, C: np.ndarray,

@@ -109,12 +109,14 @@ class Join:
     shift: np.ndarray  # (3,)
     num_tracks: int  # distinct tracks whose observations agree with it
     num_observations: int  # cross observations it was estimated from
+    confirmed: bool = False  # the points confirm the placement averaging gave (no change)
 
 
 def estimate_join(*, R_cam_from_world: np.ndarray, centers: np.ndarray, main: np.ndarray, part: np.ndarray,
                   main_points: tuple[np.ndarray, np.ndarray], part_points: tuple[np.ndarray, np.ndarray],
                   tracks: Tracks, bearings: Sequence[np.ndarray], pairs: np.ndarray, directions: np.ndarray,
-                  threshold_rad: float, min_tracks: int, seed: int, extra=None) -> Join | None:
+                  threshold_rad: float, min_tracks: int, seed: int, extra=None, kept: np.ndarray | None = None
+                  ) -> Join | None:
     """Scale and shift taking the cameras of ``part`` (N,) bool into the frame of ``main`` (N,) bool, both in the
     rotation frame of ``R_cam_from_world``; None when fewer than ``min_tracks`` tracks agree.
 
@@ -122,7 +124,9 @@ def estimate_join(*, R_cam_from_world: np.ndarray, centers: np.ndarray, main: np
     with world ``directions`` (M, 3) ∝ c_j − c_i: the used pairs, whose directions between the sides must hold
     (with a camera shared by both sides, they fix the shift but for the scale about it). ``extra``: more cross
     observations (world ray, point, camera centre, whether the point is the part's, point id), e.g. from 2D-3D
-    matching."""
+    matching. ``kept`` (4,): (scale, shift) of the placement averaging gave the part; when the points agree with it
+    about as well as with any other (``AMBIGUITY_RATIO``), it is confirmed rather than replaced (a handful of tracks
+    seen through a doorway fit loosely, and averaging's spacing is usually near the truth)."""
     rows = _cross_observations(R_cam_from_world, centers, main, part, main_points, part_points, tracks, bearings)
     if extra is not None:
         rows = extra if rows is None else tuple(np.concatenate(c) for c in zip(rows, extra))
@@ -146,6 +150,16 @@ def estimate_join(*, R_cam_from_world: np.ndarray, centers: np.ndarray, main: np
         hypotheses.append((x[0], inliers))
         if inliers.sum() > best_inliers.sum():
             best, best_inliers = x, inliers
+    if kept is not None:
+        kept_inliers = _errors(kept, u, point, camera, moved_point) <= threshold_rad
+        kept_tracks = len(np.unique(track[kept_inliers]))
+        best_tracks = len(np.unique(track[best_inliers]))
+        if kept_tracks >= min_tracks and AMBIGUITY_RATIO * kept_tracks >= best_tracks:
+            log.info("part of %d camera(s): %d tracks confirm averaging's placement (best other scale: %d tracks)",
+                     part.sum(), kept_tracks, best_tracks)
+            return Join(scale=1.0, shift=kept[1:].copy(), num_tracks=kept_tracks, num_observations=len(u),
+                        confirmed=True)
+        hypotheses.append((1.0, kept_inliers))
     if best is None:
         return None
     log.debug("join of %d cameras: hard rows %d (rank %d), %d observations, best %s with %d inliers", part.sum(),
