@@ -168,3 +168,45 @@ def build_tracks(
         stats.num_tracks, stats.num_components, stats.num_inconsistent, stats.num_short, stats.num_matches,
     )
     return tracks, stats
+
+
+def add_observations(tracks: Tracks, track_ids: np.ndarray, image_ids: np.ndarray, feature_ids: np.ndarray
+                     ) -> tuple[Tracks, np.ndarray]:
+    """Tracks with feature ``feature_ids[k]`` of image ``image_ids[k]`` added to track ``track_ids[k]`` (2D-3D
+    matches). A feature already in another track brings that whole track along (the two are one point), unless
+    they share an image; a feature already in the track is left alone; a match that would put a second feature of
+    one image into a track is skipped. Returns the new tracks (renumbered) and (K,) which matches were taken."""
+    track_ids, image_ids, feature_ids = (np.asarray(a, np.int64) for a in (track_ids, image_ids, feature_ids))
+    label = tracks.track_ids.copy()  # the new track of every existing observation
+    owner: dict[int, set[int]] = {}  # track -> images, for the tracks touched here
+
+    def images(t: int) -> set[int]:
+        if t not in owner:
+            owner[t] = set(tracks.image_ids[label == t].tolist())
+        return owner[t]
+
+    where = {(int(i), int(f)): k for k, (i, f) in enumerate(zip(tracks.image_ids.tolist(),
+                                                              tracks.feature_ids.tolist()))}
+    new_obs, taken = [], np.zeros(len(track_ids), bool)
+    for k, (t, i, f) in enumerate(zip(track_ids.tolist(), image_ids.tolist(), feature_ids.tolist())):
+        obs = where.get((i, f))
+        if obs is not None:
+            other = int(label[obs])
+            if other == t:
+                continue
+            if images(other) & images(t):
+                continue
+            label[label == other] = t
+            owner[t] = images(t) | owner.pop(other)
+            taken[k] = True
+        elif i not in images(t):
+            new_obs.append((t, i, f))
+            owner[t].add(i)
+            taken[k] = True
+    extra = np.array(new_obs, np.int64).reshape(-1, 3)
+    all_tracks = np.concatenate([label, extra[:, 0]])
+    all_images = np.concatenate([tracks.image_ids, extra[:, 1]])
+    all_features = np.concatenate([tracks.feature_ids, extra[:, 2]])
+    order = np.lexsort((all_images, all_tracks))
+    return _from_sorted(all_tracks[order], all_images[order], all_features[order], np.ones(len(order), bool),
+                        tracks.num_images), taken

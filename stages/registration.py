@@ -41,7 +41,8 @@ def run(ctx: StageContext) -> dict:
     tracks, _ = build_tracks(track_matches(ctx.dataset, verified, obs, weights > 0), [len(o["bearings"]) for o in obs])
     links = PairLinks(pairs=epi["pairs"], R_j_from_i=epi["R_j_from_i"], t_j_from_i=epi["t_j_from_i"],
                       weights=weights, e_i=epi["e_i"], e_j=epi["e_j"])
-    models = build_models(links=links, tracks=tracks, bearings=[o["bearings"] for o in obs], options=options)
+    models = build_models(links=links, tracks=tracks, bearings=[o["bearings"] for o in obs], options=options,
+                          descriptors=_descriptors(ctx) if options.resection else None)
     R, C, model_id = models.R_cam_from_world, models.centers, models.model_id
     t = -np.einsum("nab,nb->na", R, C)
     rot_res, dir_res, pair_ok = _judge_pairs(epi, weights, models, t, options)
@@ -51,6 +52,11 @@ def run(ctx: StageContext) -> dict:
     for k in np.flatnonzero(model_id > 0):  # outside the main model, but placed: say where
         reasons[names[k]] = (f"in model {model_id[k]} ({sizes[model_id[k]]} images), not joined to model 0 by "
                              "verified pairs or shared points")
+    for k in models.scale_free:
+        if model_id[k] != 0:
+            reasons[names[k]] = (reasons.get(names[k], "") + "; " if k in reasons else "") + (
+                "its part of the view graph meets model 0 where the pair directions fix no scale, and too few shared "
+                "points fix it")
     for name, reason in reasons.items():
         log.warning("%s is not in model 0: %s", name, reason)
     if len(sizes) > 1:
@@ -62,16 +68,31 @@ def run(ctx: StageContext) -> dict:
                "attached_by_points": [names[k] for k in models.attached],
                "resected": [names[k] for k in models.resected],
                "merged": [{"images": [names[k] for k in m["images"]], "points": m["points"]} for m in models.merges],
+               "joined_parts": [{"images": [names[k] for k in j["images"]], "tracks": j["tracks"],
+                                 "scale": j["scale"], "confirmed": j.get("confirmed", False)} for j in models.joins],
+               "matched_2d3d": [names[k] for k in models.matched],
                "model": options.model, "inlier_pairs": int(pair_ok.sum()), "epipole_cost": float(models.epipole_cost)}
     ctx.out.save_registration(report=summary, image_names=names, registered=model_id == 0, model_id=model_id,
                               R_cam_from_world=R, t_cam_from_world=t, pair_inlier_mask=pair_ok,
-                              rotation_residual_deg=rot_res, direction_residual_deg=dir_res)
+                              rotation_residual_deg=rot_res, direction_residual_deg=dir_res,
+                              matches_2d3d=np.array(models.matches_2d3d, np.int64).reshape(-1, 4))
     return summary
 
 
-def track_matches(dataset, verified, obs, use: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+def _descriptors(ctx: StageContext) -> list[np.ndarray]:
+    """Per image, its SIFT descriptors L2-normalised (2D-3D matching compares them by Euclidean distance)."""
+    out = []
+    for name in ctx.dataset.image_names:
+        d = np.asarray(ctx.ws.load_features(name)["descriptors"], np.float32)
+        out.append(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12))
+    return out
+
+
+def track_matches(dataset, verified, obs, use: np.ndarray, matches_2d3d: np.ndarray | None = None
+                  ) -> dict[tuple[int, int], np.ndarray]:
     """Matches tracks are built from: the inliers of the pairs in `use`, plus the hand correspondences of every
-    matched pair that has some (the filter records them only with filter.use_hand_points). Hand points are the
+    matched pair that has some (the filter records them only with filter.use_hand_points), plus the 2D-3D matches
+    registration made (`matches_2d3d` rows (image, feature, image, feature)). Hand points are the
     user's own correspondences: a hand point seen on both sides of a closed door joins the two models even where
     no pair across it verifies."""
     num_sift = [int(o["num_sift"]) for o in obs]
@@ -83,6 +104,10 @@ def track_matches(dataset, verified, obs, use: np.ndarray) -> dict[tuple[int, in
             parts.append(dataset.hand_pair_matches(num_sift, *pair))
         if parts:
             out[pair] = np.concatenate(parts)
+    for row in (np.zeros((0, 4), np.int64) if matches_2d3d is None else matches_2d3d):
+        (i, f), (j, g) = sorted([tuple(row[:2]), tuple(row[2:])])
+        key = (int(i), int(j))
+        out[key] = np.concatenate([out.get(key, np.zeros((0, 2), np.int64)), [[f, g]]]).astype(np.int64)
     return out
 
 

@@ -33,11 +33,8 @@ def run(ctx: StageContext) -> dict:
     reg = ctx.ws.load_registration()
     model_id = reg["model_id"]
     verified = ctx.ws.load_inliers()
-    pairs = np.array(verified.pairs).reshape(-1, 2)
-    same_model = (model_id[pairs[:, 0]] == model_id[pairs[:, 1]]) & (model_id[pairs[:, 0]] >= 0)
-    matches = track_matches(ctx.dataset, verified, obs, reg["pair_inlier_mask"])
-    row = {p: k for k, p in enumerate(verified.pairs)}
-    tracks, _ = build_tracks({p: m for p, m in matches.items() if same_model[row[p]]},
+    matches = track_matches(ctx.dataset, verified, obs, reg["pair_inlier_mask"], reg.get("matches_2d3d"))
+    tracks, _ = build_tracks({p: m for p, m in matches.items() if model_id[p[0]] == model_id[p[1]] >= 0},
                              [len(o["bearings"]) for o in obs])
     bearings = [o["bearings"] for o in obs]
     R, t = reg["R_cam_from_world"], reg["t_cam_from_world"]

@@ -28,11 +28,14 @@ import numpy as np
 from fullview.sfm.attach import attach_cameras, model_points
 from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.metrics import umeyama
-from fullview.sfm.options import RegistrationOptions
+from fullview.sfm.options import MatchesOptions, RegistrationOptions
 from fullview.sfm.registration.driver import register
+from fullview.sfm.registration.rigid_parts import estimate_join, rigid_parts
 from fullview.sfm.registration.view_graph import bridges, component_labels, largest_component
 from fullview.sfm.resection import ResectionOptions, resect
-from fullview.sfm.tracks import Tracks
+from fullview.sfm.matching import match_descriptors
+from fullview.sfm.rotations import rotation_angle_deg
+from fullview.sfm.tracks import Tracks, add_observations
 from fullview.sfm.triangulation import angular_errors, gather_bearings, triangulate_multiview
 
 log = logging.getLogger(__name__)
@@ -69,6 +72,13 @@ class ModelSet:
     attached: list[int] = field(default_factory=list)  # images attached along a single pair's baseline
     resected: list[int] = field(default_factory=list)  # images placed by resection
     merges: list[dict] = field(default_factory=list)  # {"images": [...], "points": n}: models merged into another
+    joins: list[dict] = field(default_factory=list)  # {"images": [...], "tracks": n, "scale": s}: rigid parts of an
+    # averaged layout joined to its largest part by points
+    scale_free: list[int] = field(default_factory=list)  # images of rigid parts no points could join (placed again)
+    matched: list[int] = field(default_factory=list)  # images placed by 2D-3D matching of their descriptors
+    matches_2d3d: list[tuple[int, int, int, int]] = field(default_factory=list)  # (image, feature, image, feature):
+    # each feature matched 2D-3D to a model point, with one model observation of that point (a match for the tracks)
+    tracks: Tracks | None = None  # the tracks, with the observations 2D-3D matching added
 
     @property
     def num_models(self) -> int:
@@ -78,17 +88,26 @@ class ModelSet:
         return np.bincount(self.model_id[self.model_id >= 0], minlength=self.num_models).tolist()
 
 
-def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndarray], options: RegistrationOptions
-                 ) -> ModelSet:
-    """Global models, grown by attachment and resection, merged where they overlap (see the module doc)."""
+def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndarray], options: RegistrationOptions,
+                 descriptors: Sequence[np.ndarray] | None = None) -> ModelSet:
+    """Global models, grown by attachment and resection, merged where they overlap (see the module doc).
+
+    ``descriptors`` (per image, (F_i, D) for its first F_i features, L2-normalised), when given, let growth place an
+    image no track ties to a model by matching them to the model's points (2D-3D matching)."""
     state = _empty_state(len(bearings), len(links.pairs))
+    state.tracks = tracks
     open_pairs = links.weights > 0
-    while (m := _next_global_model(state, open_pairs, links, options)) is not None:
+    while (m := _next_global_model(state, open_pairs, links, state.tracks, bearings, options, descriptors)) is not None:
+        if any(j["model"] == m for j in state.joins):
+            _adjust_model(state, m, state.tracks, bearings, options)
         # grow before the next model starts, so images a model can hold never start tiny models of their own
-        _grow(state, m, links, tracks, bearings, options)
+        _grow(state, m, links, bearings, options, descriptors)
     merge_points = options.min_merge_points if options.merge_models else None
-    while merge_points is not None and _merge_once(state, links, tracks, bearings, options, merge_points):
+    while merge_points is not None and _merge_once(state, links, bearings, options, merge_points, descriptors):
         pass
+    if options.resection and descriptors is not None:
+        while _absorb_a_model_by_matching(state, links, bearings, options, descriptors):
+            pass
     _renumber(state)
     log.info("models: sizes %s; %d attached, %d resected, %d merge(s)", state.sizes(), len(state.attached),
              len(state.resected), len(state.merges))
@@ -102,8 +121,8 @@ def _empty_state(num_images: int, num_pairs: int) -> ModelSet:
                     averaging_verdict=np.zeros(num_pairs, bool), epipole_cost=0.0)
 
 
-def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks, options: RegistrationOptions
-                       ) -> int | None:
+def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks, tracks: Tracks, bearings,
+                       options: RegistrationOptions, descriptors=None) -> int | None:
     """Register the largest group of free images joined by open pairs as a new model; its id, or None when no group
     of two images or more can be registered. Spends the group's pairs (`open_pairs` is updated in place), except
     those among images averaging left out, which may still form a model of their own."""
@@ -129,11 +148,16 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
             _seed_from_pair(state, m, int(np.argmax(np.where(in_group, w, -np.inf))), links)
             return m
         placed = reg.registered & ~_behind_contradicted_bridges(reg, in_group, pairs, num_images)
+        averaged, centers = placed, reg.centers
+        joining = (options.min_join_points, options.unjoined_parts)  # read on every run, used on flexible layouts
+        if reg.flexible_modes > 0 and joining:
+            averaged, placed, centers = _join_rigid_parts(state, m, reg, placed, pairs, tracks, bearings, options,
+                                                          descriptors)
         open_pairs |= in_group & (inside & ~placed)[pairs].all(axis=1)
         state.model_id[placed] = m
-        state.averaged_in[placed] = m
+        state.averaged_in[averaged] = m  # joined parts: their pairs to the rest are judged by residuals
         state.R_cam_from_world[placed] = reg.R_cam_from_world[placed]
-        state.centers[placed] = reg.centers[placed]
+        state.centers[placed] = centers[placed]
         state.averaging_verdict |= reg.pair_inlier_mask
         state.epipole_cost += reg.epipole_cost
         return m
@@ -165,6 +189,128 @@ def _behind_contradicted_bridges(reg, in_group: np.ndarray, pairs: np.ndarray, n
             return cut
 
 
+def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: np.ndarray, tracks: Tracks, bearings,
+                      options: RegistrationOptions, descriptors=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split an averaged layout that the directions do not make rigid into its rigid parts and join the parts to
+    the largest one by the points they share (`rigid_parts`). Returns (N,) the largest part, (N,) every camera kept
+    (the largest part and the parts joined to it) and (N, 3) the centres with the joined parts re-scaled; cameras of
+    parts no points join are left out, to be placed again (growth, a model of their own, merging)."""
+    used = reg.pair_used_mask & placed[pairs].all(axis=1)
+    C, R = reg.centers.copy(), reg.R_cam_from_world
+    parts = [_mask(len(placed), p) for p in rigid_parts(C, pairs[used])]
+    if len(parts) < 2:
+        return placed, placed, C
+    log.info("averaged layout of %d images is not rigid (%d flexible mode(s)): rigid parts of %s images", placed.sum(),
+             reg.flexible_modes, [int(p.sum()) for p in parts])
+    directions = np.nan_to_num(C[pairs[:, 1]] - C[pairs[:, 0]])
+    main, pending, failed = parts[0].copy(), list(range(1, len(parts))), set()
+    point_err, point_angle = np.radians(POINT_ERROR_DEG), np.radians(MIN_POINT_ANGLE_DEG)
+    while pending:
+        new = None
+        for k in [k for k in pending if k not in failed and _touches(parts[k], main, pairs[used])]:
+            part = parts[k]
+            main_points = model_points(tracks, bearings, R, C, main, point_err, point_angle)
+            part_points = model_points(tracks, bearings, R, C, part, point_err, point_angle)
+            extra = None if descriptors is None else _matched_cross_observations(
+                tracks, bearings, descriptors, R, C, main, part, main_points, part_points)
+            join = estimate_join(R_cam_from_world=R, centers=C, main=main, part=part, main_points=main_points,
+                                 part_points=part_points, tracks=tracks, bearings=bearings, pairs=pairs[used],
+                                 directions=directions[used], extra=extra,
+                                 kept=_averaged_placement(part, main, C, reg.centers, pairs[used]),
+                                 threshold_rad=np.radians(options.resection_threshold_deg),
+                                 min_tracks=options.min_join_points, seed=options.seed)
+            if join is None:
+                failed.add(k)
+                continue
+            new = part & ~main
+            C[new] = join.scale * C[new] + join.shift
+            state.joins.append({"model": m, "images": np.flatnonzero(new).tolist(), "tracks": join.num_tracks,
+                                "scale": join.scale, "confirmed": join.confirmed})
+            log.info("joined a rigid part of %d image(s) to model %d: scale %.3f, %d tracks agree (%d cross "
+                     "observations)", new.sum(), m, join.scale, join.num_tracks, join.num_observations)
+            break
+        if new is None and options.unjoined_parts == "keep":
+            new = _keep_a_guessed_part(state, m, [parts[k] for k in pending], main, C, reg.centers, pairs[used])
+        if new is None:
+            break
+        main |= new
+        pending = [k for k in pending if (parts[k] & ~main).any()]
+        failed = {k for k in failed if k in pending and not _touches(parts[k], new, pairs[used])}
+    left = placed & ~main
+    if left.any():
+        state.scale_free += np.flatnonzero(left).tolist()
+        log.warning("%d image(s) in rigid parts whose scale to model %d no shared points fix: placed again by points "
+                    "or as a model of their own", left.sum(), m)
+    return parts[0] & placed, main & placed, C
+
+
+def _touches(part: np.ndarray, cameras: np.ndarray, used_pairs: np.ndarray) -> bool:
+    """Whether a part shares a camera with `cameras` (N,) bool or has a used pair into them."""
+    return bool((part & cameras).any() or (part[used_pairs] & cameras[used_pairs][:, ::-1]).any())
+
+
+def _averaged_placement(part: np.ndarray, main: np.ndarray, C: np.ndarray, averaged: np.ndarray, used_pairs
+                        ) -> np.ndarray | None:
+    """(scale, shift) keeping averaging's placement of a part relative to the main cameras it touches (shared, or
+    at the other end of a used pair), as they stand now; None when it touches none."""
+    touching = part & main
+    if not touching.any():
+        across = used_pairs[(main[used_pairs] & part[used_pairs][:, ::-1]).any(axis=1)]
+        touching[across[main[across]]] = True
+    if not touching.any():
+        return None
+    return np.concatenate([[1.0], (C[touching] - averaged[touching]).mean(axis=0)])
+
+
+def _keep_a_guessed_part(state: ModelSet, m: int, candidates: list[np.ndarray], main: np.ndarray, C: np.ndarray,
+                         averaged: np.ndarray, used_pairs: np.ndarray) -> np.ndarray | None:
+    """registration.unjoined_parts = keep: the first candidate part that touches main (a shared camera or a pair)
+    keeps averaging's scale (its λ ≥ 1 guess), shifted with the cameras it touches. Returns its new cameras (N,)
+    bool, or None when no candidate touches main."""
+    for part in candidates:
+        touching = part & main
+        if not touching.any():
+            across = used_pairs[(main[used_pairs] & part[used_pairs][:, ::-1]).any(axis=1)]
+            touching[across[main[across]]] = True
+        if not touching.any():
+            continue
+        new = part & ~main
+        C[new] += (C[touching] - averaged[touching]).mean(axis=0)
+        state.joins.append({"model": m, "images": np.flatnonzero(new).tolist(), "tracks": 0, "scale": 1.0})
+        log.warning("a rigid part of %d image(s) keeps averaging's scale guess in model %d: no points fix it",
+                    new.sum(), m)
+        return new
+    return None
+
+
+def _matched_cross_observations(tracks: Tracks, bearings, descriptors, R, C, main, part, main_points, part_points):
+    """Cross observations of a join found by 2D-3D matching (tracks only hold the matches of verified pairs): the
+    part's own cameras' descriptors against main's points and main's own cameras' against the part's points. Rows
+    as `rigid_parts.estimate_join(extra=)` takes them: (world ray, point, camera centre, moved_point, point id)."""
+    chunks = []
+    for (X, of_track), side, cams, moved in ((main_points, main, part & ~main, False),
+                                             (part_points, part, main & ~part, True)):
+        if len(X) < 2:
+            continue
+        point_descriptors, track_of_point = _point_descriptors(tracks, side, of_track, descriptors)
+        for b in np.flatnonzero(cams):
+            matches = match_descriptors(descriptors[b], point_descriptors, MATCHING)
+            if not len(matches):
+                continue
+            u = bearings[b][matches[:, 0]] @ R[b]  # R_bᵀ z: world rays
+            chunks.append((u, X[matches[:, 1]], np.tile(C[b], (len(matches), 1)), np.full(len(matches), moved),
+                           track_of_point[matches[:, 1]]))
+    if not chunks:
+        return None
+    return tuple(np.concatenate(c) for c in zip(*chunks))
+
+
+def _mask(n: int, ids: np.ndarray) -> np.ndarray:
+    out = np.zeros(n, bool)
+    out[ids] = True
+    return out
+
+
 def _seed_from_pair(state: ModelSet, m: int, k: int, links: PairLinks) -> None:
     """Model m from pair k alone: its first image at R = I, centre 0, the second one unit baseline away."""
     i, j = links.pairs[k]
@@ -190,8 +336,10 @@ def _renumber(state: ModelSet) -> None:
 
 
 # --------------------------------------------------------------------------------------------- growth
-def _grow(state: ModelSet, m: int, links: PairLinks, tracks: Tracks, bearings, options: RegistrationOptions) -> None:
-    """Attach, then resect, the free images model m can hold; bundle-adjust after each round of resection."""
+def _grow(state: ModelSet, m: int, links: PairLinks, bearings, options: RegistrationOptions, descriptors=None) -> None:
+    """Attach, then resect, the free images model m can hold (by their tracks, then by 2D-3D matching);
+    bundle-adjust after each round of resection."""
+    tracks = state.tracks
     att = attach_cameras(R_cam_from_world=state.R_cam_from_world, centers=state.centers,
                          registered=state.model_id == m, allowed=state.model_id < 0, pairs=links.pairs,
                          R_j_from_i=links.R_j_from_i, t_j_from_i=links.t_j_from_i, weights=links.weights,
@@ -203,11 +351,13 @@ def _grow(state: ModelSet, m: int, links: PairLinks, tracks: Tracks, bearings, o
     if not options.resection:
         return
     while True:
-        added = _resect_round(state, m, tracks, bearings, options)
+        added = _resect_round(state, m, state.tracks, bearings, options)
+        state.resected += added
+        if not added and descriptors is not None:
+            added = _match_round(state, m, np.flatnonzero(state.model_id < 0), bearings, descriptors, options)
         if not added:
             return
-        state.resected += added
-        _adjust_model(state, m, tracks, bearings, options)
+        _adjust_model(state, m, state.tracks, bearings, options)
 
 
 def _resect_round(state: ModelSet, m: int, tracks: Tracks, bearings, options: RegistrationOptions) -> list[int]:
@@ -261,15 +411,140 @@ def _adjust_model(state: ModelSet, m: int, tracks: Tracks, bearings, options: Re
     state.centers[cams] = -np.einsum("nba,nb->na", result.R_cam_from_world, result.t_cam_from_world)
 
 
+# --------------------------------------------------------------------------------------------- 2D-3D matching
+def _match_round(state: ModelSet, m: int, candidates: np.ndarray, bearings, descriptors, options: RegistrationOptions,
+                 commit: bool = True) -> list[int]:
+    """Images of `candidates` placed into model m by 2D-3D matching, as COLMAP registers its next image: each image's
+    descriptors are matched to one descriptor per model point (the mean of its observations'), ratio test and
+    mutual check, then resection (P3P LO-RANSAC) on the matches. An image whose tracks reach too few model points
+    (one verified pair into the model, whose other end sees little of the rest) is placed this way. With `commit`,
+    the placed images join model m and their inlier matches join the tracks."""
+    X, point_of_track = _points_of(state, m, state.tracks, bearings)
+    if len(X) < options.min_resection_points:
+        return []
+    point_descriptors, track_of_point = _point_descriptors(state.tracks, state.model_id == m, point_of_track,
+                                                           descriptors)
+    resect_options = ResectionOptions(threshold_rad=np.radians(options.resection_threshold_deg),
+                                      min_inliers=options.min_resection_points, seed=options.seed)
+    added = []
+    for b in candidates:
+        matches = match_descriptors(descriptors[b], point_descriptors, MATCHING)
+        if len(matches) < options.min_resection_points:
+            continue
+        result = resect(bearings[b][matches[:, 0]], X[matches[:, 1]], resect_options)
+        if result is None:
+            continue
+        added.append(int(b))
+        state.R_cam_from_world[b] = result.R_cam_from_world
+        state.centers[b] = -result.R_cam_from_world.T @ result.t_cam_from_world
+        log.info("image %d placed into model %d by 2D-3D matching: %d/%d inliers", b, m, result.num_inliers,
+                 len(matches))
+        if commit:
+            state.model_id[b] = m
+            _add_matches(state, m, b, matches[result.inliers, 0], track_of_point[matches[result.inliers, 1]])
+    if commit:
+        state.matched += added
+    return added
+
+
+MATCHING = MatchesOptions(ratio=0.8, mutual=True)  # 2D-3D matching: Lowe's ratio and the mutual check
+
+
+def _point_descriptors(tracks: Tracks, cameras: np.ndarray, point_of_track: np.ndarray, descriptors):
+    """(P, D) one L2-normalised descriptor per point (the mean of its SIFT observations' in the (N,) bool
+    `cameras`) and (P,) its track."""
+    num_sift = np.array([len(d) for d in descriptors])
+    sel = (cameras[tracks.image_ids] & (point_of_track[tracks.track_ids] >= 0)
+           & (tracks.feature_ids < num_sift[tracks.image_ids]))
+    rows = point_of_track[tracks.track_ids[sel]]
+    width = descriptors[int(np.flatnonzero(num_sift)[0])].shape[1] if num_sift.any() else 128
+    sums = np.zeros((len(point_of_track[point_of_track >= 0]), width))
+    for b in np.unique(tracks.image_ids[sel]):  # one gather per image
+        here = tracks.image_ids[sel] == b
+        np.add.at(sums, rows[here], descriptors[b][tracks.feature_ids[sel][here]])
+    norms = np.linalg.norm(sums, axis=1, keepdims=True)
+    track_of_point = np.empty(len(sums), np.int64)
+    track_of_point[point_of_track[point_of_track >= 0]] = np.flatnonzero(point_of_track >= 0)
+    return (sums / np.maximum(norms, 1e-12)).astype(np.float32), track_of_point
+
+
+def _add_matches(state: ModelSet, m: int, b: int, features: np.ndarray, tracks_matched: np.ndarray) -> None:
+    """Image b's inlier 2D-3D matches join the tracks (and are recorded with one model observation each)."""
+    tracks = state.tracks
+    first = {}
+    in_model = state.model_id[tracks.image_ids] == m
+    for k in np.flatnonzero(in_model & np.isin(tracks.track_ids, tracks_matched)):
+        first.setdefault(int(tracks.track_ids[k]), (int(tracks.image_ids[k]), int(tracks.feature_ids[k])))
+    state.tracks, taken = add_observations(tracks, tracks_matched, np.full(len(features), b), features)
+    state.matches_2d3d += [(int(b), int(f), *first[int(t)]) for f, t, ok in zip(features, tracks_matched, taken) if ok]
+
+
+def _absorb_a_model_by_matching(state: ModelSet, links: PairLinks, bearings, options: RegistrationOptions,
+                                descriptors) -> bool:
+    """Move a smaller model into a larger one when 2D-3D matching places its images there (models whose images share
+    no track: merging by common points cannot see them): every image of it, or at least two whose poses agree on
+    one similarity, which then carries the rest. True if one was moved."""
+    order = _by_size(state)
+    for a_rank, a in enumerate(order):
+        for b in order[a_rank + 1:]:
+            images = np.flatnonzero(state.model_id == b)
+            if len(images) == 0:
+                continue
+            saved = (state.R_cam_from_world.copy(), state.centers.copy())
+            placed = _match_round(state, a, images, bearings, descriptors, options, commit=False)
+            sim = None
+            if 2 <= len(placed) < len(images):
+                sim = _similarity_of_poses(saved[0][placed], saved[1][placed], state.R_cam_from_world[placed],
+                                           state.centers[placed])
+            if len(placed) < len(images) and sim is None:
+                state.R_cam_from_world, state.centers = saved
+                continue
+            if sim is not None:
+                M, scale, shift = sim
+                state.R_cam_from_world[images] = saved[0][images] @ M.T
+                state.centers[images] = scale * saved[1][images] @ M.T + shift
+            state.model_id[images] = a
+            _match_round(state, a, np.array(placed), bearings, descriptors, options)
+            state.merges.append({"images": images.tolist(), "points": 0})
+            log.info("model %d (%d images) moved into model %d by 2D-3D matching of %d of its images", b,
+                     len(images), a, len(placed))
+            _adjust_model(state, a, state.tracks, bearings, options)
+            _grow(state, a, links, bearings, options, descriptors)
+            return True
+    return False
+
+
+def _similarity_of_poses(R_b, C_b, R_a, C_a, max_rotation_deg: float = 1.0, max_centre_error: float = 0.05):
+    """(M, scale, shift) with x_a = scale M x_b + shift taking camera poses (R_b, C_b) of one frame onto (R_a, C_a)
+    of another (two or more cameras), or None when the cameras disagree on it (rotations beyond `max_rotation_deg`,
+    centres beyond `max_centre_error` of their spread)."""
+    per_camera = np.einsum("kba,kbc->kac", R_a, R_b)  # M = R_aᵀ R_b for each camera
+    U, _, Vt = np.linalg.svd(per_camera.sum(axis=0))
+    M = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    if rotation_angle_deg(per_camera, np.broadcast_to(M, per_camera.shape)).max() > max_rotation_deg:
+        return None
+    src = (C_b - C_b.mean(0)) @ M.T
+    dst = C_a - C_a.mean(0)
+    spread = np.linalg.norm(dst, axis=1).mean()
+    if not spread > 0 or not (src * src).sum() > 0:
+        return None
+    scale = float((src * dst).sum() / (src * src).sum())
+    shift = C_a.mean(0) - scale * C_b.mean(0) @ M.T
+    if scale <= 0 or np.linalg.norm(scale * C_b @ M.T + shift - C_a, axis=1).max() > max_centre_error * spread:
+        return None
+    return M, scale, shift
+
+
 # --------------------------------------------------------------------------------------------- merging
-def _merge_once(state: ModelSet, links: PairLinks, tracks: Tracks, bearings, options: RegistrationOptions,
-                min_points: int) -> bool:
+def _merge_once(state: ModelSet, links: PairLinks, bearings, options: RegistrationOptions, min_points: int,
+                descriptors=None) -> bool:
     """Merge the first pair of models (largest first) whose common points agree on a similarity; True if merged.
 
     Common points are triangulated in each model on its own, so far points (seen through a doorway) carry large
     depth errors: the similarity from them is only a start. The merge is kept when, after bundle adjustment of the
     merged model, at least `min_points` common tracks fit the rays of both sides together (see
     `_common_tracks_fitting`); otherwise it is undone."""
+    tracks = state.tracks
     order = _by_size(state)
     points = {m: _points_of(state, m, tracks, bearings, MERGE_POINT_ERROR_DEG) for m in order}
     for a_rank, a in enumerate(order):
@@ -296,7 +571,7 @@ def _merge_once(state: ModelSet, links: PairLinks, tracks: Tracks, bearings, opt
             state.merges.append({"images": moved.tolist(), "points": joined})
             log.info("merged model %d (%d images) into model %d: %d/%d common points fit both", b, len(moved), a,
                      joined, len(common))
-            _grow(state, a, links, tracks, bearings, options)
+            _grow(state, a, links, bearings, options, descriptors)
             return True
     return False
 
