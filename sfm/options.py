@@ -121,7 +121,7 @@ class RegistrationOptions:
                                     ge=4, le=1_000_000)
     min_join_points: int = setting(6, "tracks that must agree on the scale joining a part of an averaged layout whose "
                                    "scale the pair directions leave free", ge=2, le=1_000_000)
-    unjoined_parts: str = setting("separate", "a part whose scale neither the pair directions nor shared points fix: "
+    unjoined_parts: str = setting("keep", "a part whose scale neither the pair directions nor shared points fix: "
                                   "separate: placed again by points or left a model of its own; keep: averaging's "
                                   "guess (lambda >= 1)", choices=("separate", "keep"))
     seed: int = setting(0, "random seed of resection and merging (RANSAC)", ge=0, le=2**31)

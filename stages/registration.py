@@ -104,10 +104,13 @@ def track_matches(dataset, verified, obs, use: np.ndarray, matches_2d3d: np.ndar
             parts.append(dataset.hand_pair_matches(num_sift, *pair))
         if parts:
             out[pair] = np.concatenate(parts)
-    for row in (np.zeros((0, 4), np.int64) if matches_2d3d is None else matches_2d3d):
-        (i, f), (j, g) = sorted([tuple(row[:2]), tuple(row[2:])])
+    rows = np.zeros((0, 4), np.int64) if matches_2d3d is None else np.asarray(matches_2d3d, np.int64)
+    rows = np.where((rows[:, 0] > rows[:, 2])[:, None], rows[:, [2, 3, 0, 1]], rows)  # lower image first
+    pair_of = rows[:, [0, 2]]
+    for i, j in np.unique(pair_of, axis=0):
+        found = rows[(pair_of == (i, j)).all(axis=1)][:, [1, 3]]
         key = (int(i), int(j))
-        out[key] = np.concatenate([out.get(key, np.zeros((0, 2), np.int64)), [[f, g]]]).astype(np.int64)
+        out[key] = np.concatenate([out.get(key, np.zeros((0, 2), np.int64)), found]).astype(np.int64)
     return out
 
 

@@ -90,9 +90,21 @@ def test_rooms_joined_at_one_camera_get_their_true_scale_from_shared_points():
 
 def test_rooms_no_point_joins_become_two_models_never_a_wrong_scale():
     centres, R, links, tracks, bearings = _scene(1, door_points_seen_by_rooms=False)
-    models = build_models(links=links, tracks=tracks, bearings=bearings, options=RegistrationOptions())
+    models = build_models(links=links, tracks=tracks, bearings=bearings,
+                          options=RegistrationOptions(unjoined_parts="separate"))
     assert models.sizes() == [len(ROOM_A) + 1, len(ROOM_B)] or models.sizes() == [len(ROOM_B) + 1, len(ROOM_A)]
     assert not models.joins and sorted(models.scale_free)
     for m in range(models.num_models):
         k = np.flatnonzero(models.model_id == m)
         assert _similarity_residual(models.centers[k], centres[k]) < 1e-6
+
+
+def test_by_default_a_part_no_point_joins_keeps_averagings_guess_and_says_so():
+    centres, R, links, tracks, bearings = _scene(1, door_points_seen_by_rooms=False)
+    models = build_models(links=links, tracks=tracks, bearings=bearings, options=RegistrationOptions())
+    assert models.sizes() == [len(centres)]
+    assert [j["tracks"] for j in models.joins] == [0] and not models.scale_free
+    door_and_a = np.arange(1 + len(ROOM_A))
+    door_and_b = np.concatenate([[0], 1 + len(ROOM_A) + np.arange(len(ROOM_B))])
+    for room in (door_and_a, door_and_b):  # each room is exact; only their relative scale is a guess
+        assert _similarity_residual(models.centers[room], centres[room]) < 1e-6

@@ -61,6 +61,14 @@ class PairLinks:
     e_j: np.ndarray | None = None  # (P, 3) epipoles in image j, optional
 
 
+@dataclass(frozen=True)
+class JoinRules:
+    """How the rigid parts of an averaged layout are joined (from `RegistrationOptions`)."""
+
+    min_tracks: int  # tracks that must agree on a part's scale
+    keep_unjoined: bool  # a part no points join keeps averaging's scale guess instead of being placed again
+
+
 @dataclass(kw_only=True)
 class ModelSet:
     model_id: np.ndarray  # (N,) model of each image, -1 for none; model 0 is the largest
@@ -97,7 +105,9 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
     state = _empty_state(len(bearings), len(links.pairs))
     state.tracks = tracks
     open_pairs = links.weights > 0
-    while (m := _next_global_model(state, open_pairs, links, state.tracks, bearings, options, descriptors)) is not None:
+    rules = JoinRules(min_tracks=options.min_join_points, keep_unjoined=options.unjoined_parts == "keep")
+    while (m := _next_global_model(state, open_pairs, links, state.tracks, bearings, options, rules,
+                                   descriptors)) is not None:
         if any(j["model"] == m for j in state.joins):
             _adjust_model(state, m, state.tracks, bearings, options)
         # grow before the next model starts, so images a model can hold never start tiny models of their own
@@ -122,7 +132,7 @@ def _empty_state(num_images: int, num_pairs: int) -> ModelSet:
 
 
 def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks, tracks: Tracks, bearings,
-                       options: RegistrationOptions, descriptors=None) -> int | None:
+                       options: RegistrationOptions, rules: JoinRules, descriptors=None) -> int | None:
     """Register the largest group of free images joined by open pairs as a new model; its id, or None when no group
     of two images or more can be registered. Spends the group's pairs (`open_pairs` is updated in place), except
     those among images averaging left out, which may still form a model of their own."""
@@ -149,10 +159,9 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
             return m
         placed = reg.registered & ~_behind_contradicted_bridges(reg, in_group, pairs, num_images)
         averaged, centers = placed, reg.centers
-        joining = (options.min_join_points, options.unjoined_parts)  # read on every run, used on flexible layouts
-        if reg.flexible_modes > 0 and joining:
+        if reg.flexible_modes > 0:
             averaged, placed, centers = _join_rigid_parts(state, m, reg, placed, pairs, tracks, bearings, options,
-                                                          descriptors)
+                                                          rules, descriptors)
         open_pairs |= in_group & (inside & ~placed)[pairs].all(axis=1)
         state.model_id[placed] = m
         state.averaged_in[averaged] = m  # joined parts: their pairs to the rest are judged by residuals
@@ -190,7 +199,7 @@ def _behind_contradicted_bridges(reg, in_group: np.ndarray, pairs: np.ndarray, n
 
 
 def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: np.ndarray, tracks: Tracks, bearings,
-                      options: RegistrationOptions, descriptors=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      options: RegistrationOptions, rules: JoinRules, descriptors=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split an averaged layout that the directions do not make rigid into its rigid parts and join the parts to
     the largest one by the points they share (`rigid_parts`). Returns (N,) the largest part, (N,) every camera kept
     (the largest part and the parts joined to it) and (N, 3) the centres with the joined parts re-scaled; cameras of
@@ -218,7 +227,7 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
                                  directions=directions[used], extra=extra,
                                  kept=_averaged_placement(part, main, C, reg.centers, pairs[used]),
                                  threshold_rad=np.radians(options.resection_threshold_deg),
-                                 min_tracks=options.min_join_points, seed=options.seed)
+                                 min_tracks=rules.min_tracks, seed=options.seed)
             if join is None:
                 failed.add(k)
                 continue
@@ -229,7 +238,7 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
             log.info("joined a rigid part of %d image(s) to model %d: scale %.3f, %d tracks agree (%d cross "
                      "observations)", new.sum(), m, join.scale, join.num_tracks, join.num_observations)
             break
-        if new is None and options.unjoined_parts == "keep":
+        if new is None and rules.keep_unjoined:
             new = _keep_a_guessed_part(state, m, [parts[k] for k in pending], main, C, reg.centers, pairs[used])
         if new is None:
             break
@@ -253,13 +262,19 @@ def _averaged_placement(part: np.ndarray, main: np.ndarray, C: np.ndarray, avera
                         ) -> np.ndarray | None:
     """(scale, shift) keeping averaging's placement of a part relative to the main cameras it touches (shared, or
     at the other end of a used pair), as they stand now; None when it touches none."""
+    touching = _main_cameras_touched(part, main, used_pairs)
+    if not touching.any():
+        return None
+    return np.concatenate([[1.0], (C[touching] - averaged[touching]).mean(axis=0)])
+
+
+def _main_cameras_touched(part: np.ndarray, main: np.ndarray, used_pairs: np.ndarray) -> np.ndarray:
+    """(N,) the main cameras a part shares or, sharing none, those at the other end of its used pairs into main."""
     touching = part & main
     if not touching.any():
         across = used_pairs[(main[used_pairs] & part[used_pairs][:, ::-1]).any(axis=1)]
         touching[across[main[across]]] = True
-    if not touching.any():
-        return None
-    return np.concatenate([[1.0], (C[touching] - averaged[touching]).mean(axis=0)])
+    return touching
 
 
 def _keep_a_guessed_part(state: ModelSet, m: int, candidates: list[np.ndarray], main: np.ndarray, C: np.ndarray,
@@ -268,10 +283,7 @@ def _keep_a_guessed_part(state: ModelSet, m: int, candidates: list[np.ndarray], 
     keeps averaging's scale (its λ ≥ 1 guess), shifted with the cameras it touches. Returns its new cameras (N,)
     bool, or None when no candidate touches main."""
     for part in candidates:
-        touching = part & main
-        if not touching.any():
-            across = used_pairs[(main[used_pairs] & part[used_pairs][:, ::-1]).any(axis=1)]
-            touching[across[main[across]]] = True
+        touching = _main_cameras_touched(part, main, used_pairs)
         if not touching.any():
             continue
         new = part & ~main
