@@ -33,6 +33,7 @@ from fullview.sfm.dense.planes import (PlaneOptions, View, check_against_views, 
 
 EXPLAINED_WEIGHT = 0.0  # a point already on an accepted plane counts this much towards the next one
 RANSAC_HYPOTHESES = 256  # plane hypotheses per accepted plane
+REFINE_SHRINK = (1.0, 0.5, 0.25, 0.25)  # inlier bands of the successive least-squares refinements (x distance)
 SCORE_SAMPLE = 20_000  # hypotheses are scored on at most this many points
 
 
@@ -156,8 +157,10 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
         score = (np.abs(sample @ normals.T - offsets) <= sample_tol[:, None]).T @ sample_weight
         best = int(np.argmax(score))
         normal, offset = normals[best], offsets[best]
-        for _refine in range(2):
-            inliers = np.abs(points @ normal - offset) <= tolerance
+        # least squares in shrinking bands: points of a neighbouring surface next to the shared edge pass the
+        # RANSAC band and would tilt the plane
+        for shrink in REFINE_SHRINK:
+            inliers = np.abs(points @ normal - offset) <= shrink * tolerance
             if inliers.sum() < 3:
                 break
             normal, offset = _fit(points[inliers])
