@@ -4,9 +4,9 @@ An indoor scene is mostly a few large planes, and stereo finds their borders (th
 ceiling meet) from several viewpoints. A region of one panorama whose edges leak (a wall and the ceiling together)
 has no single plane, but every pixel of it still lies on one of the world's planes. So:
 
-1. ``detect_world_planes``: sequential RANSAC on the stereo points of all panoramas (and the sparse points). A
-   point on the line where two surfaces meet supports both planes: points already explained by a plane count only
-   ``EXPLAINED_WEIGHT`` towards the next. A plane's **extent** is a grid in its own coordinates: the cells holding
+1. ``detect_world_planes``: sequential RANSAC on the stereo points of all panoramas (and the sparse points), level
+   or upright planes only (``max_tilt_deg``). A hypothesis scores the points no accepted plane explains yet, but a
+   point on the line where two surfaces meet still supports the extent of both. A plane's **extent** is a grid in its own coordinates: the cells holding
    its supporting points, closed over small gaps (``extent_closing_cells``) and with the holes they enclose filled
    (a plain wall is supported only along its border). An opening that reaches the border (a doorway) is not
    enclosed and stays outside the extent.
@@ -31,10 +31,9 @@ from fullview.sfm.camera import bearings_to_pixels_f32
 from fullview.sfm.dense.planes import (PlaneOptions, View, check_against_views, exposure_gain, image_regions,
                                        reduced_bearings_world)
 
-EXPLAINED_WEIGHT = 0.0  # a point already on an accepted plane counts this much towards the next one
 RANSAC_HYPOTHESES = 256  # plane hypotheses per accepted plane
 REFINE_SHRINK = (1.0, 0.5, 0.25, 0.25)  # inlier bands of the successive least-squares refinements (x distance)
-SCORE_SAMPLE = 20_000  # hypotheses are scored on at most this many points
+SCORE_SAMPLE = 8_000  # hypotheses are scored on at most this many unexplained points
 
 
 @dataclass(kw_only=True)
@@ -134,16 +133,16 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
     with the range."""
     points = np.asarray(points, np.float64)
     tolerance = options.distance * np.asarray(ranges, np.float64)
-    weight = np.ones(len(points))  # 1 until a plane explains the point
+    explained = np.zeros(len(points), bool)
     planes: list[WorldPlane] = []
     for _ in range(2 * options.max_planes):  # a tilted best plane costs a round
         if len(planes) >= options.max_planes:
             break
-        free = np.flatnonzero(weight == 1)
+        free = np.flatnonzero(~explained)
         if len(free) < max(options.min_support, 3):
             break
-        idx = rng.choice(len(points), min(SCORE_SAMPLE, len(points)), replace=False)
-        sample, sample_weight, sample_tol = points[idx], weight[idx], tolerance[idx]
+        idx = free[rng.choice(len(free), min(SCORE_SAMPLE, len(free)), replace=False)]
+        sample, sample_tol = points[idx].astype(np.float32), tolerance[idx].astype(np.float32)
         triples = free[rng.integers(0, len(free), size=(RANSAC_HYPOTHESES, 3))]
         a, b, c = points[triples[:, 0]], points[triples[:, 1]], points[triples[:, 2]]
         normals = np.cross(b - a, c - a)
@@ -154,7 +153,9 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
             continue
         normals = normals[ok] / norm[ok, None]
         offsets = np.einsum("ij,ij->i", normals, a[ok])
-        score = (np.abs(sample @ normals.T - offsets) <= sample_tol[:, None]).T @ sample_weight
+        # score: the points no accepted plane explains yet
+        score = np.count_nonzero(np.abs(sample @ normals.T.astype(np.float32) - offsets.astype(np.float32))
+                                 <= sample_tol[:, None], axis=0)
         best = int(np.argmax(score))
         normal, offset = normals[best], offsets[best]
         # least squares in shrinking bands: points of a neighbouring surface next to the shared edge pass the
@@ -167,11 +168,11 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
         inliers = np.abs(points @ normal - offset) <= tolerance
         if not _tilt_ok(normal[None], up, options.max_tilt_deg)[0]:
             continue
-        new = inliers & (weight == 1)
+        new = inliers & ~explained
         if new.sum() < options.min_support:
             # this plane does not hold enough unexplained points; the best hypothesis will not get better
             break
-        weight[inliers] = EXPLAINED_WEIGHT
+        explained |= inliers
         support = points[inliers]
         origin, axes, extent = _extent(support, normal, offset, options.cell, options.extent_closing_cells,
                                        options.extent_hull)
