@@ -8,7 +8,12 @@
    dropped).
 3b. Textureless regions (``densify.fill_planes``, ``fullview.sfm.dense.planes``): each edge-bounded region whose
    border depths lie on planes gets them where the views do not contradict it, and a filled pixel is kept only where
-   another panorama's own result (stereo, else its own fill) agrees. The maps are saved as ``depth/<stem>.npz``
+   another panorama's own result (stereo, else its own fill) agrees.
+3c. World planes (``densify.world_planes``, ``fullview.sfm.dense.world_planes``): the dominant level and upright planes
+   of the whole model (RANSAC on every panorama's stereo points and the sparse points), each within the extent its
+   points support minus what the views see through; a pixel still empty gets the nearest such plane its ray meets,
+   among those its image region's stereo depths support, kept under the same view checks and confirmation as 3b.
+   The maps are saved as ``depth/<stem>.npz``
    (``range``, ``valid``) and a colour-mapped ``depth/<stem>.png``.
 4. Fusion: every panorama's points are kept where the nearest other panoramas agree, voxel down-sampled per
    panorama (bounded memory), then merged, cleaned (statistical outliers), given normals and written to

@@ -6,17 +6,21 @@ has no single plane, but every pixel of it still lies on one of the world's plan
 
 1. ``detect_world_planes``: sequential RANSAC on the stereo points of all panoramas (and the sparse points), level
    or upright planes only (``max_tilt_deg``). A hypothesis scores the points no accepted plane explains yet, but a
-   point on the line where two surfaces meet still supports the extent of both. A plane's **extent** is a grid in its own coordinates: the cells holding
-   its supporting points, closed over small gaps (``extent_closing_cells``) and with the holes they enclose filled
-   (a plain wall is supported only along its border). An opening that reaches the border (a doorway) is not
-   enclosed and stays outside the extent.
-2. ``carve_extents``: every extent cell is looked at from every panorama; a cell that a panorama's stereo sees
-   through (a range clearly beyond it: a window, a doorway bridged by the closing) is removed, and a plane whose
-   extent is mostly seen through was invented (e.g. through two parallel lines across a room) and is dropped.
-3. ``label_pixels``: each empty pixel gets the nearest plane its ray meets inside that plane's extent (from inside
-   a room that is the surface it sees); small islands of one label are dropped.
-4. The stage then applies the per-point view check of ``planes.check_against_views`` (no other view sees through
-   it; its colour is seen by another view) and the per-tile confirmation by the other panoramas.
+   point on the line where two surfaces meet still supports the extent of both. A plane's **extent** is a grid in
+   its own coordinates: the cells holding its supporting points, closed over small gaps (``extent_closing_cells``)
+   and with the holes they enclose filled (a plain wall is supported only along its border). An opening that
+   reaches the border (a doorway) is not enclosed and stays outside the extent.
+2. ``carve_extents``: every extent cell is looked at from every panorama; a cell that panoramas' stereo sees
+   through more often than on it (a window, a doorway bridged by the closing) is removed, and a plane seen through
+   on more than half of the cells some view has a range for was invented (e.g. through two parallel lines across a
+   room) and is dropped.
+3. ``region_candidates`` and ``label_pixels``: each empty pixel gets the nearest plane its ray meets inside that
+   plane's extent (from inside a room that is the surface it sees), among the planes that explain at least a
+   quarter of the stereo depths around its image region (Canny edges and stereo pixels bound the regions, as in
+   ``planes``; a region may leak, it then holds several planes' evidence); small islands of one label are dropped.
+4. ``fill_from_world_planes`` keeps a filled point where ``planes.check_against_views`` does (no nearby view sees
+   through it; its colour is seen by another view); the stage then confirms it per tile by the other panoramas'
+   results (``planes.confirmed_by_views``), as for the region fill.
 """
 
 from __future__ import annotations
