@@ -185,6 +185,10 @@ class DensifyOptions:
                               le=65536)
     plane_tolerance: float = setting(0.03, "relative range difference within which a border depth lies on a plane",
                                      gt=0.0, le=0.5)
+    world_planes: bool = setting(True, "fill what is still empty with the dominant planes of the whole model, each "
+                                 "within the extent its points support (sfm/dense/world_planes.py)")
+    world_plane_distance: float = setting(0.015, "a point supports a world plane within this share of its range "
+                                          "(from the camera that measured it)", gt=0.0, le=0.2)
     seed: int = setting(0, "seed of the plane RANSAC of textureless filling", ge=0, le=2**31 - 1)
     mesh: bool = setting(True, "write densify/dense_mesh.ply: a Poisson mesh of the fused cloud, trimmed to what the "
                          "views support")

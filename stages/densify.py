@@ -8,7 +8,12 @@
    dropped).
 3b. Textureless regions (``densify.fill_planes``, ``fullview.sfm.dense.planes``): each edge-bounded region whose
    border depths lie on planes gets them where the views do not contradict it, and a filled pixel is kept only where
-   another panorama's own result (stereo, else its own fill) agrees. The maps are saved as ``depth/<stem>.npz``
+   another panorama's own result (stereo, else its own fill) agrees.
+3c. World planes (``densify.world_planes``, ``fullview.sfm.dense.world_planes``): the dominant level and upright planes
+   of the whole model (RANSAC on every panorama's stereo points and the sparse points), each within the extent its
+   points support minus what the views see through; a pixel still empty gets the nearest such plane its ray meets,
+   among those its image region's stereo depths support, kept under the same view checks and confirmation as 3b.
+   The maps are saved as ``depth/<stem>.npz``
    (``range``, ``valid``) and a colour-mapped ``depth/<stem>.png``.
 4. Fusion: every panorama's points are kept where the nearest other panoramas agree, voxel down-sampled per
    panorama (bounded memory), then merged, cleaned (statistical outliers), given normals and written to
@@ -30,7 +35,7 @@ from fullview.io.config import ConfigError
 from fullview.io.render import colorize_range, render_point_cloud
 from fullview.sfm import dense
 from fullview.sfm.camera import camera_center, camera_up
-from fullview.sfm.dense import planes
+from fullview.sfm.dense import planes, world_planes
 from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimates, fusion_neighbours,
                                 mask_below_latitude, pair_min_depth_ratio, range_error_per_pixel, scene_size)
 from fullview.sfm.dense_metrics import voxel_downsample
@@ -43,6 +48,7 @@ log = logging.getLogger(__name__)
 VERSION = 2
 UPSTREAM = ("triangulation",)
 INPUTS = ("images", "masks")
+WORLD_PLANE_CELL_SHARE = 0.04  # extent cells of the world planes: this share of the scene's median depth
 DEFAULT_VOXEL_SHARE = 0.002  # voxel size = this share of the scene size when densify.voxel_size is 0
 
 
@@ -66,7 +72,8 @@ def run(ctx: StageContext) -> dict:
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = {k: ctx.dataset.load_image(names[k], width=width) for k in cams}
     maps, pair_log = _range_maps(ctx, images, R, t, near, pairs)
-    filled = _fill_textureless(ctx, images, maps, R, t, centers) if config.fill_planes else {}
+    filled = _fill_textureless(ctx, images, maps, R, t, centers, sparse["points"], float(np.nanmedian(median_depth))) \
+        if config.fill_planes or config.world_planes else {}
     for k, (rng, valid) in maps.items():
         ctx.out.save_depth(names[k], rng, valid, colorize_range(rng, valid))
     checkers = min(config.fusion_views, len(maps) - 1)
@@ -160,7 +167,8 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
 
 
 # ------------------------------------------------------------------------------------------------ textureless
-def _fill_textureless(ctx: StageContext, images, maps, R, t, centers) -> dict[str, float]:
+def _fill_textureless(ctx: StageContext, images, maps, R, t, centers, sparse_points, median_depth: float
+                      ) -> dict[str, float]:
     """Fill each range map's textureless regions in place (module doc, step 3b); returns the filled share per
     panorama. Only where a stereo range could be: inside the latitude caps and the image mask."""
     config: DensifyOptions = ctx.options
@@ -171,8 +179,12 @@ def _fill_textureless(ctx: StageContext, images, maps, R, t, centers) -> dict[st
     observable = [_observable(config, ctx.dataset.load_mask(names[k]), maps[k][0].shape) for k in cams]
     views = [planes.view_of(R[k], t[k], maps[k][0], observable[a], images[k],
                             min(config.fill_width, maps[k][0].shape[1])) for a, k in enumerate(cams)]
-    fills = [planes.fill_plane_ranges(views[a], [views[b] for b in neighbours[a]], options, config.seed + k)
-             for a, k in enumerate(tqdm(cams, desc="planes", unit="pano"))]
+    fills = [(np.full(v.range_map.shape, np.nan, np.float32), np.zeros(v.range_map.shape, np.int32)) for v in views]
+    if config.fill_planes:
+        fills = [planes.fill_plane_ranges(views[a], [views[b] for b in neighbours[a]], options, config.seed + k)
+                 for a, k in enumerate(tqdm(cams, desc="planes", unit="pano"))]
+    if config.world_planes:
+        fills = _fill_world_planes(config, views, fills, neighbours, options, sparse_points, median_depth)
     shares = {}
     for a, k in enumerate(cams):
         others = neighbours[a]
@@ -187,6 +199,56 @@ def _fill_textureless(ctx: StageContext, images, maps, R, t, centers) -> dict[st
         shares[names[k]] = float(new.mean())
         log.info("planes: %s %.0f%% filled, %.0f%% valid", names[k], 100 * new.mean(), 100 * np.mean(maps[k][1]))
     return shares
+
+
+def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options, sparse_points, median_depth):
+    """Pixels the region fill left empty get the world plane their ray meets (``sfm.dense.world_planes``); the
+    labels of the two fills are kept apart (world plane labels are offset past the region labels)."""
+    t0 = time.perf_counter()
+    wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
+                                          cell=WORLD_PLANE_CELL_SHARE * median_depth,
+                                          view_tolerance=options.view_tolerance)
+    points, ranges = _model_points(views, sparse_points)
+    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
+                                             up=camera_up(np.array([v.R_cam_from_world for v in views])))
+    kept = world_planes.carve_extents(found, views, wopt)
+    log.info("world planes: %d found in %d points, %d kept after the free-space check (%.1f s)", len(found),
+             len(points), len(kept), time.perf_counter() - t0)
+    out = []
+    for a, view in enumerate(tqdm(views, desc="world planes", unit="pano")):
+        fill, labels = fills[a]
+        empty = planes.View(R_cam_from_world=view.R_cam_from_world, t_cam_from_world=view.t_cam_from_world,
+                            range_map=np.where(np.isfinite(fill), fill, view.range_map), observable=view.observable,
+                            color=view.color)
+        wfill, wlabels = world_planes.fill_from_world_planes(empty, kept, [views[b] for b in neighbours[a]], wopt,
+                                                             options)
+        new = np.isfinite(wfill) & ~np.isfinite(fill)
+        out.append((np.where(new, wfill, fill).astype(np.float32),
+                    np.where(new, wlabels + labels.max() + 1, labels).astype(np.int32)))
+    return out
+
+
+def _model_points(views: list[planes.View], sparse_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stereo points of all views (every other pixel of the reduced grid) and the sparse points, voxel
+    down-sampled at 0.5% of the median range: (points (N, 3), range (N,) from the camera that measured each; a sparse
+    point's nearest camera)."""
+    points, ranges = [], []
+    centers = np.array([-v.R_cam_from_world.T @ v.t_cam_from_world for v in views])
+    for view, center in zip(views, centers):
+        h, w = view.range_map.shape
+        rng = view.range_map[::2, ::2]
+        ok = np.isfinite(rng)
+        points.append(center + planes.reduced_bearings_world(view.R_cam_from_world, w, h)[::2, ::2][ok]
+                      * rng[ok][:, None])
+        ranges.append(rng[ok])
+    sparse = np.asarray(sparse_points, np.float64).reshape(-1, 3)
+    points.append(sparse)
+    ranges.append(np.linalg.norm(sparse[:, None] - centers[None], axis=2).min(axis=1) if len(sparse) else
+                  np.zeros(0))
+    points, ranges = np.concatenate(points), np.concatenate(ranges).astype(np.float64)
+    voxel = 0.005 * float(np.median(ranges))
+    points, ranges = voxel_downsample(points, voxel, ranges[:, None])
+    return points, ranges[:, 0]
 
 
 def _observable(config: DensifyOptions, mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:

@@ -22,7 +22,8 @@ The report's method, done carefully:
 Ranges (distances from the camera centre) rather than z-depths are used throughout; invalid ranges are NaN.
 
 Modules: ``rectify`` (step 1), ``disparity`` (2), ``depth`` (3, back to the panorama, ``densify_pair`` and the
-per-panorama range maps), ``fusion`` (4), ``pairs`` (which pairs, how deep to search), ``scene`` (sparse-scene scales).
+per-panorama range maps), ``fusion`` (4), ``pairs`` (which pairs, how deep to search), ``scene`` (sparse-scene scales),
+``planes`` (textureless regions: one plane per image region), ``world_planes`` (textureless pixels: the model's planes).
 """
 
 from fullview.sfm.camera import camera_center

@@ -1,0 +1,315 @@
+"""Plain surfaces as planes of the world, shared by all panoramas, rather than one plane per image region.
+
+An indoor scene is mostly a few large planes, and stereo finds their borders (the lines where walls, floor and
+ceiling meet) from several viewpoints. A region of one panorama whose edges leak (a wall and the ceiling together)
+has no single plane, but every pixel of it still lies on one of the world's planes. So:
+
+1. ``detect_world_planes``: sequential RANSAC on the stereo points of all panoramas (and the sparse points), level
+   or upright planes only (``max_tilt_deg``). A hypothesis scores the points no accepted plane explains yet, but a
+   point on the line where two surfaces meet still supports the extent of both. A plane's **extent** is a grid in
+   its own coordinates: the cells holding its supporting points, closed over small gaps (``extent_closing_cells``)
+   and with the holes they enclose filled (a plain wall is supported only along its border). An opening that
+   reaches the border (a doorway) is not enclosed and stays outside the extent.
+2. ``carve_extents``: every extent cell is looked at from every panorama; a cell that panoramas' stereo sees
+   through more often than on it (a window, a doorway bridged by the closing) is removed, and a plane seen through
+   on more than half of the cells some view has a range for was invented (e.g. through two parallel lines across a
+   room) and is dropped.
+3. ``region_candidates`` and ``label_pixels``: each empty pixel gets the nearest plane its ray meets inside that
+   plane's extent (from inside a room that is the surface it sees), among the planes that explain at least a
+   quarter of the stereo depths around its image region (Canny edges and stereo pixels bound the regions, as in
+   ``planes``; a region may leak, it then holds several planes' evidence); small islands of one label are dropped.
+4. ``fill_from_world_planes`` keeps a filled point where ``planes.check_against_views`` does (no nearby view sees
+   through it; its colour is seen by another view); the stage then confirms it per tile by the other panoramas'
+   results (``planes.confirmed_by_views``), as for the region fill.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from fullview.sfm.camera import bearings_to_pixels_f32
+from fullview.sfm.dense.planes import (PlaneOptions, View, check_against_views, exposure_gain, image_regions,
+                                       reduced_bearings_world)
+
+RANSAC_HYPOTHESES = 256  # plane hypotheses per accepted plane
+REFINE_SHRINK = (1.0, 0.5, 0.25, 0.25)  # inlier bands of the successive least-squares refinements (x distance)
+SCORE_SAMPLE = 8_000  # hypotheses are scored on at most this many unexplained points
+
+
+@dataclass(kw_only=True)
+class WorldPlaneOptions:
+    distance: float  # a point within this share of its range (from the camera that saw it) of a plane supports it
+    cell: float  # side of an extent cell (model units)
+    min_support: int = 150  # points (not yet explained) a plane needs
+    max_planes: int = 60
+    extent_closing_cells: int = 3  # gaps in a plane's support up to about this many cells are closed
+    extent_hull: bool = False  # extent: convex hull of each piece of support (else its enclosed holes filled)
+    max_tilt_deg: float = 5.0  # planes are level or upright within this angle (90: any orientation)
+    min_evidence_cells: int = 20  # a plane is judged by the free-space check only with this many cells seen
+    view_tolerance: float = 0.03  # relative range margin of "sees through" and of "occluded"
+    max_seen_through: float = 0.5  # a plane whose extent is seen through more than this share is dropped
+    min_incidence_deg: float = 8.0  # rays meeting a plane at a grazing angle are not filled
+    min_region_support: int = 10  # stereo depths around an image region a plane must explain to be taken there
+    min_region_share: float = 0.25  # ... and this share of them
+    min_island_pixels: int = 50  # smaller connected pieces of one label are not filled (reduced grid)
+
+
+@dataclass(kw_only=True)
+class WorldPlane:
+    normal: np.ndarray  # (3,) unit
+    offset: float  # normal · x = offset on the plane
+    origin: np.ndarray  # (3,) world point of extent cell (0, 0)'s corner
+    axes: np.ndarray  # (2, 3) in-plane unit axes (cell columns, cell rows)
+    cell: float
+    extent: np.ndarray  # (rows, cols) bool
+    support: int  # supporting points
+
+    def cells_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(row, col, inside the grid) of world points (assumed on the plane)."""
+        uv = (points - self.origin) @ self.axes.T / self.cell
+        col, row = np.floor(uv[:, 0]).astype(np.intp), np.floor(uv[:, 1]).astype(np.intp)
+        inside = (row >= 0) & (row < self.extent.shape[0]) & (col >= 0) & (col < self.extent.shape[1])
+        return np.where(inside, row, 0), np.where(inside, col, 0), inside
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        row, col, inside = self.cells_of(points)
+        return inside & self.extent[row, col]
+
+    def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, cols) of the extent cells and their (N, 3) world centres."""
+        rows, cols = np.nonzero(self.extent)
+        uv = np.stack([cols + 0.5, rows + 0.5], axis=1) * self.cell
+        return (rows, cols), self.origin + uv @ self.axes
+
+
+# ------------------------------------------------------------------------------------------------ detection
+def _plane_basis(normal: np.ndarray) -> np.ndarray:
+    """(2, 3) two unit axes spanning the plane of ``normal``."""
+    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
+    a = np.cross(normal, helper)
+    a /= np.linalg.norm(a)
+    return np.stack([a, np.cross(normal, a)])
+
+
+def _fit(points: np.ndarray) -> tuple[np.ndarray, float]:
+    centroid = points.mean(axis=0)
+    normal = np.linalg.svd(points - centroid, full_matrices=False)[2][2]
+    return normal, float(normal @ centroid)
+
+
+def _extent(support: np.ndarray, normal: np.ndarray, offset: float, cell: float, closing: int, hull: bool):
+    """(origin, axes, extent grid) of a plane from its supporting points."""
+    axes = _plane_basis(normal)
+    uv = support @ axes.T
+    lo = uv.min(axis=0) - cell
+    idx = np.floor((uv - lo) / cell).astype(np.intp)
+    shape = idx.max(axis=0)[::-1] + 2
+    grid = np.zeros(shape, np.uint8)
+    grid[idx[:, 1], idx[:, 0]] = 1
+    size = 2 * closing + 1
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    grid = cv2.morphologyEx(np.pad(grid, size), cv2.MORPH_CLOSE, kernel)[size:-size, size:-size]
+    if hull:
+        contours, _ = cv2.findContours(grid, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        cv2.fillPoly(grid, [cv2.convexHull(c) for c in contours], 1)
+    extent = ndimage.binary_fill_holes(grid > 0)
+    origin = normal * offset + lo @ axes
+    return origin, axes, extent
+
+
+def _tilt_ok(normals: np.ndarray, up: np.ndarray | None, max_tilt_deg: float) -> np.ndarray:
+    """Whether each normal (K, 3) is within ``max_tilt_deg`` of ``up`` or of the horizontal (level or upright
+    planes); all True without ``up``."""
+    if up is None or max_tilt_deg >= 90:
+        return np.ones(len(normals), bool)
+    sin_up = np.abs(normals @ up)
+    return (sin_up >= np.cos(np.radians(max_tilt_deg))) | (sin_up <= np.sin(np.radians(max_tilt_deg)))
+
+
+def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.Generator,
+                        options: WorldPlaneOptions, up: np.ndarray | None = None) -> list[WorldPlane]:
+    """The dominant planes of a point cloud (N, 3) by sequential RANSAC, each with its supported extent. A point
+    supports a plane within ``distance`` times its range (N,) from the camera that measured it: stereo errors grow
+    with the range."""
+    points = np.asarray(points, np.float64)
+    tolerance = options.distance * np.asarray(ranges, np.float64)
+    explained = np.zeros(len(points), bool)
+    planes: list[WorldPlane] = []
+    for _ in range(2 * options.max_planes):  # a tilted best plane costs a round
+        if len(planes) >= options.max_planes:
+            break
+        free = np.flatnonzero(~explained)
+        if len(free) < max(options.min_support, 3):
+            break
+        idx = free[rng.choice(len(free), min(SCORE_SAMPLE, len(free)), replace=False)]
+        sample, sample_tol = points[idx].astype(np.float32), tolerance[idx].astype(np.float32)
+        triples = free[rng.integers(0, len(free), size=(RANSAC_HYPOTHESES, 3))]
+        a, b, c = points[triples[:, 0]], points[triples[:, 1]], points[triples[:, 2]]
+        normals = np.cross(b - a, c - a)
+        norm = np.linalg.norm(normals, axis=1)
+        ok = norm > 1e-12
+        ok[ok] = _tilt_ok(normals[ok] / norm[ok, None], up, options.max_tilt_deg)
+        if not ok.any():
+            continue
+        normals = normals[ok] / norm[ok, None]
+        offsets = np.einsum("ij,ij->i", normals, a[ok])
+        # score: the points no accepted plane explains yet
+        score = np.count_nonzero(np.abs(sample @ normals.T.astype(np.float32) - offsets.astype(np.float32))
+                                 <= sample_tol[:, None], axis=0)
+        best = int(np.argmax(score))
+        normal, offset = normals[best], offsets[best]
+        # least squares in shrinking bands: points of a neighbouring surface next to the shared edge pass the
+        # RANSAC band and would tilt the plane
+        for shrink in REFINE_SHRINK:
+            inliers = np.abs(points @ normal - offset) <= shrink * tolerance
+            if inliers.sum() < 3:
+                break
+            normal, offset = _fit(points[inliers])
+        inliers = np.abs(points @ normal - offset) <= tolerance
+        if not _tilt_ok(normal[None], up, options.max_tilt_deg)[0]:
+            continue
+        new = inliers & ~explained
+        if new.sum() < options.min_support:
+            # this plane does not hold enough unexplained points; the best hypothesis will not get better
+            break
+        explained |= inliers
+        support = points[inliers]
+        origin, axes, extent = _extent(support, normal, offset, options.cell, options.extent_closing_cells,
+                                       options.extent_hull)
+        planes.append(WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell,
+                                 extent=extent, support=int(inliers.sum())))
+    return planes
+
+
+# ------------------------------------------------------------------------------------------------ free space
+def carve_extents(planes: list[WorldPlane], views: list[View], options: WorldPlaneOptions) -> list[WorldPlane]:
+    """Remove the extent cells that a view's stereo sees through; drop planes seen through on most of their
+    of the cells some view has a range for (invented planes). Returns the planes kept (extents modified in place)."""
+    kept = []
+    for plane in planes:
+        (rows, cols), centers = plane.cell_centers()
+        if not len(rows):
+            continue
+        through = np.zeros(len(rows), np.int32)
+        on = np.zeros(len(rows), np.int32)
+        for view in views:
+            x_cam = (centers @ view.R_cam_from_world.T + view.t_cam_from_world).astype(np.float32)
+            r_pred = np.linalg.norm(x_cam, axis=1)
+            h, w = view.range_map.shape
+            u, v = bearings_to_pixels_f32(x_cam / r_pred[:, None], w, h)
+            col, row = np.clip(u.astype(np.intp), 0, w - 1), np.clip(v.astype(np.intp), 0, h - 1)
+            r_obs = view.range_map[row, col]
+            seen = view.observable[row, col]
+            with np.errstate(invalid="ignore"):
+                through += seen & (r_obs > (1 + options.view_tolerance) * r_pred)
+                on += seen & (np.abs(r_obs - r_pred) <= options.view_tolerance * r_pred)
+        carved = through > on
+        judged = (through + on) > 0
+        if judged.sum() >= options.min_evidence_cells and carved.sum() > options.max_seen_through * judged.sum():
+            continue
+        plane.extent[rows[carved], cols[carved]] = False
+        kept.append(plane)
+    return kept
+
+
+# ------------------------------------------------------------------------------------------------ per pixel
+def region_candidates(ref: View, planes: list[WorldPlane], regions: np.ndarray, options: WorldPlaneOptions
+                      ) -> np.ndarray:
+    """(regions, planes) bool: the world planes a panorama's image region may take, those that explain at least
+    ``min_region_support`` of the stereo depths inside or around it (``planes._region_evidence``). A plane crossing
+    the room without being a surface there has no such support in the region's own view."""
+    from fullview.sfm.dense.planes import _region_evidence
+
+    allowed = np.zeros((int(regions.max()) + 1, len(planes)), bool)
+    region, rows, cols = _region_evidence(regions, ref.range_map)
+    if not len(region) or not planes:
+        return allowed
+    h, w = ref.range_map.shape
+    bearings = reduced_bearings_world(ref.R_cam_from_world, w, h)[rows, cols].astype(np.float64)
+    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
+    observed = ref.range_map[rows, cols].astype(np.float64)
+    normals = np.array([p.normal for p in planes])
+    offsets = np.array([p.offset for p in planes])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = (offsets - normals @ center)[None] / (bearings @ normals.T)
+        on = np.abs(r - observed[:, None]) <= options.view_tolerance * observed[:, None]
+    counts = np.zeros(allowed.shape, np.int64)
+    np.add.at(counts, region, on.astype(np.int64))
+    total = np.bincount(region, minlength=len(allowed))[:, None]
+    return (counts >= options.min_region_support) & (counts >= options.min_region_share * total)
+
+
+def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, options: WorldPlaneOptions,
+                 regions: np.ndarray | None = None, allowed: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """((h, w) float32 range, (h, w) int32 label: plane index + 1, 0 none) of the ``fillable`` pixels of ``ref``:
+    the nearest plane each ray meets inside its extent (in front, not grazing), among the planes ``allowed``
+    (regions, planes) in the pixel's image region (``regions``), if given."""
+    h, w = ref.range_map.shape
+    best = np.full(h * w, np.inf, np.float32)
+    label = np.zeros(h * w, np.int32)
+    pix = np.flatnonzero(fillable.ravel())
+    if not len(pix) or not planes:
+        return np.full((h, w), np.nan, np.float32), label.reshape(h, w)
+    bearings = reduced_bearings_world(ref.R_cam_from_world, w, h).reshape(-1, 3)[pix].astype(np.float64)
+    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
+    min_cos = np.sin(np.radians(options.min_incidence_deg))
+    pix_regions = regions.ravel()[pix] if regions is not None else None
+    for k, plane in enumerate(planes):
+        cos = bearings @ plane.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = (plane.offset - plane.normal @ center) / cos
+        hit = (r > 0) & (np.abs(cos) >= min_cos) & (r < best[pix])
+        if regions is not None:
+            hit &= allowed[pix_regions, k]
+        if not hit.any():
+            continue
+        sel = np.flatnonzero(hit)
+        inside = plane.contains(center + bearings[sel] * r[sel, None])
+        sel = sel[inside]
+        best[pix[sel]] = r[sel]
+        label[pix[sel]] = k + 1
+    label = _drop_islands(label.reshape(h, w), options.min_island_pixels)
+    out = np.where(label > 0, best.reshape(h, w), np.nan).astype(np.float32)
+    return out, label
+
+
+def _drop_islands(label: np.ndarray, min_pixels: int) -> np.ndarray:
+    """Labels with the connected pieces (per label, 4-connected) smaller than ``min_pixels`` set to 0."""
+    if min_pixels <= 1 or not label.any():
+        return label
+    out = label.copy()
+    for k in np.unique(label[label > 0]):
+        n, comp, stats, _ = cv2.connectedComponentsWithStats((label == k).astype(np.uint8), connectivity=4)
+        small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < min_pixels)
+        small = small[small > 0]
+        if len(small):
+            out[np.isin(comp, small)] = 0
+    return out
+
+
+def fill_from_world_planes(ref: View, planes: list[WorldPlane], others: list[View], options: WorldPlaneOptions,
+                           view_options: PlaneOptions) -> tuple[np.ndarray, np.ndarray]:
+    """((h, w) float32 ranges, (h, w) int32 plane labels) for the pixels of ``ref`` without a stereo range: the
+    world plane its ray meets (``label_pixels``), kept where no other view sees through it and its colour is seen
+    (``planes.check_against_views``)."""
+    fillable = ~np.isfinite(ref.range_map) & ref.observable
+    gray = cv2.cvtColor(np.clip(ref.color, 0, 255).astype(np.uint8), cv2.COLOR_BGR2GRAY)
+    regions = image_regions(gray, view_options, np.isfinite(ref.range_map))
+    allowed = region_candidates(ref, planes, regions, options)
+    fill, label = label_pixels(ref, planes, fillable, options, regions, allowed)
+    rows, cols = np.nonzero(label)
+    if not len(rows):
+        return fill, label
+    h, w = fill.shape
+    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
+    points = center + reduced_bearings_world(ref.R_cam_from_world, w, h)[rows, cols] * fill[rows, cols, None]
+    keep = check_against_views(points, ref.color[rows, cols], others, [exposure_gain(ref, o) for o in others],
+                               view_options)
+    fill[rows[~keep], cols[~keep]] = np.nan
+    label[rows[~keep], cols[~keep]] = 0
+    return fill, label
