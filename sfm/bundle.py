@@ -70,10 +70,10 @@ _LM_DAMPING_BOUNDS = (1e-12, 1e12)
 _MIN_DIAGONAL = 1e-12
 # Reduced camera systems up to this many unknowns are solved dense (Cholesky), larger ones sparse (LU).
 _DENSE_CAMERA_UNKNOWNS = 3000
-# Dense Schur products: entries of one chunk of the (6N, 3·points) matrix, and how many flops of a BLAS product cost
-# what one observation pair costs in numpy (measured ~1 µs a pair against ~30 GFLOP/s).
+# Dense Schur products: entries of one chunk of the (6N, 3·points) matrix, and how many multiply-adds of a BLAS
+# product cost what one observation pair costs in numpy (measured ~0.8 µs a pair against ~10 G multiply-adds/s).
 _DENSE_SCHUR_ENTRIES = 4_000_000
-_DENSE_SCHUR_ADVANTAGE = 3e4
+_PAIR_FLOPS = 8000.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -337,10 +337,12 @@ class _SchurSystem:
         self.groups = [self._grouped(first, second), self._grouped(diagonal, diagonal)]
         self.pt_order = order
         self.pt_sorted = pt[order]
-        # The Schur complement by dense matrix products costs 36·N²·P flops at BLAS speed, by observation pairs
-        # ~36·pairs at numpy's gather speed (~1 µs a pair): dense wins unless tracks are short among many cameras.
-        moving_cameras = int((lay.cam_dof > 0).sum())
-        self.dense_products = 18.0 * moving_cameras**2 * p < _DENSE_SCHUR_ADVANTAGE * (len(first) + len(diagonal))
+        # The Schur complement by dense matrix products costs 108·(cameras of a chunk)²·(its points) multiply-adds
+        # at BLAS speed, by observation pairs 108 each at numpy's gather speed: dense wins unless tracks are short
+        # among many cameras.
+        self.chunks = self._dense_chunks()
+        dense_flops = sum(108.0 * len(cameras) ** 2 * len(np.unique(pt[obs])) for obs, _, cameras in self.chunks)
+        self.dense_products = dense_flops < _PAIR_FLOPS * (len(first) + len(diagonal))
 
     def _grouped(self, first: np.ndarray, second: np.ndarray):
         """Observation pairs sorted by camera pair, with the start of each camera pair's run and its cameras."""
@@ -419,22 +421,30 @@ class _SchurSystem:
         S = csr_matrix(coo_matrix((b.ravel(), (r6, c6)), shape=(6 * n, 6 * n)))[self.active][:, self.active]
         return spsolve(S.tocsc(), rhs)
 
+    def _dense_chunks(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Chunks of consecutive points for `_dense_correction`: (observations, their local row of a chunk camera,
+        the chunk's cameras). At most `_DENSE_SCHUR_ENTRIES` entries of the dense (6·cameras, 3·points) matrix."""
+        chunks, size = [], max(1, _DENSE_SCHUR_ENTRIES // (18 * self.num_cameras))
+        for lo in range(0, self.num_points, size):
+            obs = self.pt_order[slice(*np.searchsorted(self.pt_sorted, [lo, lo + size]))]
+            cameras, local = np.unique(self.cam[obs], return_inverse=True)
+            chunks.append((obs, local, cameras))
+        return chunks
+
     def _dense_correction(self, V_inv: np.ndarray, W: np.ndarray) -> np.ndarray:
-        """−W V⁻¹ Wᵀ as a dense (6N, 6N) matrix: with V⁻¹ = L Lᵀ per point and Z = W L scattered into a dense
-        (6N, 3·points) matrix, it is −Z Zᵀ, one matrix product (BLAS) per chunk of points."""
-        n, p = self.num_cameras, self.num_points
+        """−W V⁻¹ Wᵀ as a dense (6N, 6N) matrix: with V⁻¹ = L Lᵀ per point and Z = W L, it is −Z Zᵀ, Z scattered into
+        a dense (6·cameras, 3·points) matrix per chunk of points (only the chunk's cameras): one BLAS product each."""
+        n = self.num_cameras
         Z = W @ np.linalg.cholesky(V_inv)[self.pt]  # (K, 6, 3)
         S = np.zeros((6 * n, 6 * n))
-        chunk = max(1, _DENSE_SCHUR_ENTRIES // (18 * n))
-        for lo in range(0, p, chunk):
-            hi = min(p, lo + chunk)
-            obs = slice(*np.searchsorted(self.pt_sorted, [lo, hi]))
-            k = self.pt_order[obs]
-            index = ((6 * self.cam[k, None, None] + np.arange(6)[:, None]) * (3 * (hi - lo))
-                     + 3 * (self.pt[k, None, None] - lo) + np.arange(3))
-            Z_dense = np.bincount(index.ravel(), weights=Z[k].ravel(), minlength=18 * n * (hi - lo))
-            Z_dense = Z_dense.reshape(6 * n, 3 * (hi - lo))
-            S -= Z_dense @ Z_dense.T
+        for obs, local, cameras in self.chunks:
+            lo, width = self.pt[obs].min(), 3 * (self.pt[obs].max() - self.pt[obs].min() + 1)
+            index = ((6 * local[:, None, None] + np.arange(6)[:, None]) * width
+                     + 3 * (self.pt[obs, None, None] - lo) + np.arange(3))
+            Z_dense = np.bincount(index.ravel(), weights=Z[obs].ravel(), minlength=6 * len(cameras) * width)
+            Z_dense = Z_dense.reshape(6 * len(cameras), width)
+            rows = (6 * cameras[:, None] + np.arange(6)).ravel()
+            S[np.ix_(rows, rows)] -= Z_dense @ Z_dense.T
         return S
 
 
