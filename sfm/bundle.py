@@ -328,21 +328,30 @@ class _SchurSystem:
         self.point_col = lay.point_col
         self.by_camera = csr_matrix((np.ones(k), (cam, np.arange(k))), shape=(n, k))
         self.by_point = csr_matrix((np.ones(k), (pt, np.arange(k))), shape=(p, k))
-        order = np.argsort(pt, kind="stable")
-        first, second = _pairs_within_tracks(np.r_[0, np.cumsum(np.bincount(pt, minlength=p))])
-        first, second = order[first], order[second]
-        moving = lay.cam_dof[cam] > 0
-        first, second = first[moving[first] & moving[second]], second[moving[first] & moving[second]]
-        diagonal = np.flatnonzero(moving)
-        self.groups = [self._grouped(first, second), self._grouped(diagonal, diagonal)]
-        self.pt_order = order
-        self.pt_sorted = pt[order]
+        self.pt_order = np.argsort(pt, kind="stable")
+        self.pt_sorted = pt[self.pt_order]
+        self.moving = lay.cam_dof[cam] > 0
+        self.chunks = self._dense_chunks()
         # The Schur complement by dense matrix products costs 108·(cameras of a chunk)²·(its points) multiply-adds
         # at BLAS speed, by observation pairs 108 each at numpy's gather speed: dense wins unless tracks are short
-        # among many cameras.
-        self.chunks = self._dense_chunks()
+        # among many cameras. The pairs themselves are listed only when used (they grow with the tracks' squares).
         dense_flops = sum(108.0 * len(cameras) ** 2 * len(np.unique(pt[obs])) for obs, _, cameras in self.chunks)
-        self.dense_products = dense_flops < _PAIR_FLOPS * (len(first) + len(diagonal))
+        m = np.bincount(pt[self.moving], minlength=p).astype(np.float64)  # moving observations per point
+        self.dense_products = dense_flops < _PAIR_FLOPS * float((m * (m + 1) / 2).sum())
+        self._groups = None
+
+    @property
+    def groups(self):
+        """Pairs (k before l) of observations of one point by two moving cameras, and the diagonal (k, k), each
+        grouped by camera pair (see `_grouped`)."""
+        if self._groups is None:
+            p = self.num_points
+            first, second = _pairs_within_tracks(np.r_[0, np.cumsum(np.bincount(self.pt, minlength=p))])
+            first, second = self.pt_order[first], self.pt_order[second]
+            both = self.moving[first] & self.moving[second]
+            diagonal = np.flatnonzero(self.moving)
+            self._groups = [self._grouped(first[both], second[both]), self._grouped(diagonal, diagonal)]
+        return self._groups
 
     def _grouped(self, first: np.ndarray, second: np.ndarray):
         """Observation pairs sorted by camera pair, with the start of each camera pair's run and its cameras."""
