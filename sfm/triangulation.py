@@ -231,3 +231,19 @@ def filter_tracks(
         min_angle_rad, (finite & ~wide_angle).sum(), (finite & ~in_front).sum(),
     )
     return keep
+
+
+def longest_tracks_per_image(tracks: Tracks, per_image: int) -> np.ndarray:
+    """(T,) bool: the tracks among the `per_image` longest (ties by track index) of at least one of their images.
+
+    Long tracks constrain the poses most; every image keeps min(per_image, its tracks) of them, so a pose-only
+    adjustment on this subset sees every camera (the others' points are re-triangulated afterwards anyway)."""
+    lengths = tracks.lengths[tracks.track_ids]
+    order = np.lexsort((tracks.track_ids, -lengths, tracks.image_ids))  # per image: longest first, then by index
+    per_image_count = np.bincount(tracks.image_ids, minlength=tracks.num_images)
+    starts = np.cumsum(per_image_count) - per_image_count
+    rank = np.empty(tracks.num_observations, np.int64)
+    rank[order] = np.arange(tracks.num_observations) - np.repeat(starts, per_image_count)
+    keep = np.zeros(tracks.num_tracks, bool)
+    keep[tracks.track_ids[rank < per_image]] = True
+    return keep

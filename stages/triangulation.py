@@ -1,7 +1,8 @@
 """Stage 6 — tracks, multi-view triangulation, filtering and bundle adjustment; npz, PLY and COLMAP text models.
 
-Two rounds: triangulate with the registration's poses and keep tracks under a loose error bound, bundle-adjust,
-then re-triangulate every track with the refined poses, apply the configured bounds and bundle-adjust again.
+Two rounds: triangulate with the registration's poses and keep tracks under a loose error bound, bundle-adjust
+the poses on each image's longest of them, then re-triangulate every track with the refined poses, apply the
+configured bounds and bundle-adjust again.
 Every model of the registration is adjusted in its own frame (one problem, its first camera fixed per model: tracks
 never span two models, since only pairs inside one model are consistent) and written as ``models/<k>/``.
 """
@@ -15,7 +16,8 @@ from fullview.io.exports import SparseModel, split_models, write_colmap_model
 from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.tracks import Tracks, build_tracks
 from fullview.sfm.options import TriangulationOptions
-from fullview.sfm.triangulation import filter_tracks, gather_bearings, triangulate_multiview
+from fullview.sfm.triangulation import (filter_tracks, gather_bearings, longest_tracks_per_image,
+                                        triangulate_multiview)
 from fullview.stages.protocol import StageContext
 from fullview.stages.registration import track_matches
 
@@ -25,6 +27,10 @@ VERSION = 2
 UPSTREAM = ("registration",)
 INPUTS: tuple[str, ...] = ()
 LOOSE_FACTOR = 4.0  # first round keeps tracks up to this multiple of the final error bound
+# The first round only refines the poses (every track is re-triangulated after it): each image's longest tracks
+# suffice. On the 24-view room 1,500 per image (17% of the points) give the rotations of the full adjustment within
+# 0.002° (median) for a third of its time.
+POSE_ROUND_TRACKS_PER_IMAGE = 1500
 
 
 def run(ctx: StageContext) -> dict:
@@ -44,7 +50,8 @@ def run(ctx: StageContext) -> dict:
     keep = _triangulate_and_filter(tracks, bearings, R, t, LOOSE_FACTOR * max_err, min_angle)
     tracks_kept, points = tracks.subset(keep[0]), keep[1]
     if config.bundle_adjust and tracks_kept.num_tracks:
-        R, t, points, _ = _bundle(tracks_kept, bearings, R, t, points, model_id, config)
+        pose_tracks = longest_tracks_per_image(tracks_kept, POSE_ROUND_TRACKS_PER_IMAGE)
+        R, t, _, _ = _bundle(tracks_kept.subset(pose_tracks), bearings, R, t, points[pose_tracks], model_id, config)
     mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
     final = tracks.subset(mask)
     errors = triangulate_multiview(final, bearings, R, t).obs_error_rad

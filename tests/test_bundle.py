@@ -12,8 +12,11 @@ import pytest
 from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 
+import fullview.sfm.bundle as bundle_module
 from fullview.sfm.bundle import (
     _build_layout,
+    _SchurSystem,
+    _WeightedResiduals,
     _jacobian_structure,
     _pack,
     _Problem,
@@ -149,6 +152,29 @@ def test_recovers_poses_without_noise_and_keeps_gauge():
     np.testing.assert_allclose(C, C[0] + scale * (s["centers"] - s["centers"][0]), atol=1e-6)
     np.testing.assert_allclose(res.points, C[0] + scale * (s["points"] - s["centers"][0]), atol=1e-5)
     assert res.obs_error_rad.max() < 1e-7
+
+
+@pytest.mark.parametrize("path", ["dense products", "observation pairs", "sparse LU"])
+def test_schur_step_solves_the_damped_normal_equations(path, monkeypatch):
+    """Every way of assembling and solving the reduced camera system gives the step of the full damped system."""
+    rng = np.random.default_rng(11)
+    s = _scene(rng, num_cameras=6, num_points=60)
+    R, t, points = _perturb(rng, s)
+    prob = _problem(R, t, points, s["cam"], s["pt"], s["bearings"])
+    objective = _WeightedResiduals(prob)
+    objective.sqrt_w = rng.uniform(0.5, 1.0, len(s["cam"]))
+    if path == "sparse LU":
+        monkeypatch.setattr(bundle_module, "_DENSE_CAMERA_UNKNOWNS", 0)
+    system = _SchurSystem(prob)
+    system.dense_products = path == "dense products"
+    x = _pack(prob.layout, -np.einsum("nji,nj->ni", R, t), points)
+    damping = 1e-3
+    step, predicted = system.solve(objective.fun(x).reshape(-1, 2), objective.jac_blocks(x), damping)
+    J, r = objective.jac(x).toarray(), objective.fun(x)
+    JtJ = J.T @ J
+    expected = np.linalg.solve(JtJ + damping * np.diag(np.maximum(np.diag(JtJ), 1e-12)), -J.T @ r)
+    np.testing.assert_allclose(step, expected, rtol=1e-7, atol=1e-10 * np.abs(expected).max())
+    assert predicted == pytest.approx(0.5 * (r @ r) - 0.5 * np.sum((r + J @ expected) ** 2), rel=1e-8)
 
 
 def test_two_fixed_cameras_fix_the_scale():

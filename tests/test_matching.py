@@ -81,3 +81,20 @@ def test_pair_blocks_cover_every_pair_once_with_few_images(num_images, mode, blo
     blocks = pair_blocks(pairs, block)
     assert sorted(k for b in blocks for k in b) == list(range(len(pairs)))
     assert all(len({i for k in b for i in pairs[k]}) <= 2 * block for b in blocks)
+
+
+@pytest.mark.parametrize("b_unit", [True, False])
+def test_similarity_search_finds_exactly_the_distance_search_matches(b_unit):
+    """RootSIFT rows take the similarity path (one pass besides the product); forcing the distance path with an
+    all-allowed mask must give the same matches: exact search, not an approximation (recall 1)."""
+    rng = np.random.default_rng(3)
+    a = _descriptors(rng, 1500)
+    b = np.vstack([a[rng.permutation(1500)[:1000]] + rng.normal(size=(1000, 128)).astype(np.float32) * 0.03,
+                   _descriptors(rng, 800)])
+    if not b_unit:
+        b *= rng.uniform(0.8, 1.2, (len(b), 1)).astype(np.float32)
+    everything = lambda start, stop: np.ones((stop - start, len(b)), bool)  # noqa: E731
+    fast = match_descriptors(a, b, MatchesOptions(), block_rows=256)
+    exact = match_descriptors(a, b, MatchesOptions(), block_rows=256, allowed=everything)
+    assert len(exact) > 500
+    assert set(map(tuple, fast.tolist())) == set(map(tuple, exact.tolist()))

@@ -232,3 +232,27 @@ def test_no_tracks_gives_empty_results():
     res = triangulate_multiview(tracks, [np.eye(3)] * 2, np.stack([np.eye(3)] * 2), np.zeros((2, 3)))
     assert res.points.shape == (0, 3) and res.max_angle_rad.shape == (0,)
     assert filter_tracks(res, max_error_rad=0.01, min_angle_rad=0.01).shape == (0,)
+
+
+def test_longest_tracks_per_image_keeps_each_images_longest():
+    from fullview.sfm.tracks import build_tracks
+    from fullview.sfm.triangulation import longest_tracks_per_image
+    rng = np.random.default_rng(0)
+    num_images, num_features = 5, 40
+    matches = {}
+    for i in range(num_images):
+        for j in range(i + 1, num_images):
+            f = rng.choice(num_features, size=25, replace=False)
+            matches[(i, j)] = np.stack([f, f], 1)  # feature k of every image is one scene point
+    tracks, _ = build_tracks(matches, [num_features] * num_images)
+    per_image = 7
+    keep = longest_tracks_per_image(tracks, per_image)
+    lengths = tracks.lengths
+    for image in range(num_images):
+        mine = np.unique(tracks.track_ids[tracks.image_ids == image])
+        kept = mine[keep[mine]]
+        assert len(kept) >= min(per_image, len(mine))
+        # no track of this image left out is longer than the shortest of its per_image longest
+        best = np.sort(lengths[mine])[::-1][:per_image]
+        assert lengths[mine[~keep[mine]]].max(initial=0) <= best.min()
+    assert longest_tracks_per_image(tracks, 10**6).all()
