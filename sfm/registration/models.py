@@ -218,10 +218,13 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
         new = None
         for k in [k for k in pending if k not in failed and _touches(parts[k], main, pairs[used])]:
             part = parts[k]
-            main_points = model_points(tracks, bearings, R, C, main, point_err, point_angle)
-            part_points = model_points(tracks, bearings, R, C, part, point_err, point_angle)
+            # Only cameras near the join can see what both sides see: bounding the points and the 2D-3D matching
+            # to them keeps each attempt's cost independent of the model's size (a 200-view walk has many parts).
+            near_main, near_part = _near_cameras(main, part, pairs[used]), _near_cameras(part, main, pairs[used])
+            main_points = model_points(tracks, bearings, R, C, near_main, point_err, point_angle)
+            part_points = model_points(tracks, bearings, R, C, near_part, point_err, point_angle)
             extra = None if descriptors is None else _matched_cross_observations(
-                tracks, bearings, descriptors, R, C, main, part, main_points, part_points)
+                tracks, bearings, descriptors, R, C, near_main, near_part, main_points, part_points)
             join = estimate_join(R_cam_from_world=R, centers=C, main=main, part=part, main_points=main_points,
                                  part_points=part_points, tracks=tracks, bearings=bearings, pairs=pairs[used],
                                  directions=directions[used], extra=extra,
@@ -251,6 +254,16 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
         log.warning("%d image(s) in rigid parts whose scale to model %d no shared points fix: placed again by points "
                     "or as a model of their own", left.sum(), m)
     return parts[0] & placed, main & placed, C
+
+
+def _near_cameras(side: np.ndarray, other: np.ndarray, used_pairs: np.ndarray, hops: int = 2) -> np.ndarray:
+    """(N,) the cameras of `side` within `hops` used pairs of a camera of `other` (shared cameras included)."""
+    reach = other.copy()
+    for _ in range(hops):
+        step = reach[used_pairs]
+        reach[used_pairs[step[:, 0], 1]] = True
+        reach[used_pairs[step[:, 1], 0]] = True
+    return side & reach
 
 
 def _touches(part: np.ndarray, cameras: np.ndarray, used_pairs: np.ndarray) -> bool:
@@ -305,6 +318,8 @@ def _matched_cross_observations(tracks: Tracks, bearings, descriptors, R, C, mai
         if len(X) < 2:
             continue
         point_descriptors, track_of_point = _point_descriptors(tracks, side, of_track, descriptors)
+        if not point_descriptors.any():
+            continue
         for b in np.flatnonzero(cams):
             matches = match_descriptors(descriptors[b], point_descriptors, MATCHING)
             if not len(matches):
