@@ -74,6 +74,9 @@ _DENSE_CAMERA_UNKNOWNS = 3000
 # product cost what one observation pair costs in numpy (measured ~0.8 µs a pair against ~10 G multiply-adds/s).
 _DENSE_SCHUR_ENTRIES = 4_000_000
 _PAIR_FLOPS = 8000.0
+# Listed observation pairs hold ~0.8 kB each (the 96-view room's 3.4 M took 2 GB); above this many the dense products,
+# whose chunks are bounded, are used whatever they cost, so memory stays bounded.
+_MAX_OBSERVATION_PAIRS = 500_000
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -337,7 +340,8 @@ class _SchurSystem:
         # among many cameras. The pairs themselves are listed only when used (they grow with the tracks' squares).
         dense_flops = sum(108.0 * len(cameras) ** 2 * len(np.unique(pt[obs])) for obs, _, cameras in self.chunks)
         m = np.bincount(pt[self.moving], minlength=p).astype(np.float64)  # moving observations per point
-        self.dense_products = dense_flops < _PAIR_FLOPS * float((m * (m + 1) / 2).sum())
+        num_pairs = float((m * (m + 1) / 2).sum())
+        self.dense_products = dense_flops < _PAIR_FLOPS * num_pairs or num_pairs > _MAX_OBSERVATION_PAIRS
         self._groups = None
 
     @property
