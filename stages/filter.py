@@ -161,13 +161,42 @@ def _verify_pair(bear_i, bear_j, matches, hand, threshold, options: FilterOption
     opts = two_view.RansacOptions(threshold_rad=threshold, max_iterations=options.max_iterations,
                                   confidence=options.confidence, seed=seed)
     try:
-        if hand is not None:
-            res = two_view.fit_f_seeded(bear_i[hand[:, 0]], bear_j[hand[:, 1]], b_i, b_j, threshold)
-        elif np.isfinite(gravity[0]).all() and np.isfinite(gravity[1]).all():
-            res = _fit_upright(b_i, b_j, gravity, opts)
+        if hand is None:
+            res = _fit_matches(b_i, b_j, gravity, opts)
         else:
-            res = two_view.ransac_f(b_i, b_j, opts)
+            h_i, h_j = bear_i[hand[:, 0]], bear_j[hand[:, 1]]
+            res = two_view.fit_f_seeded(h_i, h_j, b_i, b_j, threshold)
+            if len(matches) >= options.min_inliers:
+                res = _better_of_seeded_and_free(res, h_i, h_j, b_i, b_j, gravity, opts)
     except ValueError as e:  # too few correspondences: the pair is simply not verified
         log.debug("pair not verified: %s", e)
         return np.zeros((3, 3)), np.zeros(len(matches), bool)
     return res.F, res.inliers
+
+
+# Clicked points are a pixel or so off (0.35° at 1024 px, as much as the inlier threshold): a fit explains them when
+# they lie within this many thresholds of its epipolar circles.
+HAND_CHECK_THRESHOLDS = 3.0
+
+
+def _fit_matches(b_i, b_j, gravity, opts: two_view.RansacOptions) -> two_view.FResult:
+    """F from the matches alone: the upright solver when both gravities are known, else LO-MSAC."""
+    if np.isfinite(gravity[0]).all() and np.isfinite(gravity[1]).all():
+        return _fit_upright(b_i, b_j, gravity, opts)
+    return two_view.ransac_f(b_i, b_j, opts)
+
+
+def _better_of_seeded_and_free(seeded: two_view.FResult, h_i, h_j, b_i, b_j, gravity, opts) -> two_view.FResult:
+    """The matches' own fit replaces the hand-seeded one when it has more inliers and still explains the hand points:
+    a seed from a few noisy clicks is less precise than hundreds of matches (on the 200-view corridor, seeding every
+    pair with its hand points cost AUC@1 90 -> 22). Where the matches alone fit a wrong F (one dominant plane), the
+    hand points reject it and the seeded fit stays."""
+    try:
+        free = _fit_matches(b_i, b_j, gravity, opts)
+    except ValueError:
+        return seeded
+    if free.inliers.sum() <= seeded.inliers.sum():
+        return seeded
+    hand_errors = two_view.epipolar_angular_errors(free.F, h_i, h_j)
+    explains = np.mean(hand_errors < HAND_CHECK_THRESHOLDS * opts.threshold_rad) >= two_view.HAND_INLIER_SHARE
+    return free if explains else seeded
