@@ -166,7 +166,9 @@ def _verify_pair(bear_i, bear_j, matches, hand, threshold, options: FilterOption
         else:
             h_i, h_j = bear_i[hand[:, 0]], bear_j[hand[:, 1]]
             res = two_view.fit_f_seeded(h_i, h_j, b_i, b_j, threshold)
-            if len(matches) >= options.min_inliers:
+            if len(matches) >= options.min_inliers and not _explains(res.F, h_i, h_j, threshold):
+                # The clicks and the matches did not settle on one F (noisy clicks; the seeded fit fell back to
+                # the clicks' own F): the matches' own fit may be the better one.
                 res = _better_of_seeded_and_free(res, h_i, h_j, b_i, b_j, gravity, opts)
     except ValueError as e:  # too few correspondences: the pair is simply not verified
         log.debug("pair not verified: %s", e)
@@ -197,6 +199,9 @@ def _better_of_seeded_and_free(seeded: two_view.FResult, h_i, h_j, b_i, b_j, gra
         return seeded
     if free.inliers.sum() <= seeded.inliers.sum():
         return seeded
-    hand_errors = two_view.epipolar_angular_errors(free.F, h_i, h_j)
-    explains = np.mean(hand_errors < HAND_CHECK_THRESHOLDS * opts.threshold_rad) >= two_view.HAND_INLIER_SHARE
-    return free if explains else seeded
+    return free if _explains(free.F, h_i, h_j, HAND_CHECK_THRESHOLDS * opts.threshold_rad) else seeded
+
+
+def _explains(F, h_i, h_j, tolerance_rad: float) -> bool:
+    """Whether F puts the share of the hand points a seeded fit must keep within the tolerance of its circles."""
+    return bool(np.mean(two_view.epipolar_angular_errors(F, h_i, h_j) < tolerance_rad) >= two_view.HAND_INLIER_SHARE)
