@@ -26,6 +26,7 @@ import numpy as np
 
 from fullview.sfm.camera import normalize
 from fullview.sfm.registration.translation_averaging import _block_system
+from fullview.sfm.registration.view_graph import component_labels
 from fullview.sfm.tracks import Tracks
 from fullview.sfm.triangulation import gather_bearings
 
@@ -85,22 +86,17 @@ def _flexible_motions(c: np.ndarray, local: np.ndarray, rel_tol: float) -> np.nd
 
 
 def _group_pairs(local: np.ndarray, rates: np.ndarray, tol: float, n: int) -> np.ndarray:
-    """(M,) group of each pair: pairs meeting at a camera with rates within ``tol`` are one group (union-find)."""
-    parent = np.arange(len(local))
-
-    def find(a: int) -> int:
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    for camera in range(n):
+    """(M,) group of each pair: pairs meeting at a camera with rates within ``tol`` are one group (the connected
+    components of the graph whose nodes are the pairs)."""
+    rates = rates.reshape(len(local), -1)
+    links = []
+    for camera in range(n):  # per camera, every two pairs meeting there
         at = np.flatnonzero((local == camera).any(axis=1))
-        for x in range(len(at)):
-            for y in range(x + 1, len(at)):
-                if np.abs(rates[at[x]] - rates[at[y]]).max() <= tol:
-                    parent[find(at[x])] = find(at[y])
-    return np.array([find(a) for a in range(len(local))])
+        x, y = np.triu_indices(len(at), 1)
+        close = np.abs(rates[at[x]] - rates[at[y]]).max(axis=1, initial=0.0) <= tol
+        links.append(np.column_stack([at[x][close], at[y][close]]))
+    links = np.concatenate(links) if links else np.zeros((0, 2), np.int64)
+    return component_labels(len(local), links, np.ones(len(links), bool))
 
 
 @dataclass(kw_only=True)
