@@ -136,6 +136,11 @@ class TriangulationOptions:
     bundle_adjust: bool = setting(True, "refine poses and points jointly")
     ba_loss_scale_deg: float = setting(0.2, "soft-L1 loss scale of bundle adjustment residuals", gt=0.0, le=90.0)
     ba_max_iterations: int = setting(100, "function evaluations of bundle adjustment", ge=1, le=100_000)
+    geometry_neighbours: int = setting(5, "before the final pass, each registered camera is also matched with this "
+                                       "many nearest registered cameras never matched before", ge=0, le=1000,
+                                       zero_means="no geometry pairs")
+    geometry_min_inliers: int = setting(30, "matches a geometry pair needs within max_reprojection_error_deg of "
+                                        "its known epipolar circles", ge=8, le=1_000_000)
     RULES: ClassVar[list[Rule]] = []
 
 

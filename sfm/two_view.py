@@ -8,7 +8,7 @@ matrix, so every estimate is projected onto the essential manifold (singular val
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -214,6 +214,35 @@ def fit_f_seeded(b_i_seed: np.ndarray, b_j_seed: np.ndarray, b_i: np.ndarray, b_
         if refined.inliers[:m].mean() >= HAND_INLIER_SHARE:
             result = refined
     return FResult(F=result.F, inliers=result.inliers[m:], errors=result.errors[m:], iterations=0)
+
+
+def fit_f_from(F_start: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold_rad: float,
+               refine: bool = True) -> FResult:
+    """LO-MSAC's local optimisation and refinement started from a given F instead of sampled ones: the matches' own
+    fit near an estimate (a few clicks' F), at the cost of a few linear fits."""
+    if len(b_i) < 8:
+        raise ValueError(f"need at least 8 correspondences for F, got {len(b_i)}")
+    F, _ = _local_optimization(b_i, b_j, F_start, threshold_rad, steps=len(LO_THRESHOLD_SCHEDULE))
+    return _finish(b_i, b_j, F, threshold_rad, refine, 0)
+
+
+def iterations_to_beat(inliers: int, n: int, options: RansacOptions, sample_size: int = 8) -> RansacOptions:
+    """`options` with the hypothesis cap a search needs to find a model with more than `inliers` of `n` inliers with
+    the options' confidence: a model that would win has at least that inlier ratio, so more samples cannot help."""
+    needed = required_iterations(inliers / max(n, 1), options.confidence, sample_size)
+    cap = options.max_iterations if not np.isfinite(needed) else int(np.ceil(needed))
+    return replace(options, max_iterations=min(options.max_iterations, max(options.min_iterations, cap)))
+
+
+def consistent_with_pose(b_i: np.ndarray, b_j: np.ndarray, R_j_from_i: np.ndarray, t_j_from_i: np.ndarray,
+                         threshold_rad: float) -> np.ndarray:
+    """(N,) whether each correspondence lies within `threshold_rad` of the epipolar circles of a known relative pose
+    and in front of both cameras (the epipolar constraint alone accepts points behind them)."""
+    if not len(b_i):
+        return np.zeros(0, bool)
+    F = R_j_from_i.T @ skew(t_j_from_i).T  # b_jᵀ [t]× R b_i = 0, written b_iᵀ F b_j = 0
+    depth_i, depth_j = ray_depths(b_i, b_j, R_j_from_i, t_j_from_i)
+    return (epipolar_angular_errors(F, b_i, b_j) < threshold_rad) & (depth_i > 0) & (depth_j > 0)
 
 
 MIN_SPREAD_RATIO = 0.015  # σ7 / σ1 of the 8-point system below which the points leave F undetermined

@@ -18,6 +18,7 @@ from fullview.sfm.tracks import Tracks, build_tracks
 from fullview.sfm.options import TriangulationOptions
 from fullview.sfm.triangulation import (filter_tracks, gather_bearings, longest_tracks_per_image,
                                         triangulate_multiview)
+from fullview.stages.geometry_pairs import geometry_matches
 from fullview.stages.protocol import StageContext
 from fullview.stages.registration import track_matches
 
@@ -40,11 +41,13 @@ def run(ctx: StageContext) -> dict:
     model_id = reg["model_id"]
     verified = ctx.ws.load_inliers()
     matches = track_matches(ctx.dataset, verified, obs, reg["pair_inlier_mask"], reg.get("matches_2d3d"))
-    tracks, _ = build_tracks({p: m for p, m in matches.items() if model_id[p[0]] == model_id[p[1]] >= 0},
-                             [len(o["bearings"]) for o in obs])
     bearings = [o["bearings"] for o in obs]
     R, t = reg["R_cam_from_world"], reg["t_cam_from_world"]
     max_err = np.radians(config.max_reprojection_error_deg)
+    extra = geometry_matches(ctx, verified.pairs, model_id, R, t, bearings, neighbours=config.geometry_neighbours,
+                             threshold_rad=max_err, min_inliers=config.geometry_min_inliers)
+    tracks, _ = build_tracks({p: m for p, m in {**matches, **extra}.items() if model_id[p[0]] == model_id[p[1]] >= 0},
+                             [len(o["bearings"]) for o in obs])
     min_angle = np.radians(config.min_triangulation_angle_deg)
 
     keep = _triangulate_and_filter(tracks, bearings, R, t, LOOSE_FACTOR * max_err, min_angle)
@@ -63,7 +66,7 @@ def run(ctx: StageContext) -> dict:
         np.maximum.at(worst, final.track_ids, errors)
         good = worst <= max_err
         final, points, errors = final.subset(good), points[good], errors[good[final.track_ids]]
-    return _write(ctx, obs, model_id, R, t, final, points, errors)
+    return _write(ctx, obs, model_id, R, t, final, points, errors, geometry_pairs=len(extra))
 
 
 def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
@@ -94,7 +97,7 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config):
     return R, t, result.points, result.obs_error_rad
 
 
-def _write(ctx: StageContext, obs, model_id, R, t, tracks: Tracks, points, errors) -> dict:
+def _write(ctx: StageContext, obs, model_id, R, t, tracks: Tracks, points, errors, geometry_pairs: int) -> dict:
     colors = _mean_colors(tracks, obs)
     point_error = np.zeros(len(points))
     np.maximum.at(point_error, tracks.track_ids, errors)
@@ -105,7 +108,8 @@ def _write(ctx: StageContext, obs, model_id, R, t, tracks: Tracks, points, error
     summary = {"points": int((point_model == 0).sum()), "registered": int((model_id == 0).sum()), "images": len(names),
                "models": [{"images": int(n), "points": int((point_model == k).sum())} for k, n in enumerate(sizes)],
                "mean_track_length": float(lengths.mean()) if len(lengths) else 0.0,
-               "median_error_deg": float(np.degrees(np.median(errors))) if len(errors) else 0.0}
+               "median_error_deg": float(np.degrees(np.median(errors))) if len(errors) else 0.0,
+               "geometry_pairs": geometry_pairs}
     ctx.out.save_sparse(points=points, colors=colors, summary=summary, image_names=names, registered=model_id == 0,
                         model_id=model_id, point_model=point_model, R_cam_from_world=R, t_cam_from_world=t,
                         point_error_rad=point_error, track_ids=tracks.track_ids, image_ids=tracks.image_ids,
