@@ -136,6 +136,8 @@ class TriangulationOptions:
     bundle_adjust: bool = setting(True, "refine poses and points jointly")
     ba_loss_scale_deg: float = setting(0.2, "soft-L1 loss scale of bundle adjustment residuals", gt=0.0, le=90.0)
     ba_max_iterations: int = setting(100, "function evaluations of bundle adjustment", ge=1, le=100_000)
+    gravity_prior: bool = setting(True, "bundle adjustment holds each image's tilt to its gravity from vertical "
+                                  "lines (filter.upright: vanishing), weighted by its precision")
     RULES: ClassVar[list[Rule]] = []
 
 

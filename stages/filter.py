@@ -44,7 +44,7 @@ def run(ctx: StageContext) -> dict:
     raw = ctx.ws.load_matches()
     threshold = np.radians(options.threshold_deg)
     inliers, Fs, seeded, num_hand, no_baseline, weak = [], [], [], [], [], []
-    gravity = _gravity(ctx, options.upright)
+    gravity, gravity_std = _gravity(ctx, options.upright)
     min_upright = options.min_inliers_upright
     early_rejected = 0
     for k, (i, j) in enumerate(tqdm(raw.pairs, desc="filter", unit="pair")):
@@ -85,7 +85,9 @@ def run(ctx: StageContext) -> dict:
     ctx.out.save_inliers(raw.pairs, inliers, F=np.array(Fs).reshape(-1, 3, 3),
                          num_raw=np.array([len(m) for m in raw.matches]), seeded=np.array(seeded, bool),
                          num_hand=np.array(num_hand), no_baseline=np.array(no_baseline, bool),
-                         weak_verified=np.array(weak, bool))
+                         weak_verified=np.array(weak, bool),
+                         # Per image, not per pair: the bundle adjustment's gravity prior reads them.
+                         gravity=gravity, gravity_std_rad=gravity_std)
     counts = np.array([len(m) for m in inliers])
     names = ctx.dataset.image_names
     return {"pairs": len(raw.pairs), "verified_pairs": int((counts > 0).sum()), "seeded_pairs": int(sum(seeded)),
@@ -95,23 +97,24 @@ def run(ctx: StageContext) -> dict:
             "upright_images": int(np.isfinite(gravity).all(axis=1).sum())}
 
 
-def _gravity(ctx: StageContext, mode: str) -> np.ndarray:
-    """(N, 3) gravity of every image in its camera frame (NaN where unknown: upright none, or no vertical lines)."""
+def _gravity(ctx: StageContext, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) gravity of every image in its camera frame (NaN where unknown: upright none, or no vertical lines) and
+    (N,) its standard error in radians from the spread of the vertical lines (NaN: not measured, as with level)."""
     names = ctx.dataset.image_names
-    out = np.full((len(names), 3), np.nan)
+    out, std = np.full((len(names), 3), np.nan), np.full(len(names), np.nan)
     if mode == "level":
         out[:] = upright.Y_AXIS
     elif mode == "vanishing":
         for k, name in enumerate(tqdm(names, desc="gravity", unit="image")):
             full_w = ctx.dataset.image_sizes[name][0]
-            found = upright.estimate_gravity(ctx.dataset.load_image(name, width=min(GRAVITY_WIDTH, full_w)),
-                                            min_lines=GRAVITY_MIN_LINES, seed=ctx.options.seed)
+            found = upright.estimate_gravity_with_std(ctx.dataset.load_image(name, width=min(GRAVITY_WIDTH, full_w)),
+                                                      min_lines=GRAVITY_MIN_LINES, seed=ctx.options.seed)
             if found is None:
                 log.warning("%s: no vertical lines found; its pairs are verified without the upright prior", name)
             else:
-                out[k] = found[0]
+                out[k], std[k] = found[0], found[2]
                 log.debug("%s: gravity %s from %d lines", name, np.round(found[0], 4).tolist(), found[1])
-    return out
+    return out, std
 
 
 def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, guided_options: MatchesOptions):
