@@ -120,7 +120,8 @@ class _Layout:
     """Where each camera's and point's parameters live in the parameter vector."""
 
     cam_col: np.ndarray  # (N,) first column of each camera's parameters, -1 if fixed
-    cam_dof: np.ndarray  # (N,) 0 fixed, 5 scale camera (ω + 2 sphere coordinates), 6 free (ω, C)
+    cam_dof: np.ndarray  # (N,) 0 fixed, 2 fixed but for its tilt (gravity prior), 5 scale camera (ω + 2 sphere
+    # coordinates), 6 free (ω, C)
     point_col: int  # first column of the points (3 per point)
     num_params: int  # length of the parameter vector
     scale_camera: int  # index of the scale camera, -1 if none
@@ -128,6 +129,8 @@ class _Layout:
     radius: float  # held distance anchor -> scale camera centre
     u0: np.ndarray  # (3,) initial unit direction anchor -> scale camera centre
     tangent: np.ndarray  # (3, 2) orthonormal basis orthogonal to u0
+    tilt_basis: np.ndarray  # (N, 3, 2) for cam_dof 2: ω = basis @ (2 params), rotations about axes orthogonal to the
+    # world up the camera sees (its tilt); zero otherwise
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -187,12 +190,18 @@ def _angle_scale(s: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 
 def _build_layout(
-    centers: np.ndarray, num_points: int, fixed: np.ndarray, scale_camera: int | None, obs_camera: np.ndarray
+    centers: np.ndarray, num_points: int, fixed: np.ndarray, scale_camera: int | None, obs_camera: np.ndarray,
+    tilt_free: dict[int, np.ndarray] | None = None,
 ) -> _Layout:
-    """Parameter layout for the given gauge choice."""
+    """Parameter layout for the given gauge choice; `tilt_free` maps fixed cameras whose tilt is left free (a
+    gravity prior fixes the world's up direction instead) to that direction in their frame."""
     n = len(centers)
     cam_dof = np.full(n, 6, dtype=np.int64)
     cam_dof[fixed] = 0
+    tilt_basis = np.zeros((n, 3, 2))
+    for camera, up_cam in (tilt_free or {}).items():
+        cam_dof[camera] = 2
+        tilt_basis[camera] = tangent_basis(normalize(np.asarray(up_cam, np.float64))[None])[0].T
     anchor = centers[fixed[0]]
     if len(fixed) >= 2:
         scale_camera = -1
@@ -216,7 +225,7 @@ def _build_layout(
     point_col = int(cam_dof.sum())
     return _Layout(
         cam_col=cam_col, cam_dof=cam_dof, point_col=point_col, num_params=point_col + 3 * num_points,
-        scale_camera=scale_camera, anchor=anchor, radius=radius, u0=u0, tangent=tangent,
+        scale_camera=scale_camera, anchor=anchor, radius=radius, u0=u0, tangent=tangent, tilt_basis=tilt_basis,
     )
 
 
@@ -229,13 +238,21 @@ def _pack(layout: _Layout, centers: np.ndarray, points: np.ndarray) -> np.ndarra
     return x
 
 
+def _rotation_vectors(x: np.ndarray, lay: _Layout) -> np.ndarray:
+    """(N, 3) rotation vector ω of every camera (zero for fixed ones)."""
+    omega = np.zeros((len(lay.cam_dof), 3))
+    moving = np.flatnonzero(lay.cam_dof > 2)
+    omega[moving] = x[lay.cam_col[moving, None] + np.arange(3)]
+    tilt = np.flatnonzero(lay.cam_dof == 2)
+    omega[tilt] = np.einsum("nij,nj->ni", lay.tilt_basis[tilt], x[lay.cam_col[tilt, None] + np.arange(2)])
+    return omega
+
+
 def _unpack(x: np.ndarray, problem: _Problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Rotation vectors (N, 3), centres (N, 3), points (P, 3), and dC/d(sphere coords) (3, 2)."""
     lay = problem.layout
-    omega = np.zeros((len(lay.cam_dof), 3))
+    omega = _rotation_vectors(x, lay)
     centers = problem.C_init.copy()
-    moving = np.flatnonzero(lay.cam_dof > 0)
-    omega[moving] = x[lay.cam_col[moving, None] + np.arange(3)]
     free = np.flatnonzero(lay.cam_dof == 6)
     centers[free] = x[lay.cam_col[free, None] + np.arange(3, 6)]
     dC = np.zeros((3, 2))
@@ -279,6 +296,9 @@ def _residuals(x: np.ndarray, problem: _Problem, with_jacobian: bool) -> tuple[n
     on_sphere = cam == problem.layout.scale_camera
     J[on_sphere, :, 3:5] = -J_X[on_sphere] @ dC
     J[on_sphere, :, 5] = 0.0
+    tilt = problem.layout.cam_dof[cam] == 2
+    J[tilt, :, 0:2] = J[tilt, :, 0:3] @ problem.layout.tilt_basis[cam[tilt]]
+    J[tilt, :, 2:6] = 0.0
     return r, J
 
 
@@ -289,13 +309,16 @@ def _prior_residuals(x: np.ndarray, problem: _Problem) -> tuple[np.ndarray, np.n
         return np.zeros((0, 2)), np.zeros((0, 2, 3))
     lay = problem.layout
     moving = lay.cam_dof[cams] > 0
-    omega = np.where(moving[:, None], x[np.maximum(lay.cam_col[cams], 0)[:, None] + np.arange(3)], 0.0)
+    omega = _rotation_vectors(x, lay)[cams]
     dR, J_l = rotation_exp(omega)
     v = np.einsum("mij,mj->mi", dR @ problem.R_init[cams], problem.prior_up)  # world up seen by the camera
     w = problem.prior_sqrt_w[:, None, None]
     r = np.einsum("mij,mj->mi", problem.prior_basis, v) * problem.prior_sqrt_w[:, None]
     J = w * (problem.prior_basis @ (-skew(v) @ J_l))
     J[~moving] = 0.0
+    tilt = lay.cam_dof[cams] == 2
+    J[tilt, :, 0:2] = J[tilt] @ lay.tilt_basis[cams[tilt]]
+    J[tilt, :, 2] = 0.0
     return r, J
 
 
@@ -307,14 +330,16 @@ def _update_world_up(x: np.ndarray, problem: _Problem) -> None:
     if not len(cams):
         return
     lay = problem.layout
-    moving = lay.cam_dof[cams] > 0
-    omega = np.where(moving[:, None], x[np.maximum(lay.cam_col[cams], 0)[:, None] + np.arange(3)], 0.0)
-    R = rotation_exp(omega)[0] @ problem.R_init[cams]
+    R = rotation_exp(_rotation_vectors(x, lay)[cams])[0] @ problem.R_init[cams]
     down_world = np.einsum("mji,mj->mi", R, problem.prior_gravity) * problem.prior_sqrt_w[:, None] ** 2
     groups, index = np.unique(problem.prior_group, return_inverse=True)
     sums = np.zeros((len(groups), 3))
     np.add.at(sums, index, down_world)
-    problem.prior_up[:] = normalize(sums)[index]
+    # A group whose fixed camera's tilt is free keeps its up direction: it is the gauge there.
+    gauge = np.zeros(len(groups), bool)
+    gauge[index[lay.cam_dof[cams] == 2]] = True
+    update = ~gauge[index]
+    problem.prior_up[update] = normalize(sums)[index[update]]
 
 
 def _jacobian_structure(problem: _Problem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -612,7 +637,7 @@ def bundle_adjust(
         loss_scale_rad, max_nfev,
     )
     C0 = -np.einsum("nji,nj->ni", R0, t0)
-    layout = _build_layout(C0, len(X0), fixed, scale_camera, cam)
+    layout = _build_layout(C0, len(X0), fixed, scale_camera, cam, _tilt_free_cameras(gravity_prior, fixed, R0))
     problem = _Problem(R_init=R0, t_init=t0, C_init=C0, obs_camera=cam, obs_point=pt, bearings=z,
                        basis=tangent_basis(z), layout=layout,
                        **_prior_terms(gravity_prior, layout, R0, C0, X0, cam, pt, z))
@@ -667,6 +692,22 @@ def gravity_prior_for_models(R_cam_from_world: np.ndarray, gravity_cam: np.ndarr
 
 # The median angular error of 2-D isotropic Gaussian residuals is √(2 ln 2) σ.
 _MEDIAN_TO_SIGMA = 1.0 / np.sqrt(2.0 * np.log(2.0))
+
+
+def _tilt_free_cameras(prior: GravityPrior | None, fixed: np.ndarray, R: np.ndarray) -> dict[int, np.ndarray]:
+    """Fixed cameras whose tilt the gravity prior decides, with the world up they see: each fixed camera with a
+    measured gravity that is its group's only fixed camera. Its group's up direction stays where the prior put it
+    and the camera keeps its centre and heading but not its tilt: the same optimum as a free up direction with the
+    camera held (a global rotation apart), reached by Levenberg-Marquardt steps instead of alternating."""
+    if prior is None:
+        return {}
+    camera, group = np.asarray(prior.camera), np.asarray(prior.group)
+    row_of = {int(c): k for k, c in enumerate(camera)}
+    rows = [row_of[int(f)] for f in fixed if int(f) in row_of]
+    fixed_groups, counts = np.unique(group[rows], return_counts=True) if rows else (np.zeros(0), np.zeros(0))
+    single = set(fixed_groups[counts == 1].tolist())
+    return {int(camera[k]): R[camera[k]] @ np.asarray(prior.up_world[k], np.float64)
+            for k in rows if group[k] in single}
 
 
 def _prior_terms(prior: GravityPrior | None, layout: _Layout, R, C, X, cam, pt, bearings) -> dict:

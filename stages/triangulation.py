@@ -84,9 +84,13 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
     cams = np.flatnonzero(model_id >= 0)
     local = np.full(len(model_id), -1)
     local[cams] = np.arange(len(cams))
-    _, first = np.unique(model_id[cams], return_index=True)
     prior = None if gravity is None else gravity_prior_for_models(R[cams], gravity[0][cams], gravity[1][cams],
                                                                   model_id[cams])
+    # Each model's first camera is held, preferably one with a measured gravity: the prior then decides its tilt.
+    held = np.zeros(len(cams), bool) if prior is None else np.isin(np.arange(len(cams)), prior.camera)
+    _, first = np.unique(np.stack([model_id[cams], ~held]).T, axis=0, return_index=True)
+    _, first_of_model = np.unique(model_id[cams][first], return_index=True)
+    first = first[first_of_model]
     result = bundle_adjust(
         R_cam_from_world=R[cams], t_cam_from_world=t[cams], points=points,
         obs_camera=local[tracks.image_ids], obs_point=tracks.track_ids,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from fullview.sfm.bundle import (
@@ -49,12 +50,15 @@ def _tilt_deg(R):
     return np.degrees(np.arccos(np.clip(np.einsum("nij,j->ni", R, UP)[:, 1], -1.0, 1.0)))
 
 
-def test_schur_step_with_the_prior_solves_the_damped_normal_equations():
+@pytest.mark.parametrize("tilt_free", [False, True])
+def test_schur_step_with_the_prior_solves_the_damped_normal_equations(tilt_free):
+    """Analytic Jacobian rows of the prior (and of a fixed camera whose tilt is free) match finite differences, and the
+    Schur step is the step of the full damped system."""
     rng = np.random.default_rng(3)
     R, t, points, cam, pt, bearings = _chain(rng, num_cameras=5, points_per_camera=20)
     R = Rotation.from_rotvec(rng.normal(scale=0.01, size=(5, 3))).as_matrix() @ R
     C = -np.einsum("nji,nj->ni", R, t)
-    layout = _build_layout(C, len(points), np.array([0]), None, cam)
+    layout = _build_layout(C, len(points), np.array([0]), None, cam, {0: R[0] @ UP} if tilt_free else None)
     gravity = normalize(UP + rng.normal(scale=0.01, size=(5, 3)))
     prior = GravityPrior(camera=np.arange(5), gravity_cam=gravity, up_world=np.tile(UP, (5, 1)),
                          sigma_rad=np.full(5, 0.002), group=np.zeros(5, int))
@@ -66,11 +70,12 @@ def test_schur_step_with_the_prior_solves_the_damped_normal_equations():
     J, r = objective.jac(x).toarray(), objective.fun(x)
     # The prior's Jacobian rows match finite differences.
     h = 1e-6
-    for col in range(layout.cam_col[1], layout.cam_col[1] + 3):
+    columns = list(range(layout.cam_col[1], layout.cam_col[1] + 3)) + ([0, 1] if tilt_free else [])
+    for col in columns:
         e = np.zeros_like(x)
         e[col] = h
-        fd = (objective.fun(x + e) - objective.fun(x - e))[-10:] / (2 * h)
-        np.testing.assert_allclose(J[-10:, col], fd, atol=1e-6 * np.abs(fd).max() + 1e-9)
+        fd = (objective.fun(x + e) - objective.fun(x - e)) / (2 * h)
+        np.testing.assert_allclose(J[:, col], fd, atol=1e-6 * np.abs(fd).max() + 1e-9)
     damping = 1e-3
     step, _ = _SchurSystem(problem).solve(r.reshape(-1, 2), objective.jac_blocks(x), damping,
                                           objective.prior_blocks(x), problem.prior_camera)
@@ -81,7 +86,7 @@ def test_schur_step_with_the_prior_solves_the_damped_normal_equations():
 
 def test_gravity_prior_holds_the_tilt_along_a_chain():
     """Noisy bearings (0.2°) on a chain of 15 level cameras let the tilt drift (0.16-0.28° on average, seeds 0-2);
-    gravities 0.05° off each hold it (0.04-0.09°), and the bearings still fit as well."""
+    gravities 0.05° off each hold it (0.035-0.048°), and the bearings still fit as well."""
     for seed in range(3):
         rng = np.random.default_rng(seed)
         R, t, points, cam, pt, bearings = _chain(rng, num_cameras=15, points_per_camera=20,
@@ -94,7 +99,7 @@ def test_gravity_prior_holds_the_tilt_along_a_chain():
         prior = gravity_prior_for_models(R, gravity, np.full(len(R), sigma), np.zeros(len(R), int))
         held = bundle_adjust(**kwargs, gravity_prior=prior)
         tilt_free, tilt_held = _tilt_deg(free.R_cam_from_world), _tilt_deg(held.R_cam_from_world)
-        assert tilt_held[1:].mean() < 0.6 * tilt_free[1:].mean(), (seed, tilt_free, tilt_held)
+        assert tilt_held[1:].mean() < 0.4 * tilt_free[1:].mean(), (seed, tilt_free, tilt_held)
         assert np.median(held.obs_error_rad) < 1.05 * np.median(free.obs_error_rad)
 
 
