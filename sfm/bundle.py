@@ -17,6 +17,8 @@ camera's centre and the centre of a ``scale_camera`` (by default the camera fart
 which is well defined whatever the direction of the baseline, unlike fixing one coordinate):
 that camera's centre moves on a sphere, parametrised by 2 tangent coordinates. With two or more
 fixed cameras (distinct centres) the scale is already fixed and no camera is constrained.
+With a gravity prior, a fixed camera with a measured gravity that is its group's only fixed camera keeps its centre
+and heading but not its tilt (the prior's up direction fixes the tilt gauge instead; `_tilt_free_cameras`).
 
 Robust loss. The cost is ``½·f²·Σ_k ρ((θ_k/f)²)`` with scipy's loss names. It is minimised by
 iteratively reweighted least squares (linear loss on weighted residuals), with the scale f lowered
@@ -667,7 +669,8 @@ def gravity_prior_for_models(R_cam_from_world: np.ndarray, gravity_cam: np.ndarr
     R = np.asarray(R_cam_from_world, dtype=np.float64)
     g = np.asarray(gravity_cam, dtype=np.float64)
     sigma = np.maximum(np.asarray(sigma_rad, dtype=np.float64), MIN_GRAVITY_SIGMA_RAD)
-    measured = np.isfinite(g).all(axis=1) & np.isfinite(sigma) & (np.asarray(model_id) >= 0)
+    measured = (np.isfinite(g).all(axis=1) & (np.abs(np.nan_to_num(g)).sum(axis=1) > 0) & np.isfinite(sigma)
+                & (np.asarray(model_id) >= 0))  # the filter stores unknown gravity as zero with an infinite error
     down_world = np.where(measured[:, None], np.einsum("nji,nj->ni", R, np.where(measured[:, None], g, 0.0)), 0.0)
     up_world = np.zeros_like(down_world)
     tolerance = np.maximum(GRAVITY_OUTLIER_SIGMAS * sigma, MIN_GRAVITY_OUTLIER_RAD)

@@ -86,8 +86,10 @@ def run(ctx: StageContext) -> dict:
                          num_raw=np.array([len(m) for m in raw.matches]), seeded=np.array(seeded, bool),
                          num_hand=np.array(num_hand), no_baseline=np.array(no_baseline, bool),
                          weak_verified=np.array(weak, bool),
-                         # Per image, not per pair: the bundle adjustment's gravity prior reads them.
-                         gravity=gravity, gravity_std_rad=gravity_std)
+                         # Per image, not per pair: the bundle adjustment's gravity prior reads them. Unknown: zero
+                         # and an infinite error, not NaN (reruns compare byte-identical arrays, and NaN != NaN).
+                         gravity=np.nan_to_num(gravity, nan=0.0),
+                         gravity_std_rad=np.nan_to_num(gravity_std, nan=np.inf))
     counts = np.array([len(m) for m in inliers])
     names = ctx.dataset.image_names
     return {"pairs": len(raw.pairs), "verified_pairs": int((counts > 0).sum()), "seeded_pairs": int(sum(seeded)),

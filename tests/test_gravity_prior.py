@@ -121,3 +121,5 @@ def test_gravity_prior_for_models_one_up_per_model_outliers_and_unknowns_left_ou
     sigma[0] = 1e-9
     assert gravity_prior_for_models(R, gravity, sigma, model_id).sigma_rad[0] > 1e-6
     assert gravity_prior_for_models(R, np.full((n, 3), np.nan), sigma, model_id) is None
+    assert gravity_prior_for_models(R, np.zeros((n, 3)), np.full(n, np.inf), model_id) is None  # as the filter
+    # stores unknown gravity
