@@ -17,11 +17,20 @@ camera's centre and the centre of a ``scale_camera`` (by default the camera fart
 which is well defined whatever the direction of the baseline, unlike fixing one coordinate):
 that camera's centre moves on a sphere, parametrised by 2 tangent coordinates. With two or more
 fixed cameras (distinct centres) the scale is already fixed and no camera is constrained.
+With a gravity prior, a fixed camera with a measured gravity that is its group's only fixed camera keeps its centre
+and heading but not its tilt (the prior's up direction fixes the tilt gauge instead; `_tilt_free_cameras`).
 
 Robust loss. The cost is ``½·f²·Σ_k ρ((θ_k/f)²)`` with scipy's loss names. It is minimised by
 iteratively reweighted least squares (linear loss on weighted residuals), with the scale f lowered
 from about the initial error size to ``loss_scale_rad``; see ``_irls`` for why not scipy's own
 robust losses.
+
+Gravity prior (optional, ``GravityPrior``). A camera whose gravity was measured in its own frame (from vertical
+lines) adds the residual ``r = w · E_g R u``: ``u`` the world's up direction (one per model), ``E_g`` a basis of the
+plane orthogonal to the measured gravity ``g``, ``w = σ_obs / σ_g`` (observation noise over the gravity's standard
+error, so both terms are in the same units). It depends on the camera's rotation only and enters the reduced camera
+system as a 3×3 block on ω. Why: on a chain of rooms the bearings leave the tilt of each room free to drift slowly
+(0.1-0.3° at the far end); each image's gravity is ~0.1° off but independent, so together they hold the tilt.
 
 Solver. Each weighted problem takes Levenberg-Marquardt steps (Marquardt's diagonal damping, Nielsen's
 damping update) solved through the Schur complement, as COLMAP/Ceres do: the 3×3 point blocks are
@@ -38,10 +47,11 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.linalg import spsolve
 
@@ -86,7 +96,7 @@ class BundleResult:
     R_cam_from_world: np.ndarray  # (N, 3, 3) refined rotations
     t_cam_from_world: np.ndarray  # (N, 3) refined translations
     points: np.ndarray  # (P, 3) refined world points
-    initial_cost: float  # robust cost ½·f²·Σ_k ρ((θ_k/f)²) before optimisation (f = loss_scale_rad)
+    initial_cost: float  # robust cost ½·f²·Σ_k ρ((θ_k/f)²) before optimisation (f = loss_scale_rad), plus the prior's
     final_cost: float  # same cost after optimisation
     obs_error_rad: np.ndarray  # (K,) final angular error of every observation, radians
     scale_camera: int  # camera whose distance to the first fixed camera was held (-1: none needed)
@@ -96,11 +106,24 @@ class BundleResult:
 
 
 @dataclass(frozen=True, kw_only=True)
+class GravityPrior:
+    """Measured gravity of some cameras, pulling their tilt towards the world's up direction (see module docstring)."""
+
+    camera: np.ndarray  # (M,) camera index
+    gravity_cam: np.ndarray  # (M, 3) measured unit gravity ("down") in the camera frame
+    up_world: np.ndarray  # (M, 3) unit direction the camera should see as gravity, in world coordinates (a start:
+    # bundle_adjust re-estimates it per group from the cameras it moves)
+    group: np.ndarray  # (M,) cameras of one group (one model) share one world up direction
+    sigma_rad: np.ndarray  # (M,) standard error of the measured gravity, radians
+
+
+@dataclass(frozen=True, kw_only=True)
 class _Layout:
     """Where each camera's and point's parameters live in the parameter vector."""
 
     cam_col: np.ndarray  # (N,) first column of each camera's parameters, -1 if fixed
-    cam_dof: np.ndarray  # (N,) 0 fixed, 5 scale camera (ω + 2 sphere coordinates), 6 free (ω, C)
+    cam_dof: np.ndarray  # (N,) 0 fixed, 2 fixed but for its tilt (gravity prior), 5 scale camera (ω + 2 sphere
+    # coordinates), 6 free (ω, C)
     point_col: int  # first column of the points (3 per point)
     num_params: int  # length of the parameter vector
     scale_camera: int  # index of the scale camera, -1 if none
@@ -108,6 +131,8 @@ class _Layout:
     radius: float  # held distance anchor -> scale camera centre
     u0: np.ndarray  # (3,) initial unit direction anchor -> scale camera centre
     tangent: np.ndarray  # (3, 2) orthonormal basis orthogonal to u0
+    tilt_basis: np.ndarray  # (N, 3, 2) for cam_dof 2: ω = basis @ (2 params), rotations about axes orthogonal to the
+    # world up the camera sees (its tilt); zero otherwise
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -122,6 +147,15 @@ class _Problem:
     bearings: np.ndarray  # (K, 3) observed unit bearings
     basis: np.ndarray  # (K, 2, 3) orthonormal tangent basis of each observed bearing
     layout: _Layout  # parameter layout
+    prior_camera: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (M,) cameras with a gravity
+    # prior (fixed ones too: they take part in the world up direction)
+    prior_up: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (M, 3) their world up direction,
+    # updated in place between reweighting rounds (`_update_world_up`)
+    prior_group: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (M,) cameras sharing an up
+    prior_gravity: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (M, 3) measured gravity
+    prior_basis: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))  # (M, 2, 3) basis orthogonal to
+    # each measured gravity
+    prior_sqrt_w: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) σ_obs / σ_g
 
 
 def _so3_coefficients(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -158,12 +192,18 @@ def _angle_scale(s: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 
 def _build_layout(
-    centers: np.ndarray, num_points: int, fixed: np.ndarray, scale_camera: int | None, obs_camera: np.ndarray
+    centers: np.ndarray, num_points: int, fixed: np.ndarray, scale_camera: int | None, obs_camera: np.ndarray,
+    tilt_free: dict[int, np.ndarray] | None = None,
 ) -> _Layout:
-    """Parameter layout for the given gauge choice."""
+    """Parameter layout for the given gauge choice; `tilt_free` maps fixed cameras whose tilt is left free (a
+    gravity prior fixes the world's up direction instead) to that direction in their frame."""
     n = len(centers)
     cam_dof = np.full(n, 6, dtype=np.int64)
     cam_dof[fixed] = 0
+    tilt_basis = np.zeros((n, 3, 2))
+    for camera, up_cam in (tilt_free or {}).items():
+        cam_dof[camera] = 2
+        tilt_basis[camera] = tangent_basis(normalize(np.asarray(up_cam, np.float64))[None])[0].T
     anchor = centers[fixed[0]]
     if len(fixed) >= 2:
         scale_camera = -1
@@ -187,7 +227,7 @@ def _build_layout(
     point_col = int(cam_dof.sum())
     return _Layout(
         cam_col=cam_col, cam_dof=cam_dof, point_col=point_col, num_params=point_col + 3 * num_points,
-        scale_camera=scale_camera, anchor=anchor, radius=radius, u0=u0, tangent=tangent,
+        scale_camera=scale_camera, anchor=anchor, radius=radius, u0=u0, tangent=tangent, tilt_basis=tilt_basis,
     )
 
 
@@ -200,13 +240,21 @@ def _pack(layout: _Layout, centers: np.ndarray, points: np.ndarray) -> np.ndarra
     return x
 
 
+def _rotation_vectors(x: np.ndarray, lay: _Layout) -> np.ndarray:
+    """(N, 3) rotation vector ω of every camera (zero for fixed ones)."""
+    omega = np.zeros((len(lay.cam_dof), 3))
+    moving = np.flatnonzero(lay.cam_dof > 2)
+    omega[moving] = x[lay.cam_col[moving, None] + np.arange(3)]
+    tilt = np.flatnonzero(lay.cam_dof == 2)
+    omega[tilt] = np.einsum("nij,nj->ni", lay.tilt_basis[tilt], x[lay.cam_col[tilt, None] + np.arange(2)])
+    return omega
+
+
 def _unpack(x: np.ndarray, problem: _Problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Rotation vectors (N, 3), centres (N, 3), points (P, 3), and dC/d(sphere coords) (3, 2)."""
     lay = problem.layout
-    omega = np.zeros((len(lay.cam_dof), 3))
+    omega = _rotation_vectors(x, lay)
     centers = problem.C_init.copy()
-    moving = np.flatnonzero(lay.cam_dof > 0)
-    omega[moving] = x[lay.cam_col[moving, None] + np.arange(3)]
     free = np.flatnonzero(lay.cam_dof == 6)
     centers[free] = x[lay.cam_col[free, None] + np.arange(3, 6)]
     dC = np.zeros((3, 2))
@@ -250,7 +298,50 @@ def _residuals(x: np.ndarray, problem: _Problem, with_jacobian: bool) -> tuple[n
     on_sphere = cam == problem.layout.scale_camera
     J[on_sphere, :, 3:5] = -J_X[on_sphere] @ dC
     J[on_sphere, :, 5] = 0.0
+    tilt = problem.layout.cam_dof[cam] == 2
+    J[tilt, :, 0:2] = J[tilt, :, 0:3] @ problem.layout.tilt_basis[cam[tilt]]
+    J[tilt, :, 2:6] = 0.0
     return r, J
+
+
+def _prior_residuals(x: np.ndarray, problem: _Problem) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) weighted gravity-prior residuals and their (M, 2, 3) Jacobian blocks on each camera's ω."""
+    cams = problem.prior_camera
+    if not len(cams):
+        return np.zeros((0, 2)), np.zeros((0, 2, 3))
+    lay = problem.layout
+    moving = lay.cam_dof[cams] > 0
+    omega = _rotation_vectors(x, lay)[cams]
+    dR, J_l = rotation_exp(omega)
+    v = np.einsum("mij,mj->mi", dR @ problem.R_init[cams], problem.prior_up)  # world up seen by the camera
+    w = problem.prior_sqrt_w[:, None, None]
+    r = np.einsum("mij,mj->mi", problem.prior_basis, v) * problem.prior_sqrt_w[:, None]
+    J = w * (problem.prior_basis @ (-skew(v) @ J_l))
+    J[~moving] = 0.0
+    tilt = lay.cam_dof[cams] == 2
+    J[tilt, :, 0:2] = J[tilt] @ lay.tilt_basis[cams[tilt]]
+    J[tilt, :, 2] = 0.0
+    return r, J
+
+
+def _update_world_up(x: np.ndarray, problem: _Problem) -> None:
+    """Each group's world up: the precision-weighted mean of its cameras' gravities carried to the world by their
+    current rotations. Alternating it with the pose steps lets the cameras' gravities, not the start, decide the
+    tilt (the start is the tilt drift the prior is there to correct)."""
+    cams = problem.prior_camera
+    if not len(cams):
+        return
+    lay = problem.layout
+    R = rotation_exp(_rotation_vectors(x, lay)[cams])[0] @ problem.R_init[cams]
+    down_world = np.einsum("mji,mj->mi", R, problem.prior_gravity) * problem.prior_sqrt_w[:, None] ** 2
+    groups, index = np.unique(problem.prior_group, return_inverse=True)
+    sums = np.zeros((len(groups), 3))
+    np.add.at(sums, index, down_world)
+    # A group whose fixed camera's tilt is free keeps its up direction: it is the gauge there.
+    gauge = np.zeros(len(groups), bool)
+    gauge[index[lay.cam_dof[cams] == 2]] = True
+    update = ~gauge[index]
+    problem.prior_up[update] = normalize(sums)[index[update]]
 
 
 def _jacobian_structure(problem: _Problem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -299,12 +390,31 @@ class _WeightedResiduals:
         return np.linalg.norm(self.residuals(x), axis=1)
 
     def fun(self, x: np.ndarray) -> np.ndarray:
-        """(2K,) weighted residuals."""
-        return (self.residuals(x) * self.sqrt_w[:, None]).ravel()
+        """(2K + 2M,) weighted residuals: the observations', then the gravity prior's."""
+        return np.concatenate([(self.residuals(x) * self.sqrt_w[:, None]).ravel(),
+                               _prior_residuals(x, self.problem)[0].ravel()])
+
+    def prior_cost(self, x: np.ndarray) -> float:
+        """½|r|² of the gravity prior's residuals (0 without a prior)."""
+        r = _prior_residuals(x, self.problem)[0]
+        return 0.5 * float((r**2).sum())
+
+    def prior_blocks(self, x: np.ndarray) -> np.ndarray:
+        """(M, 2, 3) Jacobian blocks of the gravity prior on ω."""
+        return _prior_residuals(x, self.problem)[1]
 
     def jac(self, x: np.ndarray) -> csr_matrix:
-        """(2K, n) weighted Jacobian, sparse."""
-        return csr_matrix((self.jac_blocks(x)[self.mask], self.indices, self.indptr), shape=self.shape)
+        """(2K + 2M, n) weighted Jacobian, sparse: the observations', then the gravity prior's rows."""
+        obs = csr_matrix((self.jac_blocks(x)[self.mask], self.indices, self.indptr), shape=self.shape)
+        cams = self.problem.prior_camera
+        if not len(cams):
+            return obs
+        cols = np.broadcast_to((np.maximum(self.problem.layout.cam_col[cams], 0)[:, None] + np.arange(3))[:, None, :],
+                               (len(cams), 2, 3))  # a fixed camera's blocks are zero
+        rows = np.broadcast_to(np.arange(2 * len(cams)).reshape(-1, 2, 1), cols.shape)
+        prior = coo_matrix((self.prior_blocks(x).ravel(), (rows.ravel(), cols.ravel())),
+                           shape=(2 * len(cams), self.shape[1]))
+        return csr_matrix(scipy.sparse.vstack([obs, prior]))
 
     def jac_blocks(self, x: np.ndarray) -> np.ndarray:
         """(K, 2, 9) weighted Jacobian blocks [ω or pad, C or sphere, X] (see `_residuals`)."""
@@ -364,10 +474,13 @@ class _SchurSystem:
         keys, starts = np.unique(key[order], return_index=True)
         return first[order], second[order], starts, keys // self.num_cameras, keys % self.num_cameras
 
-    def solve(self, r: np.ndarray, J: np.ndarray, damping: float):
+    def solve(self, r: np.ndarray, J: np.ndarray, damping: float, J_prior: np.ndarray | None = None,
+              prior_camera: np.ndarray | None = None):
         """Step δ (in x's layout) of (JᵀJ + λ·D) δ = −Jᵀr, D the clamped diagonal of JᵀJ, with the cost decrease
-        the linear model predicts, ½δᵀ(λDδ − Jᵀr); None when the damped system cannot be factored."""
-        n, p, k = self.num_cameras, self.num_points, len(r)
+        the linear model predicts, ½δᵀ(λDδ − Jᵀr); None when the damped system cannot be factored. r holds the K
+        observation residuals, then those of the gravity prior (blocks J_prior on the ω of prior_camera)."""
+        n, p, k = self.num_cameras, self.num_points, len(J)
+        r, r_prior = r[:k], r[k:]
         Jc, Jp = J[:, :, :6], J[:, :, 6:]
         Jc_t, Jp_t = Jc.transpose(0, 2, 1), Jp.transpose(0, 2, 1)
         U = (self.by_camera @ (Jc_t @ Jc).reshape(k, 36)).reshape(n, 6, 6)
@@ -375,6 +488,10 @@ class _SchurSystem:
         W = Jc_t @ Jp  # (K, 6, 3) camera-point coupling of each observation
         g_c = self.by_camera @ (Jc_t @ r[:, :, None])[:, :, 0]  # (N, 6)
         g_p = self.by_point @ (Jp_t @ r[:, :, None])[:, :, 0]  # (P, 3)
+        if J_prior is not None and len(J_prior):
+            J_prior_t = J_prior.transpose(0, 2, 1)
+            np.add.at(U, (prior_camera, slice(0, 3), slice(0, 3)), J_prior_t @ J_prior)
+            np.add.at(g_c, (prior_camera, slice(0, 3)), (J_prior_t @ r_prior[:, :, None])[:, :, 0])
         D_c = np.maximum(np.einsum("nii->ni", U), _MIN_DIAGONAL)
         D_p = np.maximum(np.einsum("pii->pi", V), _MIN_DIAGONAL)
         U[:, np.arange(6), np.arange(6)] += damping * D_c
@@ -505,6 +622,7 @@ def bundle_adjust(
     loss_scale_rad: float = 0.005,
     max_nfev: int = 100,
     ftol: float = 1e-4,
+    gravity_prior: GravityPrior | None = None,
 ) -> BundleResult:
     """Refine camera poses and points by minimising robust angular errors of observed bearings.
 
@@ -512,7 +630,8 @@ def bundle_adjust(
     ``obs_bearings[k]``. Minimises ``½·f²·Σ_k ρ((θ_k/f)²)``, θ_k the angular error of observation
     k, ρ the ``loss`` (scipy's names) and f = ``loss_scale_rad``. ``max_nfev`` bounds the residual
     evaluations in all (the last round may overrun it by one); it stops when a reweighting round
-    lowers the cost by less than ``ftol`` (relative).
+    lowers the cost by less than ``ftol`` (relative). ``gravity_prior`` adds the tilt terms of the module docstring
+    (their weight σ_obs / σ_g takes σ_obs from the initial errors' median).
     See the module docstring for the residuals and the gauge.
     """
     R0, t0, X0, cam, pt, z, fixed = _validate(
@@ -520,16 +639,97 @@ def bundle_adjust(
         loss_scale_rad, max_nfev,
     )
     C0 = -np.einsum("nji,nj->ni", R0, t0)
-    layout = _build_layout(C0, len(X0), fixed, scale_camera, cam)
+    layout = _build_layout(C0, len(X0), fixed, scale_camera, cam, _tilt_free_cameras(gravity_prior, fixed, R0))
     problem = _Problem(R_init=R0, t_init=t0, C_init=C0, obs_camera=cam, obs_point=pt, bearings=z,
-                       basis=tangent_basis(z), layout=layout)
+                       basis=tangent_basis(z), layout=layout,
+                       **_prior_terms(gravity_prior, layout, R0, C0, X0, cam, pt, z))
     if (few := np.bincount(pt, minlength=len(X0)) < 2).any():
         log.warning("bundle_adjust: %d points have fewer than 2 observations", few.sum())
     objective = _WeightedResiduals(problem)
     x0 = _pack(layout, C0, X0)
-    initial_cost = _robust_cost(objective.errors(x0), loss, loss_scale_rad)
+    initial_cost = _robust_cost(objective.errors(x0), loss, loss_scale_rad) + objective.prior_cost(x0)
     x, converged = _irls(objective, x0, loss=loss, f_target=loss_scale_rad, max_nfev=max_nfev, ftol=ftol)
     return _result(x, objective.evaluations, converged, problem, initial_cost, loss, loss_scale_rad)
+
+
+# Gravity priors: a standard error below this is not believed (segments of one edge are not independent, and
+# the vertical-line estimates of the synthetic home are 0.05-0.5° off with standard errors of 0.06-0.19°).
+MIN_GRAVITY_SIGMA_RAD = np.radians(0.02)
+# A measured gravity farther than this many standard errors (and than MAX_GRAVITY_OUTLIER_RAD) from its model's up
+# direction is an outlier (a wrong vanishing point) and gets no prior.
+GRAVITY_OUTLIER_SIGMAS = 6.0
+MIN_GRAVITY_OUTLIER_RAD = np.radians(1.0)
+
+
+def gravity_prior_for_models(R_cam_from_world: np.ndarray, gravity_cam: np.ndarray, sigma_rad: np.ndarray,
+                             model_id: np.ndarray) -> GravityPrior | None:
+    """The gravity prior of the cameras with a measured gravity (finite gravity and standard error): each model's
+    up direction is the precision-weighted mean of its cameras' gravities carried to the world (the poses fix the
+    frame), computed again without the outliers. None when no camera qualifies."""
+    R = np.asarray(R_cam_from_world, dtype=np.float64)
+    g = np.asarray(gravity_cam, dtype=np.float64)
+    sigma = np.maximum(np.asarray(sigma_rad, dtype=np.float64), MIN_GRAVITY_SIGMA_RAD)
+    measured = (np.isfinite(g).all(axis=1) & (np.abs(np.nan_to_num(g)).sum(axis=1) > 0) & np.isfinite(sigma)
+                & (np.asarray(model_id) >= 0))  # the filter stores unknown gravity as zero with an infinite error
+    down_world = np.where(measured[:, None], np.einsum("nji,nj->ni", R, np.where(measured[:, None], g, 0.0)), 0.0)
+    up_world = np.zeros_like(down_world)
+    tolerance = np.maximum(GRAVITY_OUTLIER_SIGMAS * sigma, MIN_GRAVITY_OUTLIER_RAD)
+    for model in np.unique(model_id[measured]):
+        members = np.flatnonzero(measured & (model_id == model))
+        # The camera whose gravity most others agree with starts the mean (a wrong vanishing point cannot).
+        angles = np.arccos(np.clip(down_world[members] @ down_world[members].T, -1.0, 1.0))
+        agree = angles <= tolerance[members][None, :]
+        inliers = members[agree[np.argmax(agree.sum(1))]]
+        for _ in range(2):  # the weighted mean, then again over the cameras that agree with it
+            mean = normalize((down_world[inliers] / sigma[inliers, None] ** 2).sum(0)[None])[0]
+            angle = np.arccos(np.clip(down_world[members] @ mean, -1.0, 1.0))
+            inliers = members[angle <= tolerance[members]]
+        up_world[inliers] = mean
+        measured[np.setdiff1d(members, inliers)] = False
+    camera = np.flatnonzero(measured)
+    if not len(camera):
+        return None
+    return GravityPrior(camera=camera, gravity_cam=normalize(g[camera]), up_world=up_world[camera],
+                        sigma_rad=sigma[camera], group=np.asarray(model_id)[camera])
+
+
+# The median angular error of 2-D isotropic Gaussian residuals is √(2 ln 2) σ.
+_MEDIAN_TO_SIGMA = 1.0 / np.sqrt(2.0 * np.log(2.0))
+
+
+def _tilt_free_cameras(prior: GravityPrior | None, fixed: np.ndarray, R: np.ndarray) -> dict[int, np.ndarray]:
+    """Fixed cameras whose tilt the gravity prior decides, with the world up they see: each fixed camera with a
+    measured gravity that is its group's only fixed camera. Its group's up direction stays where the prior put it
+    and the camera keeps its centre and heading but not its tilt: the same optimum as a free up direction with the
+    camera held (a global rotation apart), reached by Levenberg-Marquardt steps instead of alternating."""
+    if prior is None:
+        return {}
+    camera, group = np.asarray(prior.camera), np.asarray(prior.group)
+    row_of = {int(c): k for k, c in enumerate(camera)}
+    rows = [row_of[int(f)] for f in fixed if int(f) in row_of]
+    fixed_groups, counts = np.unique(group[rows], return_counts=True) if rows else (np.zeros(0), np.zeros(0))
+    single = set(fixed_groups[counts == 1].tolist())
+    return {int(camera[k]): R[camera[k]] @ np.asarray(prior.up_world[k], np.float64)
+            for k in rows if group[k] in single}
+
+
+def _prior_terms(prior: GravityPrior | None, layout: _Layout, R, C, X, cam, pt, bearings) -> dict:
+    """The _Problem fields of the gravity prior: its moving cameras, their world up, bases and weights."""
+    if prior is None:
+        return {}
+    camera = np.asarray(prior.camera, dtype=np.int64)
+    if camera.size and (camera.min() < 0 or camera.max() >= len(R)):
+        raise ValueError(f"gravity_prior.camera values must be in [0, {len(R)})")
+    sigma = np.asarray(prior.sigma_rad, dtype=np.float64)
+    if not (np.isfinite(sigma) & (sigma > 0)).all():
+        raise ValueError("gravity_prior.sigma_rad must be finite and positive")
+    y = np.einsum("kij,kj->ki", R[cam], X[pt] - C[cam])
+    errors = np.arccos(np.clip(np.einsum("ki,ki->k", normalize(y), bearings), -1.0, 1.0))
+    sigma_obs = _MEDIAN_TO_SIGMA * float(np.median(errors))
+    gravity = normalize(np.asarray(prior.gravity_cam, np.float64))
+    return {"prior_camera": camera, "prior_up": normalize(np.asarray(prior.up_world, np.float64)),
+            "prior_basis": tangent_basis(gravity), "prior_sqrt_w": sigma_obs / sigma,
+            "prior_group": np.asarray(prior.group, np.int64), "prior_gravity": gravity}
 
 
 def _irls(
@@ -547,13 +747,14 @@ def _irls(
     system = _SchurSystem(objective.problem)
     theta = objective.errors(x)
     scales = _scale_schedule(theta, loss, f_target)
-    cost, rounds = _robust_cost(theta, loss, f_target), 0
+    cost, rounds = _robust_cost(theta, loss, f_target) + objective.prior_cost(x), 0
     while (budget := max_nfev - objective.evaluations) > 0:
         f_scale = scales[min(rounds, len(scales) - 1)]
         objective.sqrt_w = np.sqrt(_LOSSES[loss][1]((theta / f_scale) ** 2))
+        _update_world_up(x, objective.problem)
         x, rounds = _levenberg_marquardt(objective, system, x, min(_ROUND_NFEV, budget), ftol), rounds + 1
         theta = objective.errors(x)
-        new_cost, old_cost = _robust_cost(theta, loss, f_target), cost
+        new_cost, old_cost = _robust_cost(theta, loss, f_target) + objective.prior_cost(x), cost
         cost = new_cost
         log.debug("bundle_adjust round %d: f %.3g rad, cost %.6g, %d evaluations",
                   rounds, f_scale, cost, objective.evaluations)
@@ -572,8 +773,8 @@ def _levenberg_marquardt(objective: _WeightedResiduals, system: _SchurSystem, x:
     cost, J, nu = 0.5 * float(r.ravel() @ r.ravel()), None, 2.0
     for _ in range(max_evaluations):
         if J is None:
-            J = objective.jac_blocks(x)
-        solved = system.solve(r, J, objective.damping)
+            J, J_prior = objective.jac_blocks(x), objective.prior_blocks(x)
+        solved = system.solve(r, J, objective.damping, J_prior, objective.problem.prior_camera)
         if solved is None or not solved[1] > 0:
             objective.damping, nu = min(objective.damping * nu, _LM_DAMPING_BOUNDS[1]), 2 * nu
             continue
@@ -615,7 +816,7 @@ def _result(x, nfev, converged, problem: _Problem, initial_cost, loss: str, f_sc
     t = -np.einsum("nij,nj->ni", R, centers)
     R[fixed], t[fixed] = problem.R_init[fixed], problem.t_init[fixed]  # exactly the input, no rounding
     obs_error = np.linalg.norm(_residuals(x, problem, False)[0], axis=1)
-    final_cost = _robust_cost(obs_error, loss, f_scale)
+    final_cost = _robust_cost(obs_error, loss, f_scale) + 0.5 * float((_prior_residuals(x, problem)[0] ** 2).sum())
     message = "cost decrease below ftol" if converged else "max_nfev reached"
     log.info(
         "bundle_adjust: cost %.4g -> %.4g in %d evaluations, median error %.3g rad (%s)",

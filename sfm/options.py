@@ -141,6 +141,8 @@ class TriangulationOptions:
                                        zero_means="no geometry pairs")
     geometry_min_inliers: int = setting(30, "matches a geometry pair needs within max_reprojection_error_deg of "
                                         "its known epipolar circles", ge=8, le=1_000_000)
+    gravity_prior: bool = setting(True, "bundle adjustment holds each image's tilt to its gravity from vertical "
+                                  "lines (filter.upright: vanishing), weighted by its precision")
     RULES: ClassVar[list[Rule]] = []
 
 

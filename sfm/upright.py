@@ -43,9 +43,10 @@ from fullview.sfm.camera import normalize, skew, tangent_basis
 from fullview.sfm.registration.poses import yaw_rotation
 
 __all__ = [
-    "UPRIGHT_SAMPLE_SIZE", "detect_line_normals", "estimate_f_upright_linear", "estimate_gravity", "level_bearings",
-    "leveling_rotation", "ransac_f_upright", "refine_f_upright", "unlevel_f", "unlevel_rotation", "upright_decompose",
-    "upright_f", "upright_f_minimal", "upright_f_minimal_batch", "vertical_direction_from_normals",
+    "UPRIGHT_SAMPLE_SIZE", "detect_line_normals", "estimate_f_upright_linear", "estimate_gravity",
+    "estimate_gravity_with_std", "level_bearings", "leveling_rotation", "ransac_f_upright", "refine_f_upright",
+    "unlevel_f", "unlevel_rotation", "upright_decompose", "upright_f", "upright_f_minimal", "upright_f_minimal_batch",
+    "vertical_direction_from_normals", "vertical_direction_std",
 ]
 
 UPRIGHT_SAMPLE_SIZE = 3
@@ -396,10 +397,37 @@ def estimate_gravity(image: np.ndarray, *, face_size: int = 0, max_tilt_deg: flo
     Assumes the camera is within max_tilt_deg of level and the scene has vertical edges (walls, doors, furniture).
     Segments are weighted by length in the fit: long edges locate their circle more precisely.
     """
+    found = estimate_gravity_with_std(image, face_size=face_size, max_tilt_deg=max_tilt_deg, inlier_deg=inlier_deg,
+                                      min_lines=min_lines, seed=seed)
+    return None if found is None else found[:2]
+
+
+def estimate_gravity_with_std(image: np.ndarray, *, face_size: int = 0, max_tilt_deg: float = 20.0,
+                              inlier_deg: float = 1.0, min_lines: int = 6,
+                              seed: int = 0) -> tuple[np.ndarray, int, float] | None:
+    """`estimate_gravity` and the standard error of its direction (radians, `vertical_direction_std`)."""
     normals, lengths = detect_line_normals(np.asarray(image), face_size=face_size)
     found = vertical_direction_from_normals(normals, lengths, max_tilt_deg=max_tilt_deg, inlier_deg=inlier_deg,
                                             min_lines=min_lines, seed=seed)
     if found is None:
         return None
     v, inliers = found
-    return v, int(inliers.sum())
+    return v, int(inliers.sum()), vertical_direction_std(normals[inliers], lengths[inliers], v)
+
+
+def vertical_direction_std(normals: np.ndarray, weights: np.ndarray, v: np.ndarray) -> float:
+    """Standard error (radians, along the worst direction) of the weighted least-squares direction v through the
+    great circles with these unit normals: the residual spread s² = Σ w (n·v)² / (m − 2) (weights scaled to mean 1)
+    over the information the circles give in the plane orthogonal to v, s² (Bᵀ Σ w n nᵀ B)⁻¹. Segments of one edge
+    are not independent, so this is a lower bound; downstream weights add the spread between images."""
+    w = np.asarray(weights, dtype=np.float64) / np.mean(weights)
+    n = np.asarray(normals, dtype=np.float64)
+    if len(n) < 3:
+        return float("inf")
+    s2 = float(w @ (n @ v) ** 2) / (len(n) - 2)
+    B = tangent_basis(v[None])[0].T  # (3, 2)
+    info = B.T @ ((n * w[:, None]).T @ n) @ B
+    try:
+        return float(np.sqrt(s2 * np.linalg.eigvalsh(np.linalg.inv(info)).max()))
+    except np.linalg.LinAlgError:
+        return float("inf")

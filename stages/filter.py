@@ -52,7 +52,7 @@ def run(ctx: StageContext) -> dict:
     # so they are never all in memory at once.
     descriptors = (lru_cache(maxsize=DESCRIPTOR_CACHE)(lambda k: ctx.ws.load_features(ctx.dataset.image_names[k])
                                                         ["descriptors"]) if options.guided_matching else None)
-    gravity = _gravity(ctx, options.upright)
+    gravity, gravity_std = _gravity(ctx, options.upright)
     num_sift = [int(o["num_sift"]) for o in obs]
     guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)
     verify = partial(_filter_pair, ctx, options, obs, num_sift, raw, gravity, descriptors, guided)
@@ -68,7 +68,11 @@ def run(ctx: StageContext) -> dict:
                          seeded=np.array([r.seeded for r in results], bool),
                          num_hand=np.array([r.num_hand for r in results]),
                          no_baseline=np.array([r.no_baseline for r in results], bool),
-                         weak_verified=np.array([r.weak for r in results], bool))
+                         weak_verified=np.array([r.weak for r in results], bool),
+                         # Per image, not per pair: the bundle adjustment's gravity prior reads them. Unknown: zero
+                         # and an infinite error, not NaN (reruns compare byte-identical arrays, and NaN != NaN).
+                         gravity=np.nan_to_num(gravity, nan=0.0),
+                         gravity_std_rad=np.nan_to_num(gravity_std, nan=np.inf))
     counts = np.array([len(r.inliers) for r in results])
     names = ctx.dataset.image_names
     return {"pairs": len(raw.pairs), "verified_pairs": int((counts > 0).sum()),
@@ -116,23 +120,24 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
                        weak=0 < len(good) < options.min_inliers, early_rejected=early, guided_added=added)
 
 
-def _gravity(ctx: StageContext, mode: str) -> np.ndarray:
-    """(N, 3) gravity of every image in its camera frame (NaN where unknown: upright none, or no vertical lines)."""
+def _gravity(ctx: StageContext, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) gravity of every image in its camera frame (NaN where unknown: upright none, or no vertical lines) and
+    (N,) its standard error in radians from the spread of the vertical lines (NaN: not measured, as with level)."""
     names = ctx.dataset.image_names
-    out = np.full((len(names), 3), np.nan)
+    out, std = np.full((len(names), 3), np.nan), np.full(len(names), np.nan)
     if mode == "level":
         out[:] = upright.Y_AXIS
     elif mode == "vanishing":
         for k, name in enumerate(tqdm(names, desc="gravity", unit="image")):
             full_w = ctx.dataset.image_sizes[name][0]
-            found = upright.estimate_gravity(ctx.dataset.load_image(name, width=min(GRAVITY_WIDTH, full_w)),
-                                            min_lines=GRAVITY_MIN_LINES, seed=ctx.options.seed)
+            found = upright.estimate_gravity_with_std(ctx.dataset.load_image(name, width=min(GRAVITY_WIDTH, full_w)),
+                                                      min_lines=GRAVITY_MIN_LINES, seed=ctx.options.seed)
             if found is None:
                 log.warning("%s: no vertical lines found; its pairs are verified without the upright prior", name)
             else:
-                out[k] = found[0]
+                out[k], std[k] = found[0], found[2]
                 log.debug("%s: gravity %s from %d lines", name, np.round(found[0], 4).tolist(), found[1])
-    return out
+    return out, std
 
 
 def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, guided_options: MatchesOptions):

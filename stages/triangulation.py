@@ -13,7 +13,7 @@ import logging
 import numpy as np
 
 from fullview.io.exports import SparseModel, split_models, write_colmap_model
-from fullview.sfm.bundle import bundle_adjust
+from fullview.sfm.bundle import bundle_adjust, gravity_prior_for_models
 from fullview.sfm.tracks import Tracks, build_tracks
 from fullview.sfm.options import TriangulationOptions
 from fullview.sfm.triangulation import (filter_tracks, gather_bearings, longest_tracks_per_image,
@@ -50,16 +50,20 @@ def run(ctx: StageContext) -> dict:
                              [len(o["bearings"]) for o in obs])
     min_angle = np.radians(config.min_triangulation_angle_deg)
 
+    # The filter's gravity per image (absent from workspaces it wrote before it stored them: no prior).
+    gravity = (verified.extra.get("gravity"), verified.extra.get("gravity_std_rad")) if config.gravity_prior else None
+    gravity = gravity if gravity is not None and gravity[0] is not None and gravity[1] is not None else None
     keep = _triangulate_and_filter(tracks, bearings, R, t, LOOSE_FACTOR * max_err, min_angle)
     tracks_kept, points = tracks.subset(keep[0]), keep[1]
     if config.bundle_adjust and tracks_kept.num_tracks:
         pose_tracks = longest_tracks_per_image(tracks_kept, POSE_ROUND_TRACKS_PER_IMAGE)
-        R, t, _, _ = _bundle(tracks_kept.subset(pose_tracks), bearings, R, t, points[pose_tracks], model_id, config)
+        R, t, _, _ = _bundle(tracks_kept.subset(pose_tracks), bearings, R, t, points[pose_tracks], model_id, config,
+                             gravity)
     mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
     final = tracks.subset(mask)
     errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     if config.bundle_adjust and final.num_tracks:
-        R, t, points, errors = _bundle(final, bearings, R, t, points, model_id, config)
+        R, t, points, errors = _bundle(final, bearings, R, t, points, model_id, config, gravity)
         # The last adjustment moved the points: drop the few tracks it left beyond the bound, so the stored
         # errors describe the stored points.
         worst = np.full(final.num_tracks, 0.0)
@@ -75,23 +79,30 @@ def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
     return mask, tri.points[mask]
 
 
-def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config):
-    """Bundle adjustment over the cameras of every model (reindexed), the first camera of each model fixed.
+def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=None):
+    """Bundle adjustment over the cameras of every model (reindexed), the first camera of each model fixed; with
+    `gravity` ((N, 3) gravity per image in its frame, (N,) its standard error), each image's tilt is held to it.
 
     Returns refined (R, t) of every camera, the points and the final angular error of every observation."""
     cams = np.flatnonzero(model_id >= 0)
     local = np.full(len(model_id), -1)
     local[cams] = np.arange(len(cams))
-    _, first = np.unique(model_id[cams], return_index=True)
+    prior = None if gravity is None else gravity_prior_for_models(R[cams], gravity[0][cams], gravity[1][cams],
+                                                                  model_id[cams])
+    # Each model's first camera is held, preferably one with a measured gravity: the prior then decides its tilt.
+    held = np.zeros(len(cams), bool) if prior is None else np.isin(np.arange(len(cams)), prior.camera)
+    _, first = np.unique(np.stack([model_id[cams], ~held]).T, axis=0, return_index=True)
+    _, first_of_model = np.unique(model_id[cams][first], return_index=True)
+    first = first[first_of_model]
     result = bundle_adjust(
         R_cam_from_world=R[cams], t_cam_from_world=t[cams], points=points,
         obs_camera=local[tracks.image_ids], obs_point=tracks.track_ids,
         obs_bearings=gather_bearings(bearings, tracks.image_ids, tracks.feature_ids),
         fixed_cameras=tuple(first.tolist()), loss="soft_l1", loss_scale_rad=np.radians(config.ba_loss_scale_deg),
-        max_nfev=config.ba_max_iterations)
-    log.info("bundle adjustment: %d cameras, %d points, cost %.4g -> %.4g, median error %.4f deg",
-             len(cams), len(points), result.initial_cost, result.final_cost,
-             np.degrees(np.median(result.obs_error_rad)))
+        max_nfev=config.ba_max_iterations, gravity_prior=prior)
+    log.info("bundle adjustment: %d cameras (%d with a gravity prior), %d points, cost %.4g -> %.4g, median error "
+             "%.4f deg", len(cams), 0 if prior is None else len(prior.camera), len(points), result.initial_cost,
+             result.final_cost, np.degrees(np.median(result.obs_error_rad)))
     R, t = R.copy(), t.copy()
     R[cams], t[cams] = result.R_cam_from_world, result.t_cam_from_world
     return R, t, result.points, result.obs_error_rad

@@ -153,3 +153,23 @@ def test_models_are_deterministic():
     _, _, links, matches, bearings = _room_with_wrong_image()
     a, b = _build(links, matches, bearings), _build(links, matches, bearings)
     assert np.array_equal(a.model_id, b.model_id) and np.array_equal(a.centers, b.centers)
+
+
+def test_a_contradicted_bridge_that_points_confirm_keeps_its_side():
+    """Two rooms joined by the right doorway pair (4, 5) and one wrong pair (3, 6): rotation averaging rejects (3, 6),
+    which makes (4, 5) a contradicted bridge; the tracks across it fit, so the room behind it stays in the model as
+    averaged (before: it was cut off and attached again camera by camera)."""
+    rng = np.random.default_rng(4)
+    left = np.column_stack([np.arange(5) * 1.2, np.zeros(5), rng.uniform(-.4, .4, 5)])
+    centres = np.concatenate([left, left + [6.0, 0, 0]])
+    R, _, feature_of, bearings = _world(rng, centres, num_points=2500, reach=5.0)
+    rooms = [range(5), range(5, 10)]
+    wanted = {(i, j) for room in rooms for i in room for j in room if i < j} | {(4, 5), (3, 6)}
+    links, matches = _links(R, centres, feature_of, pairs_wanted=wanted)
+    assert {(4, 5), (3, 6)} <= {tuple(p) for p in links.pairs}
+    wrong = np.flatnonzero((links.pairs == [3, 6]).all(axis=1))
+    links.R_j_from_i[wrong] = Rotation.from_rotvec([0.0, 0.4, 0.1]).as_matrix() @ links.R_j_from_i[wrong]
+    models = _build(links, matches, bearings, resection=False, merge_models=False)
+    assert (models.model_id == 0).all() and not models.attached  # kept as averaged, not cut off and re-attached
+    assert any(set(join["images"]) & set(range(5, 10)) and join["tracks"] >= 6 for join in models.joins)
+    _assert_matches_truth(models, 0, R, centres, tol_deg=1e-2, tol_rel=1e-3)

@@ -157,11 +157,14 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
             # pair at unit baseline and let growth attach the rest by points.
             _seed_from_pair(state, m, int(np.argmax(np.where(in_group, w, -np.inf))), links)
             return m
-        placed = reg.registered & ~_behind_contradicted_bridges(reg, in_group, pairs, num_images)
+        contradicted = _behind_contradicted_bridges(reg, in_group, pairs, num_images)
+        placed = reg.registered & ~contradicted
         averaged, centers = placed, reg.centers
         if reg.flexible_modes > 0:
-            averaged, placed, centers = _join_rigid_parts(state, m, reg, placed, pairs, tracks, bearings, options,
-                                                          rules, descriptors)
+            # A bridge leaves the scale behind it free, so the side a contradicted bridge holds is a rigid part of
+            # its own: points may still confirm it (they do not fit a wrong bridge's pose), a guess may not.
+            averaged, placed, centers = _join_rigid_parts(state, m, reg, reg.registered, pairs, tracks, bearings,
+                                                          options, rules, descriptors, needs_points=contradicted)
         open_pairs |= in_group & (inside & ~placed)[pairs].all(axis=1)
         state.model_id[placed] = m
         state.averaged_in[averaged] = m  # joined parts: their pairs to the rest are judged by residuals
@@ -199,15 +202,20 @@ def _behind_contradicted_bridges(reg, in_group: np.ndarray, pairs: np.ndarray, n
 
 
 def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: np.ndarray, tracks: Tracks, bearings,
-                      options: RegistrationOptions, rules: JoinRules, descriptors=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      options: RegistrationOptions, rules: JoinRules, descriptors=None,
+                      needs_points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split an averaged layout that the directions do not make rigid into its rigid parts and join the parts to
     the largest one by the points they share (`rigid_parts`). Returns (N,) the largest part, (N,) every camera kept
     (the largest part and the parts joined to it) and (N, 3) the centres with the joined parts re-scaled; cameras of
-    parts no points join are left out, to be placed again (growth, a model of their own, merging)."""
+    parts no points join are left out, to be placed again (growth, a model of their own, merging). Cameras in
+    `needs_points` (behind a contradicted bridge) are kept only through a join by points, never by
+    `unjoined_parts: keep`, until one such join confirms the side."""
+    needs_points = np.zeros(len(placed), bool) if needs_points is None else needs_points.copy()
     used = reg.pair_used_mask & placed[pairs].all(axis=1)
     C, R = reg.centers.copy(), reg.R_cam_from_world
     parts = [_mask(len(placed), p) for p in rigid_parts(C, pairs[used])]
-    if len(parts) < 2:
+    if len(parts) < 2 or (parts[0] & needs_points).any():
+        placed = placed & ~needs_points
         return placed, placed, C
     log.info("averaged layout of %d images is not rigid (%d flexible mode(s)): rigid parts of %s images", placed.sum(),
              reg.flexible_modes, [int(p.sum()) for p in parts])
@@ -235,6 +243,9 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
                 failed.add(k)
                 continue
             new = part & ~main
+            if (new & needs_points).any():
+                log.info("points confirm a contradicted bridge: %d image(s) behind it stay", needs_points.sum())
+                needs_points[:] = False
             C[new] = join.scale * C[new] + join.shift
             state.joins.append({"model": m, "images": np.flatnonzero(new).tolist(), "tracks": join.num_tracks,
                                 "scale": join.scale, "confirmed": join.confirmed})
@@ -242,7 +253,8 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
                      "observations)", new.sum(), m, join.scale, join.num_tracks, join.num_observations)
             break
         if new is None and rules.keep_unjoined:
-            new = _keep_a_guessed_part(state, m, [parts[k] for k in pending], main, C, reg.centers, pairs[used])
+            new = _keep_a_guessed_part(state, m, [parts[k] for k in pending if not (parts[k] & ~main & needs_points)
+                                                  .any()], main, C, reg.centers, pairs[used])
         if new is None:
             break
         main |= new
