@@ -207,7 +207,7 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
     t0 = time.perf_counter()
     wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
-                                          view_tolerance=options.view_tolerance)
+                                          view_tolerance=options.view_tolerance, extent=config.world_plane_extent)
     points, ranges = _model_points(views, sparse_points)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
                                              up=camera_up(np.array([v.R_cam_from_world for v in views])))

@@ -48,6 +48,7 @@ class WorldPlaneOptions:
     max_planes: int = 60
     extent_closing_cells: int = 3  # gaps in a plane's support up to about this many cells are closed
     extent_hull: bool = False  # extent: convex hull of each piece of support (else its enclosed holes filled)
+    extent: str = "gravity"  # "support": closed support, enclosed holes filled; "gravity": see _gravity_extent
     max_tilt_deg: float = 5.0  # planes are level or upright within this angle (90: any orientation)
     min_evidence_cells: int = 20  # a plane is judged by the free-space check only with this many cells seen
     view_tolerance: float = 0.03  # relative range margin of "sees through" and of "occluded"
@@ -87,12 +88,33 @@ class WorldPlane:
 
 
 # ------------------------------------------------------------------------------------------------ detection
-def _plane_basis(normal: np.ndarray) -> np.ndarray:
-    """(2, 3) two unit axes spanning the plane of ``normal``."""
+def _plane_basis(normal: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
+    """(2, 3) two unit axes spanning the plane of ``normal``; for a plane containing ``up`` (upright), the second
+    axis is ``up`` projected on the plane (grid columns are vertical lines of the wall)."""
+    if up is not None and abs(normal @ up) < 0.5:
+        b = up - (up @ normal) * normal
+        b /= np.linalg.norm(b)
+        return np.stack([np.cross(b, normal), b])
     helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
     a = np.cross(normal, helper)
     a /= np.linalg.norm(a)
     return np.stack([a, np.cross(normal, a)])
+
+
+def _gravity_extent(grid: np.ndarray, upright: bool) -> np.ndarray:
+    """Indoors, with gravity known: a level plane (floor, ceiling) spans the bounding rectangle of its support, and
+    an upright plane (wall) spans, in each vertical column of its grid, the cells between its lowest and highest
+    support. A plain wall is supported along its floor and ceiling lines, so it is filled between them; a doorway's
+    columns hold support only at the lintel (its floor line is missing), so the opening stays outside. What the
+    views see through is removed afterwards (``carve_extents``): the free space bounds the extent, not its
+    outline."""
+    if not grid.any():
+        return grid
+    if not upright:
+        return np.ones_like(grid)
+    above = np.maximum.accumulate(grid, axis=0)
+    below = np.maximum.accumulate(grid[::-1], axis=0)[::-1]
+    return above & below
 
 
 def _fit(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -101,9 +123,10 @@ def _fit(points: np.ndarray) -> tuple[np.ndarray, float]:
     return normal, float(normal @ centroid)
 
 
-def _extent(support: np.ndarray, normal: np.ndarray, offset: float, cell: float, closing: int, hull: bool):
-    """(origin, axes, extent grid) of a plane from its supporting points."""
-    axes = _plane_basis(normal)
+def _extent(support: np.ndarray, normal: np.ndarray, offset: float, cell: float, closing: int, hull: bool,
+            mode: str = "support", up: np.ndarray | None = None):
+    """(origin, axes, extent grid) of a plane from its supporting points (``WorldPlaneOptions.extent``)."""
+    axes = _plane_basis(normal, up if mode == "gravity" else None)
     uv = support @ axes.T
     lo = uv.min(axis=0) - cell
     idx = np.floor((uv - lo) / cell).astype(np.intp)
@@ -116,7 +139,10 @@ def _extent(support: np.ndarray, normal: np.ndarray, offset: float, cell: float,
     if hull:
         contours, _ = cv2.findContours(grid, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         cv2.fillPoly(grid, [cv2.convexHull(c) for c in contours], 1)
-    extent = ndimage.binary_fill_holes(grid > 0)
+    if mode == "gravity" and up is not None:
+        extent = _gravity_extent(grid > 0, upright=abs(normal @ up) < 0.5)
+    else:
+        extent = ndimage.binary_fill_holes(grid > 0)
     origin = normal * offset + lo @ axes
     return origin, axes, extent
 
@@ -179,7 +205,7 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
         explained |= inliers
         support = points[inliers]
         origin, axes, extent = _extent(support, normal, offset, options.cell, options.extent_closing_cells,
-                                       options.extent_hull)
+                                       options.extent_hull, options.extent, up)
         planes.append(WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell,
                                  extent=extent, support=int(inliers.sum())))
     return planes
