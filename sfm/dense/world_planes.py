@@ -68,6 +68,8 @@ class WorldPlane:
     cell: float
     extent: np.ndarray  # (rows, cols) bool
     support: int  # supporting points
+    fallback: np.ndarray | None = None  # (rows, cols) bool: the support's own extent (closed, holes filled), used
+    # when the views see through most of a generous ``extent``
 
     def cells_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(row, col, inside the grid) of world points (assumed on the plane)."""
@@ -139,12 +141,11 @@ def _extent(support: np.ndarray, normal: np.ndarray, offset: float, cell: float,
     if hull:
         contours, _ = cv2.findContours(grid, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         cv2.fillPoly(grid, [cv2.convexHull(c) for c in contours], 1)
-    if mode == "gravity" and up is not None:
-        extent = _gravity_extent(grid > 0, upright=abs(normal @ up) < 0.5)
-    else:
-        extent = ndimage.binary_fill_holes(grid > 0)
+    closed = ndimage.binary_fill_holes(grid > 0)
+    extent = _gravity_extent(grid > 0, upright=abs(normal @ up) < 0.5) if mode == "gravity" and up is not None \
+        else closed
     origin = normal * offset + lo @ axes
-    return origin, axes, extent
+    return origin, axes, extent, (closed if extent is not closed else None)
 
 
 def _tilt_ok(normals: np.ndarray, up: np.ndarray | None, max_tilt_deg: float) -> np.ndarray:
@@ -204,10 +205,10 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
             break
         explained |= inliers
         support = points[inliers]
-        origin, axes, extent = _extent(support, normal, offset, options.cell, options.extent_closing_cells,
+        origin, axes, extent, fallback = _extent(support, normal, offset, options.cell, options.extent_closing_cells,
                                        options.extent_hull, options.extent, up)
         planes.append(WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell,
-                                 extent=extent, support=int(inliers.sum())))
+                                 extent=extent, support=int(inliers.sum()), fallback=fallback))
     return planes
 
 
@@ -217,29 +218,42 @@ def carve_extents(planes: list[WorldPlane], views: list[View], options: WorldPla
     of the cells some view has a range for (invented planes). Returns the planes kept (extents modified in place)."""
     kept = []
     for plane in planes:
-        (rows, cols), centers = plane.cell_centers()
-        if not len(rows):
-            continue
-        through = np.zeros(len(rows), np.int32)
-        on = np.zeros(len(rows), np.int32)
-        for view in views:
-            x_cam = (centers @ view.R_cam_from_world.T + view.t_cam_from_world).astype(np.float32)
-            r_pred = np.linalg.norm(x_cam, axis=1)
-            h, w = view.range_map.shape
-            u, v = bearings_to_pixels_f32(x_cam / r_pred[:, None], w, h)
-            col, row = np.clip(u.astype(np.intp), 0, w - 1), np.clip(v.astype(np.intp), 0, h - 1)
-            r_obs = view.range_map[row, col]
-            seen = view.observable[row, col]
-            with np.errstate(invalid="ignore"):
-                through += seen & (r_obs > (1 + options.view_tolerance) * r_pred)
-                on += seen & (np.abs(r_obs - r_pred) <= options.view_tolerance * r_pred)
-        carved = through > on
-        judged = (through + on) > 0
-        if judged.sum() >= options.min_evidence_cells and carved.sum() > options.max_seen_through * judged.sum():
-            continue
-        plane.extent[rows[carved], cols[carved]] = False
-        kept.append(plane)
+        if _carve(plane, views, options):
+            kept.append(plane)
+        elif plane.fallback is not None:
+            # the views see through most of the generous extent (a slightly tilted floor far from its support, a
+            # wall's columns through a window): the plane keeps the extent of its own support, judged the same way
+            plane.extent, plane.fallback = plane.fallback, None
+            if _carve(plane, views, options):
+                kept.append(plane)
     return kept
+
+
+def _carve(plane: WorldPlane, views: list[View], options: WorldPlaneOptions) -> bool:
+    """Remove the cells of the plane's extent that the views see through; False if it is seen through on more than
+    ``max_seen_through`` of the cells judged (extent unchanged then)."""
+    (rows, cols), centers = plane.cell_centers()
+    if not len(rows):
+        return False
+    through = np.zeros(len(rows), np.int32)
+    on = np.zeros(len(rows), np.int32)
+    for view in views:
+        x_cam = (centers @ view.R_cam_from_world.T + view.t_cam_from_world).astype(np.float32)
+        r_pred = np.linalg.norm(x_cam, axis=1)
+        h, w = view.range_map.shape
+        u, v = bearings_to_pixels_f32(x_cam / r_pred[:, None], w, h)
+        col, row = np.clip(u.astype(np.intp), 0, w - 1), np.clip(v.astype(np.intp), 0, h - 1)
+        r_obs = view.range_map[row, col]
+        seen = view.observable[row, col]
+        with np.errstate(invalid="ignore"):
+            through += seen & (r_obs > (1 + options.view_tolerance) * r_pred)
+            on += seen & (np.abs(r_obs - r_pred) <= options.view_tolerance * r_pred)
+    carved = through > on
+    judged = (through + on) > 0
+    if judged.sum() >= options.min_evidence_cells and carved.sum() > options.max_seen_through * judged.sum():
+        return False
+    plane.extent[rows[carved], cols[carved]] = False
+    return True
 
 
 # ------------------------------------------------------------------------------------------------ per pixel
