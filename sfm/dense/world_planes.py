@@ -48,6 +48,7 @@ class WorldPlaneOptions:
     max_planes: int = 60
     extent_closing_cells: int = 3  # gaps in a plane's support up to about this many cells are closed
     extent_hull: bool = False  # extent: convex hull of each piece of support (else its enclosed holes filled)
+    min_front_share: float = 0.8  # with observers: this share of a plane's points must be seen from one side
     extent: str = "gravity"  # "support": closed support, enclosed holes filled; "gravity": see _gravity_extent
     max_tilt_deg: float = 5.0  # planes are level or upright within this angle (90: any orientation)
     min_evidence_cells: int = 20  # a plane is judged by the free-space check only with this many cells seen
@@ -68,6 +69,7 @@ class WorldPlane:
     cell: float
     extent: np.ndarray  # (rows, cols) bool
     support: int  # supporting points
+    front: int = 0  # side (sign of normal · x − offset) its points were seen from; 0: unknown
     fallback: np.ndarray | None = None  # (rows, cols) bool: the support's own extent (closed, holes filled), used
     # when the views see through most of a generous ``extent``
 
@@ -158,10 +160,13 @@ def _tilt_ok(normals: np.ndarray, up: np.ndarray | None, max_tilt_deg: float) ->
 
 
 def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.Generator,
-                        options: WorldPlaneOptions, up: np.ndarray | None = None) -> list[WorldPlane]:
+                        options: WorldPlaneOptions, up: np.ndarray | None = None,
+                        observers: np.ndarray | None = None) -> list[WorldPlane]:
     """The dominant planes of a point cloud (N, 3) by sequential RANSAC, each with its supported extent. A point
     supports a plane within ``distance`` times its range (N,) from the camera that measured it: stereo errors grow
-    with the range."""
+    with the range. ``observers`` (N, 3): the centre of the camera that measured each point. A surface is seen from
+    one side: a plane whose points were seen from both sides (less than ``min_front_share`` from one) runs through
+    both faces of a thin wall and is not kept; the side of the others is their ``front``."""
     points = np.asarray(points, np.float64)
     tolerance = options.distance * np.asarray(ranges, np.float64)
     explained = np.zeros(len(points), bool)
@@ -204,11 +209,17 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
             # this plane does not hold enough unexplained points; the best hypothesis will not get better
             break
         explained |= inliers
+        front = 0
+        if observers is not None:
+            side = np.sign(observers[inliers] @ normal - offset)
+            if max(np.mean(side > 0), np.mean(side < 0)) < options.min_front_share:
+                continue
+            front = 1 if side.sum() > 0 else -1
         support = points[inliers]
         origin, axes, extent, fallback = _extent(support, normal, offset, options.cell, options.extent_closing_cells,
                                        options.extent_hull, options.extent, up)
         planes.append(WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell,
-                                 extent=extent, support=int(inliers.sum()), fallback=fallback))
+                                 extent=extent, support=int(inliers.sum()), fallback=fallback, front=front))
     return planes
 
 
@@ -300,6 +311,8 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
     min_cos = np.sin(np.radians(options.min_incidence_deg))
     pix_regions = regions.ravel()[pix] if regions is not None else None
     for k, plane in enumerate(planes):
+        if plane.front and np.sign(plane.normal @ center - plane.offset) != plane.front:
+            continue  # this camera is behind the surface (it would see the back of a wall's other face)
         cos = bearings @ plane.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             r = (plane.offset - plane.normal @ center) / cos
