@@ -196,6 +196,10 @@ class DensifyOptions:
                                  "within the extent its points support (sfm/dense/world_planes.py)")
     world_plane_distance: float = setting(0.015, "a point supports a world plane within this share of its range "
                                           "(from the camera that measured it)", gt=0.0, le=0.2)
+    world_plane_extent: str = setting("gravity", "a world plane's extent: gravity = floor/ceiling span their "
+                                      "support's bounding rectangle, walls each column between their lowest and "
+                                      "highest support; support = closed support, enclosed holes filled; both minus "
+                                      "what the views see through", choices=("gravity", "support"))
     seed: int = setting(0, "seed of the plane RANSAC of textureless filling", ge=0, le=2**31 - 1)
     mesh: bool = setting(True, "write densify/dense_mesh.ply: a Poisson mesh of the fused cloud, trimmed to what the "
                          "views support")

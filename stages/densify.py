@@ -207,10 +207,11 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
     t0 = time.perf_counter()
     wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
-                                          view_tolerance=options.view_tolerance)
-    points, ranges = _model_points(views, sparse_points)
+                                          view_tolerance=options.view_tolerance, extent=config.world_plane_extent)
+    points, ranges, observers = _model_points(views, sparse_points)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
-                                             up=camera_up(np.array([v.R_cam_from_world for v in views])))
+                                             up=camera_up(np.array([v.R_cam_from_world for v in views])),
+                                             observers=observers)
     kept = world_planes.carve_extents(found, views, wopt)
     log.info("world planes: %d found in %d points, %d kept after the free-space check (%.1f s)", len(found),
              len(points), len(kept), time.perf_counter() - t0)
@@ -228,11 +229,12 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
     return out
 
 
-def _model_points(views: list[planes.View], sparse_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _model_points(views: list[planes.View], sparse_points: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The stereo points of all views (every other pixel of the reduced grid) and the sparse points, voxel
-    down-sampled at 0.5% of the median range: (points (N, 3), range (N,) from the camera that measured each; a sparse
-    point's nearest camera)."""
-    points, ranges = [], []
+    down-sampled at 0.5% of the median range: (points (N, 3), range (N,) from the camera that measured each, that
+    camera's centre (N, 3); for a sparse point its nearest camera; both averaged over a voxel)."""
+    points, ranges, observers = [], [], []
     centers = np.array([-v.R_cam_from_world.T @ v.t_cam_from_world for v in views])
     for view, center in zip(views, centers):
         h, w = view.range_map.shape
@@ -241,14 +243,16 @@ def _model_points(views: list[planes.View], sparse_points: np.ndarray) -> tuple[
         points.append(center + planes.reduced_bearings_world(view.R_cam_from_world, w, h)[::2, ::2][ok]
                       * rng[ok][:, None])
         ranges.append(rng[ok])
+        observers.append(np.broadcast_to(center, (int(ok.sum()), 3)))
     sparse = np.asarray(sparse_points, np.float64).reshape(-1, 3)
     points.append(sparse)
-    ranges.append(np.linalg.norm(sparse[:, None] - centers[None], axis=2).min(axis=1) if len(sparse) else
-                  np.zeros(0))
+    distances = np.linalg.norm(sparse[:, None] - centers[None], axis=2)
+    ranges.append(distances.min(axis=1) if len(sparse) else np.zeros(0))
+    observers.append(centers[np.argmin(distances, axis=1)] if len(sparse) else np.zeros((0, 3)))
     points, ranges = np.concatenate(points), np.concatenate(ranges).astype(np.float64)
     voxel = 0.005 * float(np.median(ranges))
-    points, ranges = voxel_downsample(points, voxel, ranges[:, None])
-    return points, ranges[:, 0]
+    points, attrs = voxel_downsample(points, voxel, np.column_stack([ranges, np.concatenate(observers)]))
+    return points, attrs[:, 0], attrs[:, 1:]
 
 
 def _observable(config: DensifyOptions, mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:

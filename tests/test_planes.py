@@ -233,7 +233,7 @@ def test_a_plane_the_views_see_through_is_dropped():
 
     def plane_at(z):
         support = np.stack(np.meshgrid(np.linspace(-2, 2, 41), np.linspace(-1.3, 1.2, 26), [z]), -1).reshape(-1, 3)
-        origin, axes, extent = world_planes._extent(support, np.array([0.0, 0, 1]), z, 0.1, 3, False)
+        origin, axes, extent, _ = world_planes._extent(support, np.array([0.0, 0, 1]), z, 0.1, 3, False)
         return world_planes.WorldPlane(normal=np.array([0.0, 0, 1]), offset=z, origin=origin, axes=axes, cell=0.1,
                                        extent=extent, support=len(support))
 

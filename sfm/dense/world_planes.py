@@ -48,6 +48,8 @@ class WorldPlaneOptions:
     max_planes: int = 60
     extent_closing_cells: int = 3  # gaps in a plane's support up to about this many cells are closed
     extent_hull: bool = False  # extent: convex hull of each piece of support (else its enclosed holes filled)
+    min_front_share: float = 0.8  # with observers: this share of a plane's points must be seen from one side
+    extent: str = "gravity"  # "support": closed support, enclosed holes filled; "gravity": see _gravity_extent
     max_tilt_deg: float = 5.0  # planes are level or upright within this angle (90: any orientation)
     min_evidence_cells: int = 20  # a plane is judged by the free-space check only with this many cells seen
     view_tolerance: float = 0.03  # relative range margin of "sees through" and of "occluded"
@@ -67,6 +69,9 @@ class WorldPlane:
     cell: float
     extent: np.ndarray  # (rows, cols) bool
     support: int  # supporting points
+    front: int = 0  # side (sign of normal · x − offset) its points were seen from; 0: unknown
+    fallback: np.ndarray | None = None  # (rows, cols) bool: the support's own extent (closed, holes filled), used
+    # when the views see through most of a generous ``extent``
 
     def cells_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(row, col, inside the grid) of world points (assumed on the plane)."""
@@ -87,12 +92,33 @@ class WorldPlane:
 
 
 # ------------------------------------------------------------------------------------------------ detection
-def _plane_basis(normal: np.ndarray) -> np.ndarray:
-    """(2, 3) two unit axes spanning the plane of ``normal``."""
+def _plane_basis(normal: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
+    """(2, 3) two unit axes spanning the plane of ``normal``; for a plane containing ``up`` (upright), the second
+    axis is ``up`` projected on the plane (grid columns are vertical lines of the wall)."""
+    if up is not None and abs(normal @ up) < 0.5:
+        b = up - (up @ normal) * normal
+        b /= np.linalg.norm(b)
+        return np.stack([np.cross(b, normal), b])
     helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
     a = np.cross(normal, helper)
     a /= np.linalg.norm(a)
     return np.stack([a, np.cross(normal, a)])
+
+
+def _gravity_extent(grid: np.ndarray, upright: bool) -> np.ndarray:
+    """Indoors, with gravity known: a level plane (floor, ceiling) spans the bounding rectangle of its support, and
+    an upright plane (wall) spans, in each vertical column of its grid, the cells between its lowest and highest
+    support. A plain wall is supported along its floor and ceiling lines, so it is filled between them; a doorway's
+    columns hold support only at the lintel (its floor line is missing), so the opening stays outside. What the
+    views see through is removed afterwards (``carve_extents``): the free space bounds the extent, not its
+    outline."""
+    if not grid.any():
+        return grid
+    if not upright:
+        return np.ones_like(grid)
+    above = np.maximum.accumulate(grid, axis=0)
+    below = np.maximum.accumulate(grid[::-1], axis=0)[::-1]
+    return above & below
 
 
 def _fit(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -101,9 +127,10 @@ def _fit(points: np.ndarray) -> tuple[np.ndarray, float]:
     return normal, float(normal @ centroid)
 
 
-def _extent(support: np.ndarray, normal: np.ndarray, offset: float, cell: float, closing: int, hull: bool):
-    """(origin, axes, extent grid) of a plane from its supporting points."""
-    axes = _plane_basis(normal)
+def _extent(support: np.ndarray, normal: np.ndarray, offset: float, cell: float, closing: int, hull: bool,
+            mode: str = "support", up: np.ndarray | None = None):
+    """(origin, axes, extent grid) of a plane from its supporting points (``WorldPlaneOptions.extent``)."""
+    axes = _plane_basis(normal, up if mode == "gravity" else None)
     uv = support @ axes.T
     lo = uv.min(axis=0) - cell
     idx = np.floor((uv - lo) / cell).astype(np.intp)
@@ -116,9 +143,11 @@ def _extent(support: np.ndarray, normal: np.ndarray, offset: float, cell: float,
     if hull:
         contours, _ = cv2.findContours(grid, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         cv2.fillPoly(grid, [cv2.convexHull(c) for c in contours], 1)
-    extent = ndimage.binary_fill_holes(grid > 0)
+    closed = ndimage.binary_fill_holes(grid > 0)
+    extent = _gravity_extent(grid > 0, upright=abs(normal @ up) < 0.5) if mode == "gravity" and up is not None \
+        else closed
     origin = normal * offset + lo @ axes
-    return origin, axes, extent
+    return origin, axes, extent, (closed if extent is not closed else None)
 
 
 def _tilt_ok(normals: np.ndarray, up: np.ndarray | None, max_tilt_deg: float) -> np.ndarray:
@@ -131,10 +160,13 @@ def _tilt_ok(normals: np.ndarray, up: np.ndarray | None, max_tilt_deg: float) ->
 
 
 def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.Generator,
-                        options: WorldPlaneOptions, up: np.ndarray | None = None) -> list[WorldPlane]:
+                        options: WorldPlaneOptions, up: np.ndarray | None = None,
+                        observers: np.ndarray | None = None) -> list[WorldPlane]:
     """The dominant planes of a point cloud (N, 3) by sequential RANSAC, each with its supported extent. A point
     supports a plane within ``distance`` times its range (N,) from the camera that measured it: stereo errors grow
-    with the range."""
+    with the range. ``observers`` (N, 3): the centre of the camera that measured each point. A surface is seen from
+    one side: a plane whose points were seen from both sides (less than ``min_front_share`` from one) runs through
+    both faces of a thin wall and is not kept; the side of the others is their ``front``."""
     points = np.asarray(points, np.float64)
     tolerance = options.distance * np.asarray(ranges, np.float64)
     explained = np.zeros(len(points), bool)
@@ -177,11 +209,17 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
             # this plane does not hold enough unexplained points; the best hypothesis will not get better
             break
         explained |= inliers
+        front = 0
+        if observers is not None:
+            side = np.sign(observers[inliers] @ normal - offset)
+            if max(np.mean(side > 0), np.mean(side < 0)) < options.min_front_share:
+                continue
+            front = 1 if side.sum() > 0 else -1
         support = points[inliers]
-        origin, axes, extent = _extent(support, normal, offset, options.cell, options.extent_closing_cells,
-                                       options.extent_hull)
+        origin, axes, extent, fallback = _extent(support, normal, offset, options.cell, options.extent_closing_cells,
+                                       options.extent_hull, options.extent, up)
         planes.append(WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell,
-                                 extent=extent, support=int(inliers.sum())))
+                                 extent=extent, support=int(inliers.sum()), fallback=fallback, front=front))
     return planes
 
 
@@ -191,29 +229,42 @@ def carve_extents(planes: list[WorldPlane], views: list[View], options: WorldPla
     of the cells some view has a range for (invented planes). Returns the planes kept (extents modified in place)."""
     kept = []
     for plane in planes:
-        (rows, cols), centers = plane.cell_centers()
-        if not len(rows):
-            continue
-        through = np.zeros(len(rows), np.int32)
-        on = np.zeros(len(rows), np.int32)
-        for view in views:
-            x_cam = (centers @ view.R_cam_from_world.T + view.t_cam_from_world).astype(np.float32)
-            r_pred = np.linalg.norm(x_cam, axis=1)
-            h, w = view.range_map.shape
-            u, v = bearings_to_pixels_f32(x_cam / r_pred[:, None], w, h)
-            col, row = np.clip(u.astype(np.intp), 0, w - 1), np.clip(v.astype(np.intp), 0, h - 1)
-            r_obs = view.range_map[row, col]
-            seen = view.observable[row, col]
-            with np.errstate(invalid="ignore"):
-                through += seen & (r_obs > (1 + options.view_tolerance) * r_pred)
-                on += seen & (np.abs(r_obs - r_pred) <= options.view_tolerance * r_pred)
-        carved = through > on
-        judged = (through + on) > 0
-        if judged.sum() >= options.min_evidence_cells and carved.sum() > options.max_seen_through * judged.sum():
-            continue
-        plane.extent[rows[carved], cols[carved]] = False
-        kept.append(plane)
+        if _carve(plane, views, options):
+            kept.append(plane)
+        elif plane.fallback is not None:
+            # the views see through most of the generous extent (a slightly tilted floor far from its support, a
+            # wall's columns through a window): the plane keeps the extent of its own support, judged the same way
+            plane.extent, plane.fallback = plane.fallback, None
+            if _carve(plane, views, options):
+                kept.append(plane)
     return kept
+
+
+def _carve(plane: WorldPlane, views: list[View], options: WorldPlaneOptions) -> bool:
+    """Remove the cells of the plane's extent that the views see through; False if it is seen through on more than
+    ``max_seen_through`` of the cells judged (extent unchanged then)."""
+    (rows, cols), centers = plane.cell_centers()
+    if not len(rows):
+        return False
+    through = np.zeros(len(rows), np.int32)
+    on = np.zeros(len(rows), np.int32)
+    for view in views:
+        x_cam = (centers @ view.R_cam_from_world.T + view.t_cam_from_world).astype(np.float32)
+        r_pred = np.linalg.norm(x_cam, axis=1)
+        h, w = view.range_map.shape
+        u, v = bearings_to_pixels_f32(x_cam / r_pred[:, None], w, h)
+        col, row = np.clip(u.astype(np.intp), 0, w - 1), np.clip(v.astype(np.intp), 0, h - 1)
+        r_obs = view.range_map[row, col]
+        seen = view.observable[row, col]
+        with np.errstate(invalid="ignore"):
+            through += seen & (r_obs > (1 + options.view_tolerance) * r_pred)
+            on += seen & (np.abs(r_obs - r_pred) <= options.view_tolerance * r_pred)
+    carved = through > on
+    judged = (through + on) > 0
+    if judged.sum() >= options.min_evidence_cells and carved.sum() > options.max_seen_through * judged.sum():
+        return False
+    plane.extent[rows[carved], cols[carved]] = False
+    return True
 
 
 # ------------------------------------------------------------------------------------------------ per pixel
@@ -260,6 +311,8 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
     min_cos = np.sin(np.radians(options.min_incidence_deg))
     pix_regions = regions.ravel()[pix] if regions is not None else None
     for k, plane in enumerate(planes):
+        if plane.front and np.sign(plane.normal @ center - plane.offset) != plane.front:
+            continue  # this camera is behind the surface (it would see the back of a wall's other face)
         cos = bearings @ plane.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             r = (plane.offset - plane.normal @ center) / cos
