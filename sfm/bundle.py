@@ -55,7 +55,7 @@ import scipy.sparse
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.linalg import spsolve
 
-from fullview.sfm.camera import normalize, skew, tangent_basis
+from fullview.sfm.camera import camera_center, normalize, skew, tangent_basis
 from fullview.sfm.triangulation import _pairs_within_tracks
 
 log = logging.getLogger(__name__)
@@ -638,7 +638,7 @@ def bundle_adjust(
         R_cam_from_world, t_cam_from_world, points, obs_camera, obs_point, obs_bearings, fixed_cameras, loss,
         loss_scale_rad, max_nfev,
     )
-    C0 = -np.einsum("nji,nj->ni", R0, t0)
+    C0 = camera_center(R0, t0)
     layout = _build_layout(C0, len(X0), fixed, scale_camera, cam, _tilt_free_cameras(gravity_prior, fixed, R0))
     problem = _Problem(R_init=R0, t_init=t0, C_init=C0, obs_camera=cam, obs_point=pt, bearings=z,
                        basis=tangent_basis(z), layout=layout,

@@ -143,8 +143,9 @@ def tangent_basis(z: np.ndarray) -> np.ndarray:
 
 
 def camera_center(R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray) -> np.ndarray:
-    """Camera centre ``C = −Rᵀ t``."""
-    return -np.asarray(R_cam_from_world, dtype=np.float64).T @ np.asarray(t_cam_from_world, dtype=np.float64)
+    """Camera centre ``C = −Rᵀ t``: (3, 3), (3,) -> (3,), or batched (N, 3, 3), (N, 3) -> (N, 3)."""
+    return -np.einsum("...ji,...j->...i", np.asarray(R_cam_from_world, dtype=np.float64),
+                      np.asarray(t_cam_from_world, dtype=np.float64))
 
 
 def camera_up(R_cam_from_world: np.ndarray) -> np.ndarray:

@@ -55,7 +55,8 @@ def run(ctx: StageContext) -> dict:
     gravity, gravity_std = _gravity(ctx, options.upright)
     num_sift = [int(o["num_sift"]) for o in obs]
     guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)
-    verify = partial(_filter_pair, ctx, options, obs, num_sift, raw, gravity, descriptors, guided)
+    verify = partial(_filter_pair, ctx, options, obs, num_sift, raw, gravity, descriptors, guided,
+                     options.min_inliers_upright)
     # Pairs are independent and their random seeds fixed per pair: local threads keep both cores busy (numpy releases
     # the GIL in the batched hypothesis scoring) and the results are the same as in one thread.
     results = list(tqdm(thread_map(verify, range(len(raw.pairs))), total=len(raw.pairs), desc="filter", unit="pair"))
@@ -85,16 +86,15 @@ def run(ctx: StageContext) -> dict:
 
 
 def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, gravity, descriptors,
-                 guided: MatchesOptions, k: int) -> _PairResult:
+                 guided: MatchesOptions, min_upright: int, k: int) -> _PairResult:
     """Verify pair k of the raw matches: fit, guided additions, the no-baseline and enough-inliers checks."""
     i, j = raw.pairs[k]
     hand = (ctx.dataset.hand_pair_matches(num_sift, i, j) if options.use_hand_points
             else np.zeros((0, 2), int))
     threshold = np.radians(options.threshold_deg)
     use_seed = len(hand) >= options.min_hand_points
-    upright_pair = not use_seed and np.isfinite(gravity[[i, j]]).all()
-    minimum, min_upright = options.min_inliers, options.min_inliers_upright  # both read: the settings test checks it
-    minimum = min_upright if upright_pair else minimum
+    upright_pair = not use_seed and _upright((gravity[i], gravity[j]))
+    minimum = min_upright if upright_pair else options.min_inliers
     early = not use_seed and len(raw.matches[k]) + len(hand) < min(minimum, options.min_inliers)
     if early:
         # Early rejection: even if every match were an inlier the pair could neither verify nor be flagged as
@@ -236,15 +236,16 @@ def _better_of_seeded_and_free(seeded: two_view.FResult, h_i, h_j, b_i, b_j, gra
     except ValueError:
         return seeded
     best = near if wins(near, seeded) else seeded
-    if best is near and not _upright(gravity):
+    upright_pair = _upright(gravity)
+    if best is near and not upright_pair:
         return best
-    sample_size = upright.UPRIGHT_SAMPLE_SIZE if _upright(gravity) else 8
+    sample_size = upright.UPRIGHT_SAMPLE_SIZE if upright_pair else 8
     capped = two_view.iterations_to_beat(int(best.inliers.sum()), len(b_i), opts, sample_size)
     try:
         free = _fit_matches(b_i, b_j, gravity, capped)
     except ValueError:
         return best
-    if _upright(gravity):  # preferred to the free near fit unless it loses a share of its inliers (wrong gravity)
+    if upright_pair:  # preferred to the free near fit unless it loses a share of its inliers (wrong gravity)
         return free if wins(free, seeded) and free.inliers.sum() >= UPRIGHT_MIN_SHARE * best.inliers.sum() else best
     return free if wins(free, best) else best
 

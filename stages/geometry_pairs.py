@@ -16,6 +16,7 @@ from functools import lru_cache, partial
 
 import numpy as np
 
+from fullview.sfm.camera import camera_center
 from fullview.sfm.matching import match_descriptors
 from fullview.sfm.options import MatchesOptions
 from fullview.sfm.pairs import geometry_pairs
@@ -34,7 +35,7 @@ def geometry_matches(ctx: StageContext, attempted: list[tuple[int, int]], model_
     by pair; `attempted` lists the pairs matched before (verified or not), which are never matched again."""
     if neighbours <= 0:
         return {}
-    centres = -np.einsum("nji,nj->ni", R, t)
+    centres = camera_center(R, t)
     new = [(i, j) for i, j in geometry_pairs(centres, model_id >= 0, attempted, neighbours)
            if model_id[i] == model_id[j]]
     if not new:

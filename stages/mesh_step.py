@@ -49,7 +49,7 @@ def write_dense_mesh(ctx: StageContext, points: np.ndarray, colors: np.ndarray, 
         return {"error": str(e)}
     ctx.out.save_dense_mesh(vertices=mesh.vertices, triangles=mesh.triangles, colors=mesh.vertex_colors)
     if config.preview and len(mesh.triangles) >= 3:
-        centers = np.array([camera_center(R_cam_from_world[k], t_cam_from_world[k]) for k in cams])
+        centers = camera_center(R_cam_from_world[cams], t_cam_from_world[cams])
         render_mesh(ctx.out.path("dense_mesh_preview"), mesh.vertices, mesh.triangles, mesh.vertex_colors,
                     up=camera_up(R_cam_from_world[cams]), cameras=centers,
                     title=f"{ctx.dataset.name}: mesh, {len(mesh.triangles)} triangles")
