@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fullview.io.workspace import Workspace
-from fullview.sfm.matching import match_descriptors, pair_blocks
+from fullview.sfm.matching import descriptor_basis, match_descriptors, pair_blocks, project_descriptors
 from fullview.sfm.options import MatchesOptions
 from fullview.sfm.pairs import select_pairs
 from fullview.stages.protocol import StageContext
@@ -51,7 +51,9 @@ def run(ctx: StageContext) -> dict:
     pairs, sources = select_pairs(StoredDescriptors(ctx.ws, names), options, ctx.dataset.gps_positions())
     block_images = max(1, min(BLOCK_IMAGES, -(-len(names) // MIN_BLOCKS_PER_SIDE)))
     blocks = pair_blocks(pairs, block_images)
-    jobs = ctx.map(partial(match_block, ctx.ws.root, names, options), [[pairs[k] for k in b] for b in blocks])
+    basis = descriptor_basis(StoredDescriptors(ctx.ws, names), options.descriptor_dims)
+    jobs = ctx.map(partial(match_block, ctx.ws.root, names, options, basis=basis),
+                   [[pairs[k] for k in b] for b in blocks])
     per_pair: list[np.ndarray | None] = [None] * len(pairs)
     with tqdm(total=len(pairs), desc="matches", unit="pair") as bar:
         for block, matches in zip(blocks, jobs):
@@ -64,10 +66,13 @@ def run(ctx: StageContext) -> dict:
             "median_matches": int(np.median(counts)) if counts else 0}
 
 
-def match_block(ws_root: Path, names: list[str], options: MatchesOptions, pairs: list[tuple[int, int]]
-                ) -> list[np.ndarray]:
+def match_block(ws_root: Path, names: list[str], options: MatchesOptions, pairs: list[tuple[int, int]], *,
+                basis: np.ndarray | None = None) -> list[np.ndarray]:
     """The matches of `pairs`, reading the features of their images from the workspace itself (a top-level function
-    of picklable arguments: a cluster task of its own)."""
+    of picklable arguments: a cluster task of its own), searched on `basis`'s components when given."""
     ws = Workspace(Path(ws_root).parent, Path(ws_root).name)
-    descriptors = {i: ws.load_features(names[i])["descriptors"] for i in sorted({i for p in pairs for i in p})}
-    return [match_descriptors(descriptors[i], descriptors[j], options) for i, j in pairs]
+    full = {i: ws.load_features(names[i])["descriptors"] for i in sorted({i for p in pairs for i in p})}
+    if basis is None:
+        return [match_descriptors(full[i], full[j], options) for i, j in pairs]
+    projected = {i: project_descriptors(d, basis) for i, d in full.items()}
+    return [match_descriptors(projected[i], projected[j], options, full=(full[i], full[j])) for i, j in pairs]

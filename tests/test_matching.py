@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from fullview.sfm.matching import match_descriptors
+from fullview.sfm.matching import descriptor_basis, match_descriptors, project_descriptors
 from fullview.sfm.pairs import pair_list
 from fullview.sfm.options import MatchesOptions
 
@@ -98,3 +98,43 @@ def test_similarity_search_finds_exactly_the_distance_search_matches(b_unit):
     exact = match_descriptors(a, b, MatchesOptions(), block_rows=256, allowed=everything)
     assert len(exact) > 500
     assert set(map(tuple, fast.tolist())) == set(map(tuple, exact.tolist()))
+
+
+def _low_rank_descriptors(rng, n, rank):
+    """Unit descriptors spanning a `rank`-dimensional subspace of the 128 dimensions."""
+    basis = np.linalg.qr(rng.normal(size=(128, rank)))[0]
+    x = rng.normal(size=(n, rank)) @ basis.T
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def test_projection_is_exact_when_the_descriptors_span_fewer_dimensions():
+    rng = np.random.default_rng(3)
+    a = _low_rank_descriptors(rng, 1500, 40)
+    b = _project_onto_span(a, a[rng.permutation(1500)] + 0.02 * rng.normal(size=a.shape).astype(np.float32))
+    basis = descriptor_basis([a, b], 48)
+    pa, pb = project_descriptors(a, basis), project_descriptors(b, basis)
+    assert pa.shape == (1500, 48)
+    np.testing.assert_allclose(np.linalg.norm(pa, axis=1), 1.0, atol=1e-5)  # unit rows stay unit
+    full, reduced = match_descriptors(a, b, MatchesOptions()), match_descriptors(pa, pb, MatchesOptions())
+    # The same matches; their order (by distance ratio) may differ where float32 rounding ties two ratios.
+    assert len(full) > 1000 and set(map(tuple, full)) == set(map(tuple, reduced))
+
+
+def _project_onto_span(a, b):
+    """b moved into the span of a's rows (kept unit), so both sets span the same subspace."""
+    q = np.linalg.qr(a.T.astype(np.float64))[0][:, :40]
+    b = (b @ q) @ q.T
+    return (b / np.linalg.norm(b, axis=1, keepdims=True)).astype(np.float32)
+
+
+def test_projected_distances_bound_the_full_ones_from_below_and_keep_norms():
+    rng = np.random.default_rng(4)
+    a, b = _descriptors(rng, 400), _descriptors(rng, 300) * 2.0  # b not unit: norms must still be kept
+    basis = descriptor_basis(iter([a, b]), 32)
+    pa, pb = project_descriptors(a, basis), project_descriptors(b, basis)
+    np.testing.assert_allclose(np.linalg.norm(pb, axis=1), np.linalg.norm(b, axis=1), rtol=1e-5)
+    full = ((a[:, None] - b[None]) ** 2).sum(-1)
+    reduced = ((pa[:, None] - pb[None]) ** 2).sum(-1)
+    assert np.all(reduced <= full + 1e-4)
+    assert reduced.mean() > 0.5 * full.mean()  # the leading components hold most of the spread
+    assert descriptor_basis([a], 0) is None and descriptor_basis([a], 128) is None
