@@ -42,7 +42,8 @@ def run(ctx: StageContext) -> dict:
     links = PairLinks(pairs=epi["pairs"], R_j_from_i=epi["R_j_from_i"], t_j_from_i=epi["t_j_from_i"],
                       weights=weights, e_i=epi["e_i"], e_j=epi["e_j"])
     models = build_models(links=links, tracks=tracks, bearings=[o["bearings"] for o in obs], options=options,
-                          descriptors=_descriptors(ctx) if options.resection else None)
+                          descriptors=_descriptors(ctx) if options.resection else None,
+                          pair_matches=_raw_matches(ctx) if options.min_weak_pair_inliers else None)
     R, C, model_id = models.R_cam_from_world, models.centers, models.model_id
     t = -np.einsum("nab,nb->na", R, C)
     rot_res, dir_res, pair_ok = _judge_pairs(epi, weights, models, t, options)
@@ -62,7 +63,8 @@ def run(ctx: StageContext) -> dict:
     if len(sizes) > 1:
         log.warning("%d separate models (sizes %s): no verified pairs or shared points join them; model 0 is the "
                     "main one (densify, viewer)", len(sizes), sizes)
-    summary = {"registered": int((model_id == 0).sum()), "images": len(names), "models": sizes,
+    summary = {"registered": int((model_id == 0).sum()),
+               "weak_pairs": len({(i, j) for i, _, j, _ in models.weak_pair_matches}), "images": len(names), "models": sizes,
                "in_models": int(placed.sum()), "unregistered": [n for n, ok in zip(names, placed) if not ok],
                "unregistered_reasons": reasons, "model_of_image": {n: int(k) for n, k in zip(names, model_id)},
                "attached_by_points": [names[k] for k in models.attached],
@@ -75,7 +77,8 @@ def run(ctx: StageContext) -> dict:
     ctx.out.save_registration(report=summary, image_names=names, registered=model_id == 0, model_id=model_id,
                               R_cam_from_world=R, t_cam_from_world=t, pair_inlier_mask=pair_ok,
                               rotation_residual_deg=rot_res, direction_residual_deg=dir_res,
-                              matches_2d3d=np.array(models.matches_2d3d, np.int64).reshape(-1, 4))
+                              matches_2d3d=np.array(models.matches_2d3d, np.int64).reshape(-1, 4),
+                              weak_pair_matches=np.array(models.weak_pair_matches, np.int64).reshape(-1, 4))
     return summary
 
 
@@ -86,6 +89,12 @@ def _descriptors(ctx: StageContext) -> list[np.ndarray]:
         d = np.asarray(ctx.ws.load_features(name)["descriptors"], np.float32)
         out.append(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12))
     return out
+
+
+def _raw_matches(ctx: StageContext) -> dict[tuple[int, int], np.ndarray]:
+    """Every matched pair's raw matches (before verification): the evidence of pairs too weak to verify alone."""
+    raw = ctx.ws.load_matches()
+    return {(int(i), int(j)): np.asarray(m, np.int64) for (i, j), m in zip(raw.pairs, raw.matches)}
 
 
 def track_matches(dataset, verified, obs, use: np.ndarray, matches_2d3d: np.ndarray | None = None

@@ -34,7 +34,8 @@ from fullview.sfm.registration.rigid_parts import estimate_join, rigid_parts
 from fullview.sfm.registration.view_graph import bridges, component_labels, largest_component
 from fullview.sfm.resection import ResectionOptions, resect
 from fullview.sfm.matching import match_descriptors
-from fullview.sfm.rotations import rotation_angle_deg
+from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
+from fullview.sfm.two_view import baseline_given_rotation
 from fullview.sfm.tracks import Tracks, add_observations
 from fullview.sfm.triangulation import angular_errors, gather_bearings, triangulate_multiview
 
@@ -45,6 +46,8 @@ MIN_POINT_ANGLE_DEG = 1.0  # ... and smallest triangulation angle
 MERGE_POINT_ERROR_DEG = 3.0  # common points of two models: hand points, clicked a few pixels off, must count
 MERGE_ITERATIONS = 500  # RANSAC samples of the similarity between two models
 MERGE_START_FACTOR = 5.0  # common points agreeing with a candidate similarity: this many resection thresholds
+WEAK_PAIR_MAX_OFF_DEG = 5.0  # a weak pair's baseline must lie this close to its model's: on the bare 1024 px homes
+# (seeds 0, 1, 3, 4) the true ones lie within 3.2° (a part's guessed scale), the chance fits 4.5-8.6° off
 GROWTH_BA_ITERATIONS = 30  # function evaluations of the bundle adjustment after each growth round
 
 
@@ -86,6 +89,8 @@ class ModelSet:
     matched: list[int] = field(default_factory=list)  # images placed by 2D-3D matching of their descriptors
     matches_2d3d: list[tuple[int, int, int, int]] = field(default_factory=list)  # (image, feature, image, feature):
     # each feature matched 2D-3D to a model point, with one model observation of that point (a match for the tracks)
+    weak_pair_matches: list[tuple[int, int, int, int]] = field(default_factory=list)  # (image, feature, image,
+    # feature): the inlier matches of the weak pairs that fit their model (for the final tracks)
     tracks: Tracks | None = None  # the tracks, with the observations 2D-3D matching added
 
     @property
@@ -97,11 +102,14 @@ class ModelSet:
 
 
 def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndarray], options: RegistrationOptions,
-                 descriptors: Sequence[np.ndarray] | None = None) -> ModelSet:
+                 descriptors: Sequence[np.ndarray] | None = None,
+                 pair_matches: dict[tuple[int, int], np.ndarray] | None = None) -> ModelSet:
     """Global models, grown by attachment and resection, merged where they overlap (see the module doc).
 
     ``descriptors`` (per image, (F_i, D) for its first F_i features, L2-normalised), when given, let growth place an
-    image no track ties to a model by matching them to the model's points (2D-3D matching)."""
+    image no track ties to a model by matching them to the model's points (2D-3D matching). ``pair_matches``
+    ((i, j) -> (M, 2) feature indices: every matched pair's raw matches), when given, let the pairs too weak to
+    verify alone give their matches that fit a model (`_weak_pair_matches`) to the final tracks."""
     state = _empty_state(len(bearings), len(links.pairs))
     state.tracks = tracks
     open_pairs = links.weights > 0
@@ -119,6 +127,8 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
         while _absorb_a_model_by_matching(state, links, bearings, options, descriptors):
             pass
     _renumber(state)
+    if pair_matches is not None and options.min_weak_pair_inliers:
+        state.weak_pair_matches = _weak_pair_matches(state, links, pair_matches, bearings, options)
     log.info("models: sizes %s; %d attached, %d resected, %d merge(s)", state.sizes(), len(state.attached),
              len(state.resected), len(state.merges))
     return state
@@ -173,6 +183,40 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
         state.averaging_verdict |= reg.pair_inlier_mask
         state.epipole_cost += reg.epipole_cost
         return m
+
+
+def _weak_pair_matches(state: ModelSet, links: PairLinks, pair_matches: dict[tuple[int, int], np.ndarray], bearings,
+                       options: RegistrationOptions) -> list[tuple[int, int, int, int]]:
+    """Inlier matches (image, feature, image, feature) of the pairs inside a model that were too weak to use
+    (unverified, or below `min_inliers`), where their raw matches, under the model's rotations, give a baseline on
+    `min_weak_pair_inliers` inliers within `WEAK_PAIR_MAX_OFF_DEG` of the model's.
+
+    Across a doorway a pair holds ten true matches among thirty or forty, which no 3- or 5-unknown fit tells from
+    chance; once the model's rotations are known the baseline has two unknowns, and the model's own direction (off
+    by a few degrees where a part's scale is guessed) rules out the chance fits. Their matches join the final
+    tracks: the bundle adjustment then sees the rooms' relative yaw and scale, which no three-view track across the
+    doorway carries."""
+    R, C, model_id = state.R_cam_from_world, state.centers, state.model_id
+    threshold = np.radians(options.resection_threshold_deg)
+    i_all, j_all = links.pairs[:, 0], links.pairs[:, 1]
+    rows, added = [], []
+    for k in np.flatnonzero((links.weights <= 0) & (model_id[i_all] == model_id[j_all]) & (model_id[i_all] >= 0)):
+        i, j = int(i_all[k]), int(j_all[k])
+        m = pair_matches.get((i, j))
+        if m is None or len(m) < options.min_weak_pair_inliers:
+            continue
+        R_ji = R[j] @ R[i].T
+        t, inliers = baseline_given_rotation(bearings[i][m[:, 0]], bearings[j][m[:, 1]], R_ji, threshold,
+                                             seed=options.seed + int(k))
+        off = float(angle_between_deg(t, R[j] @ (C[i] - C[j])))
+        if inliers.sum() < options.min_weak_pair_inliers or off > WEAK_PAIR_MAX_OFF_DEG:
+            continue
+        rows += [(i, int(f), j, int(g)) for f, g in m[inliers]]
+        added.append((i, j, int(inliers.sum()), len(m), round(off, 2)))
+    if added:
+        log.info("%d weak pair(s) fit their model's rotations (i, j, inliers, matches, degrees from the model's "
+                 "direction): %s", len(added), added)
+    return rows
 
 
 def _behind_contradicted_bridges(reg, in_group: np.ndarray, pairs: np.ndarray, num_images: int) -> np.ndarray:

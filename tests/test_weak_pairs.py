@@ -1,0 +1,74 @@
+"""Pairs too weak to verify alone, checked against a model's rotations (two_view.baseline_given_rotation,
+registration.models._weak_pair_matches): a doorway pair with a few true matches among many wrong ones."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fullview.sfm.camera import normalize
+from fullview.sfm.options import RegistrationOptions
+from fullview.sfm.registration.models import PairLinks, _empty_state, _weak_pair_matches
+from fullview.sfm.rotations import angle_between_deg
+from fullview.sfm.two_view import baseline_given_rotation
+
+THRESHOLD = np.radians(0.35)
+
+
+def _random_bearings(rng, n):
+    return normalize(rng.normal(size=(n, 3)))
+
+
+def _pair(rng, R_i, c_i, R_j, c_j, true: int, wrong: int):
+    """Bearings of `true` points seen by both cameras followed by `wrong` random pairs of bearings."""
+    X = (c_i + c_j) / 2 + rng.uniform(-4, 4, (true, 3))
+    b_i = np.concatenate([normalize((X - c_i) @ R_i.T), _random_bearings(rng, wrong)])
+    b_j = np.concatenate([normalize((X - c_j) @ R_j.T), _random_bearings(rng, wrong)])
+    return b_i, b_j
+
+
+def test_baseline_from_ten_true_matches_among_forty_is_exact():
+    rng = np.random.default_rng(3)
+    R_i, R_j = Rotation.from_euler("y", [[0.3], [-1.2]]).as_matrix()
+    c_i, c_j = np.zeros(3), np.array([3.0, 0.2, -1.5])
+    b_i, b_j = _pair(rng, R_i, c_i, R_j, c_j, true=10, wrong=30)
+    R_ji = R_j @ R_i.T
+    t, inliers = baseline_given_rotation(b_i, b_j, R_ji, THRESHOLD)
+    assert inliers[:10].all() and not inliers[10:].any()
+    assert angle_between_deg(t, R_j @ (c_i - c_j)) < 1e-6
+
+
+def _model_with_a_weak_pair(rng, true: int, wrong: int, scale_error: float):
+    """Four cameras of one model: rooms 0-1-2 and 2-3 meet at doorway camera 2 (their relative scale free); pair
+    1-3 (weight 0) holds `true` matches among `wrong` ones. The model holds camera 3 at `scale_error` times its true
+    distance from camera 2 (a guessed scale)."""
+    centres = np.array([[-3.0, 0, 0.5], [0, 0, 0], [2.0, 0.1, 1.0], [4.5, -0.1, -1.0]])
+    R = Rotation.from_euler("y", rng.uniform(-np.pi, np.pi, (4, 1))).as_matrix()
+    bearings, matches = [np.zeros((0, 3))] * 4, {}
+    b_1, b_3 = _pair(rng, R[1], centres[1], R[3], centres[3], true, wrong)
+    bearings[1], bearings[3] = b_1, b_3
+    matches[(1, 3)] = np.column_stack([np.arange(len(b_1)), np.arange(len(b_3))])
+    state = _empty_state(4, 4)
+    state.model_id[:] = 0
+    state.R_cam_from_world = R
+    state.centers = centres.copy()
+    state.centers[3] = centres[2] + scale_error * (centres[3] - centres[2])
+    links = PairLinks(pairs=np.array([[0, 1], [1, 2], [2, 3], [1, 3]]), R_j_from_i=np.tile(np.eye(3), (4, 1, 1)),
+                      t_j_from_i=np.tile([0.0, 0.0, 1.0], (4, 1)), weights=np.array([50.0, 50.0, 50.0, 0.0]))
+    return state, links, matches, bearings
+
+
+def test_a_weak_pair_gives_its_true_matches_under_a_guessed_scale():
+    state, links, matches, bearings = _model_with_a_weak_pair(np.random.default_rng(0), true=8, wrong=30,
+                                                              scale_error=1.05)
+    rows = _weak_pair_matches(state, links, matches, bearings, RegistrationOptions())
+    assert sorted(f for _, f, _, _ in rows) == list(range(8))
+    assert all((i, j) == (1, 3) and f == g for i, f, j, g in rows)
+
+
+def test_chance_fits_and_pairs_the_model_contradicts_give_nothing():
+    only_wrong = _model_with_a_weak_pair(np.random.default_rng(1), true=0, wrong=40, scale_error=1.0)
+    assert _weak_pair_matches(*only_wrong, RegistrationOptions()) == []
+    # the matches fit a baseline the model places far off (its part three times too far): not the model's pair
+    far_off = _model_with_a_weak_pair(np.random.default_rng(2), true=12, wrong=20, scale_error=3.0)
+    assert _weak_pair_matches(*far_off, RegistrationOptions()) == []
