@@ -38,10 +38,10 @@ def test_baseline_from_ten_true_matches_among_forty_is_exact():
     assert angle_between_deg(t, R_j @ (c_i - c_j)) < 1e-6
 
 
-def _model_with_a_weak_pair(rng, true: int, wrong: int, scale_error: float):
+def _model_with_a_weak_pair(rng, true: int, wrong: int, scale_error: float, guessed: bool = True):
     """Four cameras of one model: rooms 0-1-2 and 2-3 meet at doorway camera 2 (their relative scale free); pair
     1-3 (weight 0) holds `true` matches among `wrong` ones. The model holds camera 3 at `scale_error` times its true
-    distance from camera 2 (a guessed scale)."""
+    distance from camera 2; with `guessed`, no points fixed that part's scale (averaging's guess is kept)."""
     centres = np.array([[-3.0, 0, 0.5], [0, 0, 0], [2.0, 0.1, 1.0], [4.5, -0.1, -1.0]])
     R = Rotation.from_euler("y", rng.uniform(-np.pi, np.pi, (4, 1))).as_matrix()
     bearings, matches = [np.zeros((0, 3))] * 4, {}
@@ -53,6 +53,7 @@ def _model_with_a_weak_pair(rng, true: int, wrong: int, scale_error: float):
     state.R_cam_from_world = R
     state.centers = centres.copy()
     state.centers[3] = centres[2] + scale_error * (centres[3] - centres[2])
+    state.joins = [{"model": 0, "images": [3], "tracks": 0 if guessed else 9, "scale": 1.0}]
     links = PairLinks(pairs=np.array([[0, 1], [1, 2], [2, 3], [1, 3]]), R_j_from_i=np.tile(np.eye(3), (4, 1, 1)),
                       t_j_from_i=np.tile([0.0, 0.0, 1.0], (4, 1)), weights=np.array([50.0, 50.0, 50.0, 0.0]))
     return state, links, matches, bearings
@@ -64,6 +65,11 @@ def test_a_weak_pair_gives_its_true_matches_under_a_guessed_scale():
     rows = _weak_pair_matches(state, links, matches, bearings, RegistrationOptions())
     assert sorted(f for _, f, _, _ in rows) == list(range(8))
     assert all((i, j) == (1, 3) and f == g for i, f, j, g in rows)
+
+
+def test_a_part_points_placed_gets_no_weak_pair():
+    placed = _model_with_a_weak_pair(np.random.default_rng(0), true=8, wrong=30, scale_error=1.0, guessed=False)
+    assert _weak_pair_matches(*placed, RegistrationOptions()) == []
 
 
 def test_chance_fits_and_pairs_the_model_contradicts_give_nothing():
