@@ -1,5 +1,6 @@
 """Pairs too weak to verify alone, checked against a model's rotations (two_view.baseline_given_rotation,
-registration.models._weak_pair_matches): a doorway pair with a few true matches among many wrong ones."""
+registration.models._weak_pair_matches): a doorway pair with a few true matches among many wrong ones; and a
+camera tied by one verified pair that no points reach, attached at a guessed distance (unjoined_parts: keep)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ from scipy.spatial.transform import Rotation
 
 from fullview.sfm.camera import normalize
 from fullview.sfm.options import RegistrationOptions
-from fullview.sfm.registration.models import PairLinks, _empty_state, _weak_pair_matches
-from fullview.sfm.rotations import angle_between_deg
+from fullview.sfm.registration.models import PairLinks, _empty_state, _weak_pair_matches, build_models
+from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
+from fullview.sfm.tracks import build_tracks
 from fullview.sfm.two_view import baseline_given_rotation
 
 THRESHOLD = np.radians(0.35)
@@ -78,3 +80,35 @@ def test_chance_fits_and_pairs_the_model_contradicts_give_nothing():
     # the matches fit a baseline the model places far off (its part three times too far): not the model's pair
     far_off = _model_with_a_weak_pair(np.random.default_rng(2), true=12, wrong=20, scale_error=3.0)
     assert _weak_pair_matches(*far_off, RegistrationOptions()) == []
+
+
+def _triangle_and_a_leaf():
+    """Cameras 0, 1, 2 (a rigid triangle sharing points) and camera 3 tied by one verified pair (2, 3) that sees
+    none of their points (a room past a doorway)."""
+    rng = np.random.default_rng(4)
+    centres = np.array([[0.0, 0, 0], [2.0, 0.1, 0.5], [1.0, -0.1, 2.0], [1.5, 0.0, 5.0]])
+    R = Rotation.from_euler("y", rng.uniform(-np.pi, np.pi, (4, 1))).as_matrix()
+    X = rng.uniform([-2, -1.5, -2], [4, 1.5, 3], (300, 3))
+    bearings = [normalize((X - c) @ r.T) for r, c in zip(R[:3], centres[:3])] + [_random_bearings(rng, 50)]
+    everything = np.column_stack([np.arange(300), np.arange(300)])
+    matches = {(0, 1): everything, (1, 2): everything, (0, 2): everything, (2, 3): np.zeros((0, 2), np.int64)}
+    pairs = np.array(list(matches))
+    t = -np.einsum("nab,nb->na", R, centres)
+    R_rel = R[pairs[:, 1]] @ np.swapaxes(R[pairs[:, 0]], 1, 2)
+    t_rel = normalize(t[pairs[:, 1]] - np.einsum("pab,pb->pa", R_rel, t[pairs[:, 0]]))
+    links = PairLinks(pairs=pairs, R_j_from_i=R_rel, t_j_from_i=t_rel, weights=np.array([300.0, 300, 300, 40]))
+    tracks, _ = build_tracks(matches, [len(b) for b in bearings])
+    return R, centres, links, tracks, bearings
+
+
+def test_a_leaf_no_points_reach_is_attached_along_its_pair_at_a_guessed_distance():
+    R, centres, links, tracks, bearings = _triangle_and_a_leaf()
+    models = build_models(links=links, tracks=tracks, bearings=bearings, options=RegistrationOptions())
+    assert (models.model_id == 0).all()
+    assert any(j["images"] == [3] and j["tracks"] == 0 for j in models.joins)
+    C, Rm = models.centers, models.R_cam_from_world
+    assert rotation_angle_deg(Rm[3] @ Rm[2].T, R[3] @ R[2].T) < 1e-6
+    assert angle_between_deg(Rm[2] @ (C[3] - C[2]), R[2] @ (centres[3] - centres[2])) < 1e-6
+    separate = build_models(links=links, tracks=tracks, bearings=bearings,
+                            options=RegistrationOptions(unjoined_parts="separate"))
+    assert separate.model_id[3] == -1

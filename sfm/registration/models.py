@@ -25,7 +25,7 @@ from typing import Sequence
 
 import numpy as np
 
-from fullview.sfm.attach import attach_cameras, model_points
+from fullview.sfm.attach import attach_cameras, model_points, pose_along_pair
 from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.metrics import umeyama
 from fullview.sfm.options import MatchesOptions, RegistrationOptions
@@ -79,6 +79,7 @@ class ModelSet:
     centers: np.ndarray  # (N, 3) centre in its model's frame; 0 outside every model
     averaged_in: np.ndarray  # (N,) the global model that placed the image by averaging (-1: grown or none)
     averaging_verdict: np.ndarray  # (P,) averaging's own judgement of pairs inside one of its models
+    rejected_pairs: np.ndarray  # (P,) pairs averaging rejected (both ends placed) or into a contradicted bridge's side
     epipole_cost: float  # the report's epipole cost summed over the global models
     attached: list[int] = field(default_factory=list)  # images attached along a single pair's baseline
     resected: list[int] = field(default_factory=list)  # images placed by resection
@@ -138,7 +139,8 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
 def _empty_state(num_images: int, num_pairs: int) -> ModelSet:
     return ModelSet(model_id=np.full(num_images, -1), R_cam_from_world=np.tile(np.eye(3), (num_images, 1, 1)),
                     centers=np.zeros((num_images, 3)), averaged_in=np.full(num_images, -1),
-                    averaging_verdict=np.zeros(num_pairs, bool), epipole_cost=0.0)
+                    averaging_verdict=np.zeros(num_pairs, bool), rejected_pairs=np.zeros(num_pairs, bool),
+                    epipole_cost=0.0)
 
 
 def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks, tracks: Tracks, bearings,
@@ -168,6 +170,10 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
             _seed_from_pair(state, m, int(np.argmax(np.where(in_group, w, -np.inf))), links)
             return m
         contradicted = _behind_contradicted_bridges(reg, in_group, pairs, num_images)
+        # pairs no guess may follow: those averaging placed both ends of and rejected, and those into a side
+        # behind a contradicted bridge (it needs points)
+        state.rejected_pairs |= in_group & ((reg.registered[pairs].all(axis=1) & ~reg.pair_inlier_mask)
+                                            | contradicted[pairs].any(axis=1))
         placed = reg.registered & ~contradicted
         averaged, centers = placed, reg.centers
         if reg.flexible_modes > 0:
@@ -428,7 +434,48 @@ def _renumber(state: ModelSet) -> None:
 # --------------------------------------------------------------------------------------------- growth
 def _grow(state: ModelSet, m: int, links: PairLinks, bearings, options: RegistrationOptions, descriptors=None) -> None:
     """Attach, then resect, the free images model m can hold (by their tracks, then by 2D-3D matching);
-    bundle-adjust after each round of resection."""
+    bundle-adjust after each round of resection. With `unjoined_parts: keep`, a camera a verified pair still ties
+    to the model is then attached at a guessed distance, and growth goes on from it."""
+    while True:
+        _grow_by_points(state, m, links, bearings, options, descriptors)
+        if not _attach_by_a_guess(state, m, links, bearings, options):
+            return
+
+
+def _attach_by_a_guess(state: ModelSet, m: int, links: PairLinks, bearings, options: RegistrationOptions) -> bool:
+    """`unjoined_parts: keep`: the free camera with the strongest verified pair into model m, placed along that
+    pair's baseline at the model's median verified-pair baseline length, as averaging guesses the scale of a part
+    no points fix (a chain of rooms past a doorway whose end cameras see too few of the model's points); recorded as
+    a join with 0 tracks, so that weak pairs into it may fix it (`_weak_pair_matches`). Never along a pair averaging
+    rejected or into the side of a contradicted bridge, nor a camera that sees `min_join_points` of the model's
+    points (they did not attach it: they contradict the pair). True if one was placed."""
+    if options.unjoined_parts != "keep":
+        return False
+    pairs, inside, tracks = links.pairs, state.model_id == m, state.tracks
+    _, point_of_track = _points_of(state, m, tracks, bearings)
+    sees = np.bincount(tracks.image_ids[point_of_track[tracks.track_ids] >= 0], minlength=len(inside))
+    unchecked = (state.model_id < 0) & (sees < options.min_join_points)
+    into = ((links.weights > 0) & ~state.rejected_pairs & (inside[pairs[:, 0]] != inside[pairs[:, 1]])
+            & unchecked[pairs].any(axis=1))
+    within = (links.weights > 0) & inside[pairs].all(axis=1)
+    if not into.any() or not within.any():
+        return False
+    k = int(np.flatnonzero(into)[np.argmax(links.weights[into])])
+    a, b = (int(v) for v in (pairs[k] if inside[pairs[k, 0]] else pairs[k, ::-1]))
+    R_b, direction = pose_along_pair(a, b, pairs[k], links.R_j_from_i[k], links.t_j_from_i[k],
+                                     state.R_cam_from_world[a])
+    length = float(np.median(np.linalg.norm(np.diff(state.centers[pairs[within]], axis=1)[:, 0], axis=1)))
+    state.model_id[b] = m
+    state.R_cam_from_world[b], state.centers[b] = R_b, state.centers[a] + length * direction
+    state.attached.append(b)
+    state.joins.append({"model": m, "images": [b], "tracks": 0, "scale": 1.0})
+    log.warning("image %d attached to model %d along its pair with image %d at a guessed distance (%.3f, the median "
+                "baseline): no points fix it", b, m, a, length)
+    return True
+
+
+def _grow_by_points(state: ModelSet, m: int, links: PairLinks, bearings, options: RegistrationOptions,
+                    descriptors=None) -> None:
     tracks = state.tracks
     att = attach_cameras(R_cam_from_world=state.R_cam_from_world, centers=state.centers,
                          registered=state.model_id == m, allowed=state.model_id < 0, pairs=links.pairs,
