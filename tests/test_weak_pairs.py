@@ -112,3 +112,45 @@ def test_a_leaf_no_points_reach_is_attached_along_its_pair_at_a_guessed_distance
     separate = build_models(links=links, tracks=tracks, bearings=bearings,
                             options=RegistrationOptions(unjoined_parts="separate"))
     assert separate.model_id[3] == -1
+
+
+def _rooms_at_a_door_one_with_two_close_cameras():
+    """Rooms A and B meeting at door camera 0 (no point seen from both), pairs only inside a room: B's scale is free.
+    Two of B's cameras stand 0.2 apart, which averaging's λ >= 1 blows up to the spacing of A's."""
+    rng = np.random.default_rng(5)
+    room_a = np.array([[-6.0, 0.1, -1.5], [-4.5, -0.1, 1.8], [-2.5, 0.0, -1.2], [-7.0, 0.05, 1.0]])
+    room_b = np.array([[5.0, 0.0, 2.0], [5.2, 0.05, 2.0], [3.0, -0.05, -2.0], [6.5, 0.1, -1.5]])
+    centres = np.concatenate([[[0.0, 0.0, 0.0]], room_a, room_b])
+    room = np.array([-1, 0, 0, 0, 0, 1, 1, 1, 1])
+    R = Rotation.from_euler("y", rng.uniform(-np.pi, np.pi, (9, 1))).as_matrix()
+    X = np.column_stack([rng.uniform(-10, 10, 2000), rng.uniform(-1.5, 1.5, 2000), rng.uniform(-4, 4, 2000)])
+    seen = [np.ones(len(X), bool)] + [(X[:, 0] > 0) == (r == 1) for r in room[1:]]
+    feature_of = [np.flatnonzero(s) for s in seen]
+    bearings = [normalize((X[f] - c) @ r.T) for f, c, r in zip(feature_of, centres, R)]
+    matches = {}
+    for i in range(9):
+        for j in range(i + 1, 9):
+            if room[i] == room[j] or room[i] < 0:
+                _, a, b = np.intersect1d(feature_of[i], feature_of[j], return_indices=True)
+                matches[(i, j)] = np.column_stack([a, b])
+    pairs = np.array(list(matches))
+    t = -np.einsum("nab,nb->na", R, centres)
+    R_rel = R[pairs[:, 1]] @ np.swapaxes(R[pairs[:, 0]], 1, 2)
+    t_rel = normalize(t[pairs[:, 1]] - np.einsum("pab,pb->pa", R_rel, t[pairs[:, 0]]))
+    links = PairLinks(pairs=pairs, R_j_from_i=R_rel, t_j_from_i=t_rel,
+                      weights=np.array([len(matches[tuple(p)]) for p in pairs], float))
+    tracks, _ = build_tracks(matches, [len(b) for b in bearings])
+    return centres, links, tracks, bearings
+
+
+def test_a_guessed_part_blown_up_by_a_short_baseline_gets_main_s_spacing():
+    centres, links, tracks, bearings = _rooms_at_a_door_one_with_two_close_cameras()
+    models = build_models(links=links, tracks=tracks, bearings=bearings, options=RegistrationOptions())
+    assert (models.model_id == 0).all()
+
+    def spread(c, k):  # median distance of a room's cameras to the door camera
+        return np.median(np.linalg.norm(c[k] - c[0], axis=1))
+
+    a, b = [1, 2, 3, 4], [5, 6, 7, 8]
+    ratio = spread(models.centers, b) / spread(models.centers, a) / (spread(centres, b) / spread(centres, a))
+    assert 0.5 < ratio < 2.0  # averaging's λ >= 1 guess alone leaves room B 12.8 times too large
