@@ -246,6 +246,7 @@ def consistent_with_pose(b_i: np.ndarray, b_j: np.ndarray, R_j_from_i: np.ndarra
 
 
 MAX_BASELINE_HYPOTHESES = 5000  # match pairs tried by `baseline_given_rotation` (all of them below this)
+BASELINE_BLOCK = 256  # hypotheses scored at once
 
 
 def baseline_given_rotation(b_i: np.ndarray, b_j: np.ndarray, R_j_from_i: np.ndarray, threshold_rad: float,
@@ -267,7 +268,9 @@ def baseline_given_rotation(b_i: np.ndarray, b_j: np.ndarray, R_j_from_i: np.nda
     d = normalize(np.cross(n[first], n[second]))  # (H, 3) centre of j in frame i, up to sign
     d = d[np.linalg.norm(d, axis=1) > 0.5]
     d = np.concatenate([d, -d])
-    count = (_plane_inliers(d, n, b_i, v, threshold_rad)).sum(axis=1)
+    # scored in blocks: (hypotheses, matches) tables stay small on pairs with thousands of raw matches
+    count = np.concatenate([_plane_inliers(d[k:k + BASELINE_BLOCK], n, b_i, v, threshold_rad).sum(axis=1)
+                            for k in range(0, len(d), BASELINE_BLOCK)] or [np.zeros(0, np.int64)])
     best = d[int(np.argmax(count))] if len(d) else np.array([0.0, 0.0, 1.0])
     for _ in range(3):  # refit: the direction closest to every inlier's plane
         inliers = _plane_inliers(best[None], n, b_i, v, threshold_rad)[0]
