@@ -63,8 +63,8 @@ def run(ctx: StageContext) -> dict:
     if len(sizes) > 1:
         log.warning("%d separate models (sizes %s): no verified pairs or shared points join them; model 0 is the "
                     "main one (densify, viewer)", len(sizes), sizes)
-    summary = {"registered": int((model_id == 0).sum()),
-               "weak_pairs": len({(i, j) for i, _, j, _ in models.weak_pair_matches}), "images": len(names), "models": sizes,
+    summary = {"registered": int((model_id == 0).sum()), "images": len(names), "models": sizes,
+               "weak_pairs": len({(i, j) for i, _, j, _ in models.weak_pair_matches}),
                "in_models": int(placed.sum()), "unregistered": [n for n, ok in zip(names, placed) if not ok],
                "unregistered_reasons": reasons, "model_of_image": {n: int(k) for n, k in zip(names, model_id)},
                "attached_by_points": [names[k] for k in models.attached],
@@ -100,8 +100,9 @@ def _raw_matches(ctx: StageContext) -> dict[tuple[int, int], np.ndarray]:
 def track_matches(dataset, verified, obs, use: np.ndarray, matches_2d3d: np.ndarray | None = None
                   ) -> dict[tuple[int, int], np.ndarray]:
     """Matches tracks are built from: the inliers of the pairs in `use`, plus the hand correspondences of every
-    matched pair that has some (the filter records them only with filter.use_hand_points), plus the 2D-3D matches
-    registration made (`matches_2d3d` rows (image, feature, image, feature)). Hand points are the
+    matched pair that has some (the filter records them only with filter.use_hand_points), plus the matches
+    registration added (`matches_2d3d` rows (image, feature, image, feature): its 2D-3D matches and the inliers of
+    the weak pairs it checked). Hand points are the
     user's own correspondences: a hand point seen on both sides of a closed door joins the two models even where
     no pair across it verifies."""
     num_sift = [int(o["num_sift"]) for o in obs]

@@ -27,7 +27,6 @@ import numpy as np
 
 from fullview.sfm.attach import attach_cameras, model_points, pose_along_pair
 from fullview.sfm.bundle import bundle_adjust
-from fullview.sfm.camera import normalize
 from fullview.sfm.metrics import umeyama
 from fullview.sfm.options import MatchesOptions, RegistrationOptions
 from fullview.sfm.registration.driver import register
@@ -365,8 +364,8 @@ def _keep_a_guessed_part(state: ModelSet, m: int, candidates: list[np.ndarray], 
                          averaged: np.ndarray, used_pairs: np.ndarray) -> np.ndarray | None:
     """registration.unjoined_parts = keep: the first candidate part that touches main (a shared camera or a pair)
     keeps averaging's scale (its λ ≥ 1 guess), shifted with the cameras it touches, unless that scale is implausible:
-    λ ≥ 1 puts each part's *shortest* baseline at one length, so two panoramas taken close together shrink their
-    part around them (measured: 4-10 times on bare 2048 px seed 3). When the part's median baseline then differs
+    λ ≥ 1 puts each part's *shortest* baseline at one length, so two panoramas taken close together blow their part
+    up (measured: parts 4-10 times too large on bare 2048 px seed 3). When the part's median baseline then differs
     from main's by more than `MAX_GUESS_RATIO`, it is scaled about the main camera it touches to main's median
     baseline instead (rooms of one capture are walked with similar steps). Returns its new cameras (N,) bool, or
     None when no candidate touches main."""
@@ -485,7 +484,6 @@ def _attach_by_a_guess(state: ModelSet, m: int, links: PairLinks, bearings, opti
     length = float(np.median(np.linalg.norm(np.diff(state.centers[pairs[within]], axis=1)[:, 0], axis=1)))
     state.model_id[b] = m
     state.R_cam_from_world[b], state.centers[b] = R_b, state.centers[a] + length * direction
-    state.attached.append(b)
     state.joins.append({"model": m, "images": [b], "tracks": 0, "scale": 1.0})
     log.warning("image %d attached to model %d along its pair with image %d at a guessed distance (%.3f, the median "
                 "baseline): no points fix it", b, m, a, length)
