@@ -112,14 +112,7 @@ def _attach_one(b, R, C, reg, pairs, R_j_from_i, t_j_from_i, weights, tracks: Tr
                 and reg[j if i == b else i]), key=lambda k: weights[k])
     i, j = pairs[best]
     a = j if i == b else i
-    R_rel, t_rel = R_j_from_i[best], t_j_from_i[best]
-    # R_j = R_rel R_i and c_j − c_i ∝ −R_jᵀ t_rel; the direction below points from a to b in the world
-    if b == j:
-        R_b = R_rel @ R[a]
-        direction = normalize(-R_b.T @ t_rel)
-    else:
-        R_b = R_rel.T @ R[a]
-        direction = normalize(R[a].T @ t_rel)
+    R_b, direction = pose_along_pair(a, b, pairs[best], R_j_from_i[best], t_j_from_i[best], R[a])
     sel = (tracks.image_ids == b) & (point_of_track[tracks.track_ids] >= 0)
     if sel.sum() < min_points:
         return None
@@ -134,6 +127,16 @@ def _attach_one(b, R, C, reg, pairs, R_j_from_i, t_j_from_i, weights, tracks: Tr
     if (err < 4 * max_error_rad).sum() < min_points:
         return None
     return R_b, c_b
+
+
+def pose_along_pair(a: int, b: int, pair, R_j_from_i: np.ndarray, t_j_from_i: np.ndarray, R_a: np.ndarray):
+    """(R_b, world direction from a's centre towards b's) of camera b from the relative pose of `pair` (a, b in either
+    order) and camera a's rotation."""
+    # R_j = R_rel R_i and c_j − c_i ∝ −R_jᵀ t_rel
+    if b == pair[1]:
+        R_b = R_j_from_i @ R_a
+        return R_b, normalize(-R_b.T @ t_j_from_i)
+    return R_j_from_i.T @ R_a, normalize(R_a.T @ t_j_from_i)
 
 
 def _ray_distances(direction: np.ndarray, u: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -124,9 +124,15 @@ class RegistrationOptions:
                                     ge=4, le=1_000_000)
     min_join_points: int = setting(6, "tracks that must agree on the scale joining a part of an averaged layout whose "
                                    "scale the pair directions leave free", ge=2, le=1_000_000)
+    min_weak_pair_inliers: int = setting(6, "a pair too weak to be used (below min_inliers) touching a part whose "
+                                         "scale averaging guessed gives its matches to the final tracks when this "
+                                         "many fit a baseline near the model's under its rotations (2 unknowns)",
+                                         ge=2, le=1_000_000, zero_means="never")
     unjoined_parts: str = setting("keep", "a part whose scale neither the pair directions nor shared points fix: "
-                                  "separate: placed again by points or left a model of its own; keep: averaging's "
-                                  "guess (lambda >= 1)", choices=("separate", "keep"))
+                                  "separate: placed again by points or left a model of its own; keep: a guess "
+                                  "(averaging's lambda >= 1 scale, or main's median baseline when that is over 2x "
+                                  "off; a camera tied by one pair at the median baseline)",
+                                  choices=("separate", "keep"))
     seed: int = setting(0, "random seed of resection and merging (RANSAC)", ge=0, le=2**31)
     RULES: ClassVar[list[Rule]] = []
 

@@ -245,6 +245,53 @@ def consistent_with_pose(b_i: np.ndarray, b_j: np.ndarray, R_j_from_i: np.ndarra
     return (epipolar_angular_errors(F, b_i, b_j) < threshold_rad) & (depth_i > 0) & (depth_j > 0)
 
 
+MAX_BASELINE_HYPOTHESES = 5000  # match pairs tried by `baseline_given_rotation` (all of them below this)
+BASELINE_BLOCK = 256  # hypotheses scored at once
+
+
+def baseline_given_rotation(b_i: np.ndarray, b_j: np.ndarray, R_j_from_i: np.ndarray, threshold_rad: float,
+                            seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Unit ``t_j_from_i`` of a pair whose relative rotation is known (from rotation averaging), and (N,) its
+    inliers (`consistent_with_pose`), from correspondences of which only a few may be true.
+
+    With the rotation known, every match's rays span a plane holding the baseline, so two matches give it (up to
+    sign, which cheirality decides): a 2-point RANSAC in which a pair with ten true matches among forty, too few for
+    the 3-point upright or 5-point fits to stand out of chance, still does."""
+    v = b_j @ R_j_from_i  # j's rays in frame i (Rᵀ b_j)
+    n = normalize(np.cross(b_i, v))
+    if len(n) < 2:
+        return np.array([0.0, 0.0, 1.0]), np.zeros(len(n), bool)
+    first, second = np.triu_indices(len(n), 1)
+    if len(first) > MAX_BASELINE_HYPOTHESES:
+        pick = np.random.default_rng(seed).choice(len(first), MAX_BASELINE_HYPOTHESES, replace=False)
+        first, second = first[pick], second[pick]
+    d = normalize(np.cross(n[first], n[second]))  # (H, 3) centre of j in frame i, up to sign
+    d = d[np.linalg.norm(d, axis=1) > 0.5]
+    d = np.concatenate([d, -d])
+    # scored in blocks: (hypotheses, matches) tables stay small on pairs with thousands of raw matches
+    count = np.concatenate([_plane_inliers(d[k:k + BASELINE_BLOCK], n, b_i, v, threshold_rad).sum(axis=1)
+                            for k in range(0, len(d), BASELINE_BLOCK)] or [np.zeros(0, np.int64)])
+    best = d[int(np.argmax(count))] if len(d) else np.array([0.0, 0.0, 1.0])
+    for _ in range(3):  # refit: the direction closest to every inlier's plane
+        inliers = _plane_inliers(best[None], n, b_i, v, threshold_rad)[0]
+        if inliers.sum() < 2:
+            break
+        fit = np.linalg.svd(n[inliers])[2][2]
+        best = fit if fit @ best > 0 else -fit
+    t = -R_j_from_i @ best
+    return t, consistent_with_pose(b_i, b_j, R_j_from_i, t, threshold_rad)
+
+
+def _plane_inliers(d: np.ndarray, n: np.ndarray, b_i: np.ndarray, v: np.ndarray, threshold_rad: float) -> np.ndarray:
+    """(H, N) whether centre direction d[h] (frame i) lies within the threshold of match k's epipolar plane (normal
+    n[k]) with its point in front of both cameras (α b_i = d + β v, α, β > 0)."""
+    close = np.abs(d @ n.T) < np.sin(threshold_rad)
+    ea, eb, ab = d @ b_i.T, d @ v.T, np.einsum("ka,ka->k", b_i, v)
+    det = np.maximum(1.0 - ab ** 2, 1e-12)
+    alpha, beta = (ea - ab * eb) / det, (ab * ea - eb) / det
+    return close & (alpha > 0) & (beta > 0)
+
+
 MIN_SPREAD_RATIO = 0.015  # σ7 / σ1 of the 8-point system below which the points leave F undetermined
 
 

@@ -42,7 +42,8 @@ def run(ctx: StageContext) -> dict:
     links = PairLinks(pairs=epi["pairs"], R_j_from_i=epi["R_j_from_i"], t_j_from_i=epi["t_j_from_i"],
                       weights=weights, e_i=epi["e_i"], e_j=epi["e_j"])
     models = build_models(links=links, tracks=tracks, bearings=[o["bearings"] for o in obs], options=options,
-                          descriptors=_descriptors(ctx) if options.resection else None)
+                          descriptors=_descriptors(ctx) if options.resection else None,
+                          pair_matches=_raw_matches(ctx) if options.min_weak_pair_inliers else None)
     R, C, model_id = models.R_cam_from_world, models.centers, models.model_id
     t = -np.einsum("nab,nb->na", R, C)
     rot_res, dir_res, pair_ok = _judge_pairs(epi, weights, models, t, options)
@@ -63,6 +64,7 @@ def run(ctx: StageContext) -> dict:
         log.warning("%d separate models (sizes %s): no verified pairs or shared points join them; model 0 is the "
                     "main one (densify, viewer)", len(sizes), sizes)
     summary = {"registered": int((model_id == 0).sum()), "images": len(names), "models": sizes,
+               "weak_pairs": len({(i, j) for i, _, j, _ in models.weak_pair_matches}),
                "in_models": int(placed.sum()), "unregistered": [n for n, ok in zip(names, placed) if not ok],
                "unregistered_reasons": reasons, "model_of_image": {n: int(k) for n, k in zip(names, model_id)},
                "attached_by_points": [names[k] for k in models.attached],
@@ -75,7 +77,8 @@ def run(ctx: StageContext) -> dict:
     ctx.out.save_registration(report=summary, image_names=names, registered=model_id == 0, model_id=model_id,
                               R_cam_from_world=R, t_cam_from_world=t, pair_inlier_mask=pair_ok,
                               rotation_residual_deg=rot_res, direction_residual_deg=dir_res,
-                              matches_2d3d=np.array(models.matches_2d3d, np.int64).reshape(-1, 4))
+                              matches_2d3d=np.array(models.matches_2d3d, np.int64).reshape(-1, 4),
+                              weak_pair_matches=np.array(models.weak_pair_matches, np.int64).reshape(-1, 4))
     return summary
 
 
@@ -88,11 +91,18 @@ def _descriptors(ctx: StageContext) -> list[np.ndarray]:
     return out
 
 
+def _raw_matches(ctx: StageContext) -> dict[tuple[int, int], np.ndarray]:
+    """Every matched pair's raw matches (before verification): the evidence of pairs too weak to verify alone."""
+    raw = ctx.ws.load_matches()
+    return {(int(i), int(j)): np.asarray(m, np.int64) for (i, j), m in zip(raw.pairs, raw.matches)}
+
+
 def track_matches(dataset, verified, obs, use: np.ndarray, matches_2d3d: np.ndarray | None = None
                   ) -> dict[tuple[int, int], np.ndarray]:
     """Matches tracks are built from: the inliers of the pairs in `use`, plus the hand correspondences of every
-    matched pair that has some (the filter records them only with filter.use_hand_points), plus the 2D-3D matches
-    registration made (`matches_2d3d` rows (image, feature, image, feature)). Hand points are the
+    matched pair that has some (the filter records them only with filter.use_hand_points), plus the matches
+    registration added (`matches_2d3d` rows (image, feature, image, feature): its 2D-3D matches and the inliers of
+    the weak pairs it checked). Hand points are the
     user's own correspondences: a hand point seen on both sides of a closed door joins the two models even where
     no pair across it verifies."""
     num_sift = [int(o["num_sift"]) for o in obs]

@@ -40,7 +40,10 @@ def run(ctx: StageContext) -> dict:
     reg = ctx.ws.load_registration()
     model_id = reg["model_id"]
     verified = ctx.ws.load_inliers()
-    matches = track_matches(ctx.dataset, verified, obs, reg["pair_inlier_mask"], reg.get("matches_2d3d"))
+    # 2D-3D matches and the weak pairs' inliers join the verified pairs' (workspaces older than either lack them)
+    extra_rows = [rows for rows in (reg.get("matches_2d3d"), reg.get("weak_pair_matches")) if rows is not None]
+    matches = track_matches(ctx.dataset, verified, obs, reg["pair_inlier_mask"],
+                            np.concatenate(extra_rows) if extra_rows else None)
     bearings = [o["bearings"] for o in obs]
     R, t = reg["R_cam_from_world"], reg["t_cam_from_world"]
     max_err = np.radians(config.max_reprojection_error_deg)
