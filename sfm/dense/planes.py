@@ -204,8 +204,8 @@ def view_of(R_cam_from_world, t_cam_from_world, range_map, observable, image_bgr
 
 
 def exposure_gain(a: View, b: View, tolerance: float = 0.03) -> np.ndarray:
-    """Per-channel gain bringing b's colours to a's: the ratio of the median colours of the surface points both
-    views measured (a's stereo points that b's stereo puts at the same range, within ``tolerance``). The median
+    """Per-channel gain bringing b's colours to a's: the median colour ratio of the surface points both views
+    measured (a's stereo points that b's stereo puts at the same range, within ``tolerance``). The median
     colours of the whole panoramas differ by what each view sees (on the home, by 10-20% with no exposure
     difference at all), which turned correct plain-surface points into "another colour"; with fewer than
     ``MIN_GAIN_POINTS`` shared points, that ratio is still the fallback."""
@@ -221,10 +221,9 @@ def exposure_gain(a: View, b: View, tolerance: float = 0.03) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         shared = np.abs(b.range_map[row, col] - r_pred) <= tolerance * r_pred
     if shared.sum() >= MIN_GAIN_POINTS:
-        ma = np.median(a.color[rows[shared], cols[shared]], axis=0)
-        mb = np.median(b.color[row[shared], col[shared]], axis=0)
-    else:
-        ma, mb = np.median(a.color.reshape(-1, 3), axis=0), np.median(b.color.reshape(-1, 3), axis=0)
+        seen_a, seen_b = a.color[rows[shared], cols[shared]], b.color[row[shared], col[shared]]
+        return np.median(np.maximum(seen_a, 1.0) / np.maximum(seen_b, 1.0), axis=0).astype(np.float32)
+    ma, mb = np.median(a.color.reshape(-1, 3), axis=0), np.median(b.color.reshape(-1, 3), axis=0)
     return (np.maximum(ma, 1.0) / np.maximum(mb, 1.0)).astype(np.float32)
 
 
