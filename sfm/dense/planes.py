@@ -31,6 +31,7 @@ RANSAC_HYPOTHESES = 128  # plane hypotheses per region (fit_region_plane)
 MIN_SPREAD_RATIO = 0.15  # a region's plane inliers must spread this much across their main direction
 REFINE_SHRINK = (1.0, 0.5, 0.25, 0.25)  # inlier bands of the successive least-squares refinements (x fit_tolerance)
 MIN_GAIN_POINTS = 200  # shared stereo points exposure_gain needs to measure a gain (else: median colours)
+GAIN_SAMPLE = 20_000  # exposure_gain looks at about this many of a view's stereo points
 RING_OFFSETS = [(dy, dx) for r in (2, 4, 6) for dy, dx in
                 ((r, 0), (-r, 0), (0, r), (0, -r), (r, r), (-r, -r), (r, -r), (-r, r))]  # a region's border band
 
@@ -210,6 +211,8 @@ def exposure_gain(a: View, b: View, tolerance: float = 0.03) -> np.ndarray:
     difference at all), which turned correct plain-surface points into "another colour"; with fewer than
     ``MIN_GAIN_POINTS`` shared points, that ratio is still the fallback."""
     rows, cols = np.nonzero(np.isfinite(a.range_map))
+    step = max(1, len(rows) // GAIN_SAMPLE)  # a median needs no more (this runs for every pair of neighbours)
+    rows, cols = rows[::step], cols[::step]
     h, w = a.range_map.shape
     center = -a.R_cam_from_world.T @ a.t_cam_from_world
     points = center + reduced_bearings_world(a.R_cam_from_world, w, h)[rows, cols] * a.range_map[rows, cols, None]
