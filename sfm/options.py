@@ -205,7 +205,7 @@ class DensifyOptions:
                                  "within the extent its points support (sfm/dense/world_planes.py)")
     world_plane_distance: float = setting(0.015, "a point supports a world plane within this share of its range "
                                           "(from the camera that measured it)", gt=0.0, le=0.2)
-    world_plane_extent: str = setting("support", "a world plane's extent: gravity = floor/ceiling span their "
+    world_plane_extent: str = setting("gravity", "a world plane's extent: gravity = floor/ceiling span their "
                                       "support's bounding rectangle, walls each column between their lowest and "
                                       "highest support; support = closed support, enclosed holes filled; both minus "
                                       "what the views see through", choices=("gravity", "support"))

@@ -247,3 +247,27 @@ def test_world_plane_detection_is_deterministic():
     b = _world_fill(views)[2]
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)
+
+
+def _full_stereo_views(centers, brightness=(1.0, 1.0)):
+    """Views with a range everywhere (true ranges), the second panorama's image scaled by ``brightness[1]``."""
+    views = []
+    for c, gain in zip(centers, brightness):
+        rng, _, image = _render(np.asarray(c))
+        image = np.clip(image.astype(np.float32) * gain, 0, 255).astype(np.uint8)
+        views.append(planes.view_of(np.eye(3), -np.asarray(c), rng, np.ones(rng.shape, bool), image, WIDTH))
+    return views
+
+
+def test_exposure_gain_is_one_when_only_the_view_differs():
+    # one panorama near the bright +z wall, one near the dark -x wall: their median colours differ by far more
+    # than the colour check's tolerance although nothing about the exposure does
+    a, b = _full_stereo_views([[1.2, 0.2, 2.8], [-1.8, -0.3, -1.5]])
+    medians = np.median(a.color.reshape(-1, 3), axis=0) / np.median(b.color.reshape(-1, 3), axis=0)
+    assert np.all(np.abs(medians - 1) > 0.15)  # what the gain used to be
+    np.testing.assert_allclose(planes.exposure_gain(a, b), 1.0, atol=0.01)
+
+
+def test_exposure_gain_measures_a_real_exposure_difference():
+    a, b = _full_stereo_views([[1.2, 0.2, 2.8], [-1.8, -0.3, -1.5]], brightness=(1.0, 0.8))
+    np.testing.assert_allclose(planes.exposure_gain(a, b), 1 / 0.8, rtol=0.02)

@@ -30,6 +30,8 @@ from fullview.sfm.camera import bearings_to_pixels_f32, pixel_grid_bearings
 RANSAC_HYPOTHESES = 128  # plane hypotheses per region (fit_region_plane)
 MIN_SPREAD_RATIO = 0.15  # a region's plane inliers must spread this much across their main direction
 REFINE_SHRINK = (1.0, 0.5, 0.25, 0.25)  # inlier bands of the successive least-squares refinements (x fit_tolerance)
+MIN_GAIN_POINTS = 200  # shared stereo points exposure_gain needs to measure a gain (else: median colours)
+GAIN_SAMPLE = 20_000  # exposure_gain looks at about this many of a view's stereo points
 RING_OFFSETS = [(dy, dx) for r in (2, 4, 6) for dy, dx in
                 ((r, 0), (-r, 0), (0, r), (0, -r), (r, r), (-r, -r), (r, -r), (-r, r))]  # a region's border band
 
@@ -202,10 +204,29 @@ def view_of(R_cam_from_world, t_cam_from_world, range_map, observable, image_bgr
                 range_map=reduced(range_map, width), observable=reduced(observable, width), color=color)
 
 
-def exposure_gain(a: View, b: View) -> np.ndarray:
-    """Per-channel gain bringing b's colours to a's (ratio of the panoramas' median colours)."""
-    ma = np.median(a.color.reshape(-1, 3), axis=0)
-    mb = np.median(b.color.reshape(-1, 3), axis=0)
+def exposure_gain(a: View, b: View, tolerance: float = 0.03) -> np.ndarray:
+    """Per-channel gain bringing b's colours to a's: the median colour ratio of the surface points both views
+    measured (a's stereo points that b's stereo puts at the same range, within ``tolerance``). The median
+    colours of the whole panoramas differ by what each view sees (on the home, by 10-20% with no exposure
+    difference at all), which turned correct plain-surface points into "another colour"; with fewer than
+    ``MIN_GAIN_POINTS`` shared points, that ratio is still the fallback."""
+    rows, cols = np.nonzero(np.isfinite(a.range_map))
+    step = max(1, len(rows) // GAIN_SAMPLE)  # a median needs no more (this runs for every pair of neighbours)
+    rows, cols = rows[::step], cols[::step]
+    h, w = a.range_map.shape
+    center = -a.R_cam_from_world.T @ a.t_cam_from_world
+    points = center + reduced_bearings_world(a.R_cam_from_world, w, h)[rows, cols] * a.range_map[rows, cols, None]
+    x_cam = (points @ b.R_cam_from_world.T + b.t_cam_from_world).astype(np.float32)
+    r_pred = np.linalg.norm(x_cam, axis=1)
+    bh, bw = b.range_map.shape
+    u, v = bearings_to_pixels_f32(x_cam / np.maximum(r_pred, 1e-12)[:, None], bw, bh)
+    col, row = np.clip(u.astype(np.intp), 0, bw - 1), np.clip(v.astype(np.intp), 0, bh - 1)
+    with np.errstate(invalid="ignore"):
+        shared = np.abs(b.range_map[row, col] - r_pred) <= tolerance * r_pred
+    if shared.sum() >= MIN_GAIN_POINTS:
+        seen_a, seen_b = a.color[rows[shared], cols[shared]], b.color[row[shared], col[shared]]
+        return np.median(np.maximum(seen_a, 1.0) / np.maximum(seen_b, 1.0), axis=0).astype(np.float32)
+    ma, mb = np.median(a.color.reshape(-1, 3), axis=0), np.median(b.color.reshape(-1, 3), axis=0)
     return (np.maximum(ma, 1.0) / np.maximum(mb, 1.0)).astype(np.float32)
 
 
