@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from fullview.sfm.camera import bearings_to_pixels_f32, pixel_grid_bearings
+from fullview.sfm.camera import bearings_to_pixels_f32, camera_center, pixel_grid_bearings
 
 RANSAC_HYPOTHESES = 128  # plane hypotheses per region (fit_region_plane)
 MIN_SPREAD_RATIO = 0.15  # a region's plane inliers must spread this much across their main direction
@@ -105,6 +105,24 @@ def _colour_agrees(a: np.ndarray, b: np.ndarray, gain: np.ndarray, max_differenc
     return np.max(np.abs(a - b), axis=1) <= max_difference * np.maximum(np.max(np.maximum(a, b), axis=1), 16.0)
 
 
+def pixel_points(view: View, ranges: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """(N, 3) world points of ``view``'s reduced-grid pixels (rows, cols) at the ranges of ``ranges`` (h, w)."""
+    h, w = ranges.shape
+    center = camera_center(view.R_cam_from_world, view.t_cam_from_world)
+    return center + reduced_bearings_world(view.R_cam_from_world, w, h)[rows, cols] * ranges[rows, cols, None]
+
+
+def project_into(view: View, points: np.ndarray, shape: tuple[int, int]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(row, col, range) of world points in ``view``'s reduced grid of ``shape`` (h, w): the nearest pixel
+    (clipped to the grid) and the distance from the view's centre."""
+    x_cam = (points @ view.R_cam_from_world.T + view.t_cam_from_world).astype(np.float32)
+    r_pred = np.linalg.norm(x_cam, axis=1)
+    h, w = shape
+    u, v = bearings_to_pixels_f32(x_cam / np.maximum(r_pred, 1e-12)[:, None], w, h)
+    return np.clip(v.astype(np.intp), 0, h - 1), np.clip(u.astype(np.intp), 0, w - 1), r_pred
+
+
 def check_against_views(points: np.ndarray, colors: np.ndarray, views: list[View], gains: list[np.ndarray],
                         options: PlaneOptions) -> np.ndarray:
     """Keep mask (N,) of candidate world points: no view sees a valid range clearly beyond one (it would look
@@ -116,12 +134,7 @@ def check_against_views(points: np.ndarray, colors: np.ndarray, views: list[View
     other = np.zeros(len(points), np.int32)
     tol = options.view_tolerance
     for view, gain in zip(views, gains):
-        x_cam = (points @ view.R_cam_from_world.T + view.t_cam_from_world).astype(np.float32)
-        r_pred = np.linalg.norm(x_cam, axis=1)
-        h, w = view.range_map.shape
-        u, v = bearings_to_pixels_f32(x_cam / r_pred[:, None], w, h)
-        col = np.clip(u.astype(np.intp), 0, w - 1)
-        row = np.clip(v.astype(np.intp), 0, h - 1)
+        row, col, r_pred = project_into(view, points, view.range_map.shape)
         seen = view.observable[row, col]
         r_obs = view.range_map[row, col]
         with np.errstate(invalid="ignore"):
@@ -150,17 +163,12 @@ def confirmed_by_views(ref: View, fill: np.ndarray, units: np.ndarray, others: l
     if not len(rows):
         return out
     h, w = fill.shape
-    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
-    points = center + reduced_bearings_world(ref.R_cam_from_world, w, h)[rows, cols] * fill[rows, cols, None]
+    points = pixel_points(ref, fill, rows, cols)
     agree = np.zeros(len(rows), bool)
     beyond = np.zeros(len(rows), bool)
     checked = np.zeros(len(rows), bool)
     for view, other_fill in zip(others, other_fills):
-        x_cam = (points @ view.R_cam_from_world.T + view.t_cam_from_world).astype(np.float32)
-        r_pred = np.linalg.norm(x_cam, axis=1)
-        vh, vw = other_fill.shape
-        u, v = bearings_to_pixels_f32(x_cam / r_pred[:, None], vw, vh)
-        col, row = np.clip(u.astype(np.intp), 0, vw - 1), np.clip(v.astype(np.intp), 0, vh - 1)
+        row, col, r_pred = project_into(view, points, other_fill.shape)
         r_obs = np.where(np.isfinite(view.range_map[row, col]), view.range_map[row, col], other_fill[row, col])
         with np.errstate(invalid="ignore"):
             agree |= np.abs(r_obs - r_pred) <= options.view_tolerance * r_pred
@@ -213,14 +221,7 @@ def exposure_gain(a: View, b: View, tolerance: float = 0.03) -> np.ndarray:
     rows, cols = np.nonzero(np.isfinite(a.range_map))
     step = max(1, len(rows) // GAIN_SAMPLE)  # a median needs no more (this runs for every pair of neighbours)
     rows, cols = rows[::step], cols[::step]
-    h, w = a.range_map.shape
-    center = -a.R_cam_from_world.T @ a.t_cam_from_world
-    points = center + reduced_bearings_world(a.R_cam_from_world, w, h)[rows, cols] * a.range_map[rows, cols, None]
-    x_cam = (points @ b.R_cam_from_world.T + b.t_cam_from_world).astype(np.float32)
-    r_pred = np.linalg.norm(x_cam, axis=1)
-    bh, bw = b.range_map.shape
-    u, v = bearings_to_pixels_f32(x_cam / np.maximum(r_pred, 1e-12)[:, None], bw, bh)
-    col, row = np.clip(u.astype(np.intp), 0, bw - 1), np.clip(v.astype(np.intp), 0, bh - 1)
+    row, col, r_pred = project_into(b, pixel_points(a, a.range_map, rows, cols), b.range_map.shape)
     with np.errstate(invalid="ignore"):
         shared = np.abs(b.range_map[row, col] - r_pred) <= tolerance * r_pred
     if shared.sum() >= MIN_GAIN_POINTS:

@@ -31,9 +31,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from fullview.sfm.camera import bearings_to_pixels_f32
 from fullview.sfm.dense.planes import (PlaneOptions, View, check_against_views, exposure_gain, image_regions,
-                                       reduced_bearings_world)
+                                       pixel_points, project_into, reduced_bearings_world)
 
 RANSAC_HYPOTHESES = 256  # plane hypotheses per accepted plane
 REFINE_SHRINK = (1.0, 0.5, 0.25, 0.25)  # inlier bands of the successive least-squares refinements (x distance)
@@ -249,11 +248,7 @@ def _carve(plane: WorldPlane, views: list[View], options: WorldPlaneOptions) -> 
     through = np.zeros(len(rows), np.int32)
     on = np.zeros(len(rows), np.int32)
     for view in views:
-        x_cam = (centers @ view.R_cam_from_world.T + view.t_cam_from_world).astype(np.float32)
-        r_pred = np.linalg.norm(x_cam, axis=1)
-        h, w = view.range_map.shape
-        u, v = bearings_to_pixels_f32(x_cam / r_pred[:, None], w, h)
-        col, row = np.clip(u.astype(np.intp), 0, w - 1), np.clip(v.astype(np.intp), 0, h - 1)
+        row, col, r_pred = project_into(view, centers, view.range_map.shape)
         r_obs = view.range_map[row, col]
         seen = view.observable[row, col]
         with np.errstate(invalid="ignore"):
@@ -358,9 +353,7 @@ def fill_from_world_planes(ref: View, planes: list[WorldPlane], others: list[Vie
     rows, cols = np.nonzero(label)
     if not len(rows):
         return fill, label
-    h, w = fill.shape
-    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
-    points = center + reduced_bearings_world(ref.R_cam_from_world, w, h)[rows, cols] * fill[rows, cols, None]
+    points = pixel_points(ref, fill, rows, cols)
     keep = check_against_views(points, ref.color[rows, cols], others, [exposure_gain(ref, o) for o in others],
                                view_options)
     fill[rows[~keep], cols[~keep]] = np.nan
