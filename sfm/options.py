@@ -130,8 +130,8 @@ class RegistrationOptions:
                                          ge=2, le=1_000_000, zero_means="never")
     unjoined_parts: str = setting("keep", "a part whose scale neither the pair directions nor shared points fix: "
                                   "separate: placed again by points or left a model of its own; keep: a guess "
-                                  "(averaging's lambda >= 1 scale, or main's median baseline when that is over 2x "
-                                  "off; a camera tied by one pair at the median baseline)",
+                                  "(scaled to main's median baseline; a camera tied by one pair at the median "
+                                  "baseline)",
                                   choices=("separate", "keep"))
     seed: int = setting(0, "random seed of resection and merging (RANSAC)", ge=0, le=2**31)
     RULES: ClassVar[list[Rule]] = []

@@ -154,3 +154,48 @@ def test_a_guessed_part_blown_up_by_a_short_baseline_gets_main_s_spacing():
     a, b = [1, 2, 3, 4], [5, 6, 7, 8]
     ratio = spread(models.centers, b) / spread(models.centers, a) / (spread(centres, b) / spread(centres, a))
     assert 0.5 < ratio < 2.0  # averaging's λ >= 1 guess alone leaves room B 12.8 times too large
+
+
+def _rooms_joined_by_a_doorway_pair():
+    """Room A (cameras 0-3) and room B (4-7) whose only tie is the doorway pair 3-4 (points near the door seen by
+    those two alone): the pair is a rigid part of its own (its length is free) and so is B (its scale is free). Two
+    of B's cameras stand 0.2 apart, which averaging's λ >= 1 blows up to the spacing of A's."""
+    rng = np.random.default_rng(7)
+    centres = np.array([[-6.0, 0.1, -1.5], [-4.5, -0.1, 1.8], [-2.5, 0.0, -1.2], [-1.2, 0.05, 0.5],
+                        [1.3, 0.0, 0.4], [5.0, 0.0, 2.0], [5.2, 0.05, 2.0], [3.0, -0.05, -2.0]])
+    R = Rotation.from_euler("y", rng.uniform(-np.pi, np.pi, (8, 1))).as_matrix()
+    n = 3000
+    X = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-1.5, 1.5, n), rng.uniform(-4, 4, n)])
+    door = np.abs(X[:, 0]) < 0.6
+    seen = [(X[:, 0] < -0.6) | (door & (k == 3)) if k < 4 else (X[:, 0] > 0.6) | (door & (k == 4)) for k in range(8)]
+    feature_of = [np.flatnonzero(s) for s in seen]
+    bearings = [normalize((X[f] - c) @ r.T) for f, c, r in zip(feature_of, centres, R)]
+    matches = {}
+    for i in range(8):
+        for j in range(i + 1, 8):
+            if (i < 4) == (j < 4) or (i, j) == (3, 4):
+                _, a, b = np.intersect1d(feature_of[i], feature_of[j], return_indices=True)
+                matches[(i, j)] = np.column_stack([a, b])
+    pairs = np.array(list(matches))
+    t = -np.einsum("nab,nb->na", R, centres)
+    R_rel = R[pairs[:, 1]] @ np.swapaxes(R[pairs[:, 0]], 1, 2)
+    t_rel = normalize(t[pairs[:, 1]] - np.einsum("pab,pb->pa", R_rel, t[pairs[:, 0]]))
+    links = PairLinks(pairs=pairs, R_j_from_i=R_rel, t_j_from_i=t_rel,
+                      weights=np.array([len(matches[tuple(p)]) for p in pairs], float))
+    tracks, _ = build_tracks(matches, [len(b) for b in bearings])
+    return centres, links, tracks, bearings
+
+
+def test_a_part_beyond_a_doorway_pair_does_not_rescale_the_pair():
+    """The doorway pair's own part is placed before the room behind it: B's guessed scale is taken about camera 4,
+    not about camera 3 across the pair (which shrank the pair to a tenth of its length with B's scale)."""
+    centres, links, tracks, bearings = _rooms_joined_by_a_doorway_pair()
+    models = build_models(links=links, tracks=tracks, bearings=bearings, options=RegistrationOptions())
+    assert (models.model_id == 0).all()
+    C = models.centers
+
+    def spacing(c):  # the door pair's length against room A's median baseline
+        a = [np.linalg.norm(c[i] - c[j]) for i in range(4) for j in range(i + 1, 4)]
+        return np.linalg.norm(c[4] - c[3]) / np.median(a)
+
+    assert 0.5 < spacing(C) / spacing(centres) < 2.0
