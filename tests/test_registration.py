@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -17,6 +19,7 @@ from fullview.sfm.registration import (
     relative_from_absolute,
     rotation_yaw,
     spanning_tree_rotations,
+    translation_averaging,
     triangle_support,
     yaw_rotation,
 )
@@ -466,3 +469,17 @@ def test_planar_noisy_with_outliers(n, seed):
     assert rot_err < 0.1 and c_err < 0.01, (rot_err, c_err)
     assert not reg.pair_inlier_mask[outlier].any()
     assert reg.pair_inlier_mask[~outlier].all()
+
+
+def test_the_chordal_refinement_does_not_collapse_a_part_the_directions_leave_free():
+    """Stored baseline directions of the bare 2048 px home (seed 3, filter seed 1): its chordal refinement, whose cost
+    sees directions only, shrank one room's four cameras (a part whose scale the directions leave free) to a point,
+    pairs 1e-10 of the median length, and nothing later separated them. LUD's λ ≥ 1 layout is kept instead."""
+    data = np.load(Path(__file__).parent / "data" / "collapsing_layout.npz")
+    centres, used = translation_averaging(
+        int(data["num_images"]), data["pairs"], data["directions"], int(data["root"]), weights=data["weights"],
+        max_direction_residual_deg=float(data["max_direction_residual_deg"]))
+    pairs = data["pairs"][used]
+    lengths = np.linalg.norm(centres[pairs[:, 1]] - centres[pairs[:, 0]], axis=1)
+    assert used.sum() > 50 and np.isfinite(centres).all()
+    assert lengths.min() > 0.1 * np.median(lengths)
