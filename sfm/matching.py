@@ -67,8 +67,9 @@ def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int, allowed=None):
     nn = np.empty((len(a), 2), np.int64)
     d2 = np.empty((len(a), 2), np.float32)
     col_min = np.full(len(b), np.inf, np.float32)
+    b_t = np.ascontiguousarray(b.T)  # see _nearest_by_similarity
     for s in range(0, len(a), block):
-        dist = (a[s:s + block] @ b.T) * np.float32(-2.0)
+        dist = (a[s:s + block] @ b_t) * np.float32(-2.0)
         dist += b_sq[None, :]
         dist += a_sq[s:s + block, None]
         if allowed is not None:
@@ -101,8 +102,11 @@ def _nearest_by_similarity(a: np.ndarray, b: np.ndarray, a_sq: np.ndarray, b_sq:
     nn = np.empty((len(a), 2), np.int64)
     h = np.empty((len(a), 2), np.float32)
     col_max = np.full(len(b), -np.inf, np.float32)
+    # bᵀ copied once per pair: OpenBLAS's kernel on a contiguous right operand is 15-20% faster than on the
+    # transposed view, at the cost of one (dims, len(b)) copy (README, "Matching, third pass")
+    b_t = np.ascontiguousarray(b.T)
     for s in range(0, len(a), block):
-        sim = a[s:s + block] @ b.T
+        sim = a[s:s + block] @ b_t
         if not b_unit:
             sim -= half_b[None, :]
         np.maximum(col_max, sim.max(axis=0), out=col_max)
