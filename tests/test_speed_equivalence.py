@@ -5,9 +5,11 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from fullview.io.dataset import Dataset
-from fullview.sfm import upright
+from fullview.sfm import two_view, upright
+from fullview.sfm.camera import normalize
 from fullview.stages import filter as filter_stage
 
 
@@ -25,3 +27,47 @@ def test_gravity_in_threads_equals_serial(tiny_dataset):
             assert np.isnan(gravity[k]).all() and np.isnan(std[k])
         else:
             assert np.array_equal(gravity[k], found[0]) and std[k] == found[2]
+
+
+def test_epipoles_in_threads_equal_each_pair_alone(tiny_dataset, make_pipeline):
+    pipe = make_pipeline(tiny_dataset)
+    pipe.run(until="epipoles")
+    stored, verified = pipe.ws.load_epipoles(), pipe.ws.load_inliers()
+    obs = pipe.ws.load_observations(pipe.dataset)
+    assert stored["valid"].sum() >= 2
+    for k, (i, j) in enumerate(verified.pairs):
+        m = verified.matches[k]
+        pose = two_view.relative_pose_from_f(verified.extra["F"][k], obs[i]["bearings"][m[:, 0]],
+                                             obs[j]["bearings"][m[:, 1]])
+        assert np.array_equal(stored["R_j_from_i"][k], pose.R_j_from_i)
+        assert np.array_equal(stored["t_j_from_i"][k], pose.t_j_from_i)
+        assert stored["num_cheiral"][k] == pose.num_cheiral
+
+
+def test_local_optimization_scores_each_model_once_and_finds_the_same_fit():
+    """The re-fit loop reuses each model's errors for its score and its next inliers: the model and cost equal
+    those of scoring every model afresh."""
+    rng = np.random.default_rng(0)
+    R = Rotation.from_rotvec([0.05, 0.4, -0.02]).as_matrix()
+    X = rng.uniform(-4, 4, (400, 3)) + [0, 0, 6] * rng.choice([-1, 1], (400, 1))
+    b_i = normalize(X)
+    b_j = normalize((X - [1.0, 0.1, 0.3]) @ R.T)
+    b_j[:80] = normalize(rng.normal(size=(80, 3)))  # outliers
+    noise = Rotation.from_rotvec(rng.normal(0, np.radians(0.05), (400, 3))).as_matrix()
+    b_j = np.einsum("nab,nb->na", noise, b_j)
+    F0 = two_view.estimate_f_linear(b_i[80:90], b_j[80:90])
+    threshold = np.radians(0.35)
+    F, cost = two_view._local_optimization(b_i, b_j, F0, threshold, steps=4)
+    # reference: the loop as written before, every model's errors computed again
+    best_F, best_cost = F0, two_view._msac_scores(two_view.epipolar_angular_errors(F0, b_i, b_j), threshold).sum()
+    current = F0
+    for factor in two_view.LO_THRESHOLD_SCHEDULE[:4]:
+        errors = two_view.epipolar_angular_errors(current, b_i, b_j)
+        inliers = errors < factor * threshold
+        w = 1.0 / (1.0 + (errors[inliers] / (factor * threshold)) ** 2)
+        current = two_view.estimate_f_linear(b_i[inliers], b_j[inliers], w)
+        c = two_view._msac_scores(two_view.epipolar_angular_errors(current, b_i, b_j), threshold).sum()
+        if c < best_cost:
+            best_F, best_cost = current, c
+    assert np.array_equal(F, best_F) and cost == best_cost
+    assert cost < two_view._msac_scores(two_view.epipolar_angular_errors(F0, b_i, b_j), threshold).sum()
