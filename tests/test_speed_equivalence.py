@@ -71,3 +71,37 @@ def test_local_optimization_scores_each_model_once_and_finds_the_same_fit():
             best_F, best_cost = current, c
     assert np.array_equal(F, best_F) and cost == best_cost
     assert cost < two_view._msac_scores(two_view.epipolar_angular_errors(F0, b_i, b_j), threshold).sum()
+
+
+def test_bundle_adjustment_residuals_in_two_halves_equal_one_piece(monkeypatch):
+    """`bundle._residuals` splits large problems over two threads: the residuals, the Jacobian blocks and the whole
+    adjustment's result are bitwise those of the one-piece computation."""
+    from fullview.sfm import bundle
+
+    rng = np.random.default_rng(0)
+    n, num_points = 5, 400
+    centers = rng.normal(0, 1, (n, 3))
+    R = Rotation.from_rotvec(rng.normal(0, 0.2, (n, 3))).as_matrix()
+    t = -np.einsum("nij,nj->ni", R, centers)
+    X = rng.normal(0, 3, (num_points, 3))
+    cam = np.concatenate([rng.choice(n, 3, replace=False) for _ in range(num_points)])
+    pt = np.repeat(np.arange(num_points), 3)
+    bearings = normalize(np.einsum("kij,kj->ki", R[cam], X[pt] - centers[cam]) + rng.normal(0, 1e-3, (len(cam), 3)))
+    args = dict(R_cam_from_world=R, t_cam_from_world=t, points=X + rng.normal(0, 0.02, X.shape), obs_camera=cam,
+                obs_point=pt, obs_bearings=bearings, fixed_cameras=(0,), loss="soft_l1", max_nfev=20)
+    seen = []
+    one_piece = bundle._residuals
+    monkeypatch.setattr(bundle, "_residuals", lambda x, p, j: seen.append((x.copy(), p)) or one_piece(x, p, j))
+    serial = bundle.bundle_adjust(**args)
+    monkeypatch.setattr(bundle, "_residuals", one_piece)
+    monkeypatch.setattr(bundle, "PARALLEL_MIN_OBSERVATIONS", 100)  # 1,200 observations: two halves
+    x, problem = seen[-1]
+    monkeypatch.setattr(bundle, "PARALLEL_MIN_OBSERVATIONS", 10**9)
+    r_one, J_one = bundle._residuals(x, problem, True)
+    monkeypatch.setattr(bundle, "PARALLEL_MIN_OBSERVATIONS", 100)
+    r_two, J_two = bundle._residuals(x, problem, True)
+    assert np.array_equal(r_one, r_two) and np.array_equal(J_one, J_two)
+    halves = bundle.bundle_adjust(**args)
+    assert serial.final_cost < serial.initial_cost
+    for key in ("R_cam_from_world", "t_cam_from_world", "points", "obs_error_rad"):
+        assert np.array_equal(getattr(serial, key), getattr(halves, key))
