@@ -105,3 +105,22 @@ def test_bundle_adjustment_residuals_in_two_halves_equal_one_piece(monkeypatch):
     assert serial.final_cost < serial.initial_cost
     for key in ("R_cam_from_world", "t_cam_from_world", "points", "obs_error_rad"):
         assert np.array_equal(getattr(serial, key), getattr(halves, key))
+
+
+def test_matches_stage_stores_each_pairs_own_matches_when_blocks_run_largest_first(tmp_path, make_pipeline):
+    """The matches stage hands out its blocks of pairs largest first (5 images: blocks of 4, 2, 2, 1, 1 pairs, not
+    in index order); every stored pair must still hold that pair's own matches."""
+    from fullview.sfm.matching import descriptor_basis, match_descriptors, project_descriptors
+    from fullview.synth import write_synthetic_dataset
+
+    pipe = make_pipeline(write_synthetic_dataset(tmp_path / "five", views=5, width=512, seed=2))
+    pipe.run(until="matches")
+    stored = pipe.ws.load_matches()
+    options = pipe.config["matches"]
+    full = [pipe.ws.load_features(n)["descriptors"] for n in pipe.dataset.image_names]
+    basis = descriptor_basis(full, options.descriptor_dims)
+    assert len(stored.pairs) == 10
+    for (i, j), m in zip(stored.pairs, stored.matches):
+        own = match_descriptors(project_descriptors(full[i], basis), project_descriptors(full[j], basis), options,
+                                full=(full[i], full[j]))
+        assert len(own) > 20 and np.array_equal(m, own)
