@@ -127,7 +127,10 @@ def _rescore(nn: np.ndarray, full_i: np.ndarray, full_j: np.ndarray) -> tuple[np
     """Each row's candidates (found on projected descriptors) re-ranked by their full squared distances: the two
     nearest (N, 2) and those distances. The ratio test then compares true distances, and the nearest is the true
     nearest whenever it was among the candidates."""
-    d_full = ((full_i[:, None, :] - full_j[nn]) ** 2).sum(axis=2, dtype=np.float32)
+    diff = full_j[nn]  # (N, k, dims), worked in place: one temporary instead of three
+    diff -= full_i[:, None, :]
+    diff *= diff
+    d_full = diff.sum(axis=2, dtype=np.float32)
     order = np.argsort(d_full, axis=1, kind="stable")[:, :2]
     return np.take_along_axis(nn, order, axis=1), np.take_along_axis(d_full, order, axis=1)
 
