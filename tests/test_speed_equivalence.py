@@ -124,3 +124,15 @@ def test_matches_stage_stores_each_pairs_own_matches_when_blocks_run_largest_fir
         own = match_descriptors(project_descriptors(full[i], basis), project_descriptors(full[j], basis), options,
                                 full=(full[i], full[j]))
         assert len(own) > 20 and np.array_equal(m, own)
+
+
+def test_matches_stage_reads_gps_only_when_the_pair_selection_uses_it(tiny_dataset, make_pipeline, monkeypatch):
+    """Exhaustive sets never look at GPS (a PNG's EXIF costs a full decode); `auto` above its exhaustive size does."""
+    calls = []
+    original = Dataset.gps_positions
+    monkeypatch.setattr(Dataset, "gps_positions", lambda self: calls.append(1) or original(self))
+    make_pipeline(tiny_dataset).run(until="matches")
+    assert calls == []
+    pipe = make_pipeline(tiny_dataset, ["matches.auto_exhaustive_below=2"], workspace=None)
+    pipe.run(until="matches", force=True)
+    assert calls == [1]
