@@ -101,15 +101,16 @@ def _nearest_by_similarity(a: np.ndarray, b: np.ndarray, a_sq: np.ndarray, b_sq:
                            candidates: int = 2, mutual: bool = True):
     """`_nearest_both_ways` for unit rows of a (RootSIFT): ‖a_r − b_c‖² = ‖a_r‖² + ‖b_c‖² − 2 a_r·b_c, so the
     nearest c of row r maximises h = a_r·b_c − ½‖b_c‖² and, with ‖a_r‖ = 1, the nearest r of column c maximises
-    the same h. The matrix product is then the only full pass besides the three reductions (the distance form
-    needs three more passes; the offset pass is skipped when b's rows are unit too)."""
+    the same h. The matrix product is then the only full pass besides the reductions (column maxima unless
+    `mutual` is off, one row maximum per candidate; the distance form needs three more passes; the offset pass is
+    skipped when b's rows are unit too)."""
     b_unit = np.allclose(b_sq, 1.0, rtol=0.0, atol=_UNIT_NORM_TOLERANCE)
     half_b = (np.float32(0.5) * b_sq).astype(np.float32)
     nn = np.empty((len(a), candidates), np.int64)
     h = np.empty((len(a), candidates), np.float32)
     col_max = np.full(len(b), -np.inf, np.float32)
     # bᵀ copied once per pair: OpenBLAS's kernel on a contiguous right operand is 15-20% faster than on the
-    # transposed view, at the cost of one (dims, len(b)) copy (README, "Matching, third pass")
+    # transposed view, at the cost of one (dims, len(b)) copy (README, "Third speed pass")
     b_t = np.ascontiguousarray(b.T)
     for s in range(0, len(a), block):
         sim = a[s:s + block] @ b_t
