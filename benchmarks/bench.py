@@ -73,6 +73,10 @@ def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = 
         "wall_time_s": round(wall, 2),
         "stage_time_s": {s: m["wall_time_s"] for s, m in manifests.items()},
         "sparse_time_s": round(sum(m["wall_time_s"] for m in manifests.values()), 2),
+        # CPU seconds of every thread (manifests written before the runner recorded them: None)
+        "stage_cpu_s": {s: m.get("cpu_time_s") for s, m in manifests.items()},
+        "sparse_cpu_s": (round(sum(m["cpu_time_s"] for m in manifests.values()), 2)
+                         if all("cpu_time_s" in m for m in manifests.values()) else None),
         "peak_rss_mb": max(m["peak_rss_mb"] for m in manifests.values()),
         "registered": manifests["registration"]["summary"]["registered"],
         "models": manifests["registration"]["summary"].get("models"),
@@ -105,14 +109,17 @@ def colmap_worker(dataset: Path, work: Path, matcher: str = "exhaustive", reuse:
     from fullview.commands.compare import colmap_reference
 
     ds = Dataset(dataset)
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     model_dir, manifest = colmap_reference(ds, Workspace(work, ds.name), render_type="spherical", matcher=matcher,
                                            force=not reuse)
     rss_file = work / "bench_peak_rss_mb.json"  # this process's peak is COLMAP's only when COLMAP ran here
+    cpu_file = work / "bench_cpu_time_s.json"  # likewise its CPU time (all of COLMAP's threads)
     if time.perf_counter() - t0 >= 0.9 * manifest["wall_time_s"]:
         rss_file.write_text(json.dumps(round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)))
+        cpu_file.write_text(json.dumps(round(time.process_time() - cpu0, 2)))
     out = {"wall_time_s": round(manifest["wall_time_s"], 2), "matcher": matcher,
            "peak_rss_mb": json.loads(rss_file.read_text()) if rss_file.exists() else None,
+           "cpu_time_s": json.loads(cpu_file.read_text()) if cpu_file.exists() else None,
            "registered": 0, "points": 0}
     if model_dir is not None:
         rec = load_reconstruction(model_dir)
@@ -254,16 +261,18 @@ def scale_summary(rows: list[dict]) -> dict:
 
 def scale_table(rows: list[dict], summary: dict) -> str:
     head = ("scene", "views", "ours pairs", "ours reg", "colmap reg", "ours AUC@1", "colmap AUC@1", "ours s",
-            "colmap s", "ratio", "ours MB", "colmap MB")
+            "colmap s", "ratio", "ours CPU s", "colmap CPU s", "CPU ratio", "ours MB", "colmap MB")
     lines = [" | ".join(head), " | ".join("---" for _ in head)]
     for r in rows:
         o, c = r["ours"], r.get("colmap", {})
         ratio = o.get("sparse_time_s", 0) / c["wall_time_s"] if c.get("wall_time_s") else None
+        cpu_ratio = o["sparse_cpu_s"] / c["cpu_time_s"] if o.get("sparse_cpu_s") and c.get("cpu_time_s") else None
         lines.append(" | ".join([
             r["scene"], str(r["views"]), str(o.get("pairs", "—")), str(o.get("registered", "err")),
             str(c.get("registered", "—")), fmt(o.get("metrics", {}).get("auc@1"), ".1f"),
             fmt(c.get("metrics", {}).get("auc@1"), ".1f"), fmt(o.get("sparse_time_s"), ".1f"),
-            fmt(c.get("wall_time_s"), ".1f"), fmt(ratio, ".2f"), fmt(o.get("peak_rss_mb"), ".0f"),
+            fmt(c.get("wall_time_s"), ".1f"), fmt(ratio, ".2f"), fmt(o.get("sparse_cpu_s"), ".1f"),
+            fmt(c.get("cpu_time_s"), ".1f"), fmt(cpu_ratio, ".2f"), fmt(o.get("peak_rss_mb"), ".0f"),
             fmt(c.get("peak_rss_mb"), ".0f")]))
     for key, fit in summary.items():
         if fit:
@@ -331,6 +340,7 @@ def table(rows: list[dict]) -> str:
         o, c = r["ours"], r.get("colmap", {})
         om, cm = o.get("metrics", {}), c.get("metrics", {})
         ratio = o.get("sparse_time_s", 0) / c["wall_time_s"] if c.get("wall_time_s") else None
+        cpu_ratio = o["sparse_cpu_s"] / c["cpu_time_s"] if o.get("sparse_cpu_s") and c.get("cpu_time_s") else None
         lines.append(" | ".join([
             r["scene"], str(o.get("registered", "err")), str(c.get("registered", "—")),
             f"{fmt(om.get('auc@0.5'), '.1f')}/{fmt(om.get('auc@1'), '.1f')}/{fmt(om.get('auc@5'), '.1f')}",

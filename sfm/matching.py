@@ -12,6 +12,7 @@ from fullview.sfm.options import MatchesOptions
 BLOCK_ROWS = 128  # rows per matrix-product block: the reductions' passes over a block stay in cache. Measured on 28
 # pairs of 6,900-feature panoramas, 64 projected dimensions, two threads: 1.32 s at 128 rows, 1.51 s at 256, 1.58 s
 # at 512 (on 128 dimensions 256 rows had beaten 1,024: 0.122 against 0.146 s per pair)
+RERANK_CANDIDATES = 3  # nearest candidates per feature, found on projected descriptors, re-ranked by full distances
 _UNIT_NORM_TOLERANCE = 1e-4  # |‖x‖² − 1| below which descriptors count as unit (RootSIFT: ~1e-7)
 
 
@@ -53,93 +54,128 @@ def pair_blocks(pairs: list[tuple[int, int]], block_images: int) -> list[list[in
     return [groups[key] for key in sorted(groups)]
 
 
-def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int, allowed=None):
+def _nearest_both_ways(a: np.ndarray, b: np.ndarray, block: int, allowed=None, candidates: int = 2,
+                       mutual: bool = True):
     """One pass over the distance matrix, in row blocks.
 
-    Returns for each row of a its two nearest rows of b (N, 2), the squared distances to them (N, 2), and whether
-    each is mutual: the row is also the nearest row of a to that row of b. `allowed(start, stop)`, when given,
-    returns the (rows, len(b)) bool mask of the candidates each row may match (others count as infinitely far).
+    Returns for each row of a its `candidates` nearest rows of b (N, candidates), nearest first, the squared
+    distances to them, and whether each is mutual: the row is also the nearest row of a to that row of b.
+    `allowed(start, stop)`, when given, returns the (rows, len(b)) bool mask of the candidates each row may match
+    (others count as infinitely far). With `mutual` False the unit-row search skips the column pass and reports
+    every candidate as mutual.
     """
     a_sq = np.einsum("ij,ij->i", a, a)
     b_sq = np.einsum("ij,ij->i", b, b)
     if allowed is None and np.allclose(a_sq, 1.0, rtol=0.0, atol=_UNIT_NORM_TOLERANCE):
-        return _nearest_by_similarity(a, b, a_sq, b_sq, block)
-    nn = np.empty((len(a), 2), np.int64)
-    d2 = np.empty((len(a), 2), np.float32)
+        return _nearest_by_similarity(a, b, a_sq, b_sq, block, candidates, mutual)
+    nn = np.empty((len(a), candidates), np.int64)
+    d2 = np.empty((len(a), candidates), np.float32)
     col_min = np.full(len(b), np.inf, np.float32)
+    b_t = np.ascontiguousarray(b.T)  # see _nearest_by_similarity
     for s in range(0, len(a), block):
-        dist = (a[s:s + block] @ b.T) * np.float32(-2.0)
+        dist = (a[s:s + block] @ b_t) * np.float32(-2.0)
         dist += b_sq[None, :]
         dist += a_sq[s:s + block, None]
         if allowed is not None:
             dist[~allowed(s, s + len(dist))] = np.inf
         np.minimum(col_min, dist.min(axis=0), out=col_min)
-        nn[s:s + block], d2[s:s + block] = _two_best(dist, np.argmin, np.inf)
+        nn[s:s + block], d2[s:s + block] = _k_best(dist, np.argmin, np.inf, candidates)
     # a's row r and its candidate c are mutual iff d(r, c) is column c's minimum (column minima reduce fast, column
     # argmins do not); float32 rounding can dip below 0.
     return nn, np.maximum(d2, 0.0), d2 <= col_min[nn]
 
 
-def _two_best(scores: np.ndarray, arg_best, worst: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per row of `scores` the columns of the best and second-best score (`arg_best`: np.argmin or np.argmax) and
-    those scores; overwrites each row's best with `worst`."""
+def _k_best(scores: np.ndarray, arg_best, worst: float, k: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of `scores` the columns of its k best scores, best first (`arg_best`: np.argmin or np.argmax), and
+    those scores; overwrites each of them with `worst`."""
     rows = np.arange(len(scores))
-    first = arg_best(scores, axis=1)
-    best = scores[rows, first]
-    scores[rows, first] = worst
-    second = arg_best(scores, axis=1)
-    return np.column_stack([first, second]), np.column_stack([best, scores[rows, second]])
+    columns, best = np.empty((len(scores), k), np.int64), np.empty((len(scores), k), scores.dtype)
+    for q in range(k):
+        columns[:, q] = arg_best(scores, axis=1)
+        best[:, q] = scores[rows, columns[:, q]]
+        scores[rows, columns[:, q]] = worst
+    return columns, best
 
 
-def _nearest_by_similarity(a: np.ndarray, b: np.ndarray, a_sq: np.ndarray, b_sq: np.ndarray, block: int):
+def _nearest_by_similarity(a: np.ndarray, b: np.ndarray, a_sq: np.ndarray, b_sq: np.ndarray, block: int,
+                           candidates: int = 2, mutual: bool = True):
     """`_nearest_both_ways` for unit rows of a (RootSIFT): ‖a_r − b_c‖² = ‖a_r‖² + ‖b_c‖² − 2 a_r·b_c, so the
     nearest c of row r maximises h = a_r·b_c − ½‖b_c‖² and, with ‖a_r‖ = 1, the nearest r of column c maximises
-    the same h. The matrix product is then the only full pass besides the three reductions (the distance form
-    needs three more passes; the offset pass is skipped when b's rows are unit too)."""
+    the same h. The matrix product is then the only full pass besides the reductions (column maxima unless
+    `mutual` is off, one row maximum per candidate; the distance form needs three more passes; the offset pass is
+    skipped when b's rows are unit too)."""
     b_unit = np.allclose(b_sq, 1.0, rtol=0.0, atol=_UNIT_NORM_TOLERANCE)
     half_b = (np.float32(0.5) * b_sq).astype(np.float32)
-    nn = np.empty((len(a), 2), np.int64)
-    h = np.empty((len(a), 2), np.float32)
+    nn = np.empty((len(a), candidates), np.int64)
+    h = np.empty((len(a), candidates), np.float32)
     col_max = np.full(len(b), -np.inf, np.float32)
+    # bᵀ copied once per pair: OpenBLAS's kernel on a contiguous right operand is 15-20% faster than on the
+    # transposed view, at the cost of one (dims, len(b)) copy (README, "Third speed pass")
+    b_t = np.ascontiguousarray(b.T)
     for s in range(0, len(a), block):
-        sim = a[s:s + block] @ b.T
+        sim = a[s:s + block] @ b_t
         if not b_unit:
             sim -= half_b[None, :]
-        np.maximum(col_max, sim.max(axis=0), out=col_max)
-        nn[s:s + block], h[s:s + block] = _two_best(sim, np.argmax, -np.inf)
+        if mutual:
+            np.maximum(col_max, sim.max(axis=0), out=col_max)
+        nn[s:s + block], h[s:s + block] = _k_best(sim, np.argmax, -np.inf, candidates)
     offset = np.where(b_unit, 0.5, 0.0).astype(np.float32)  # h lacks the −½‖b‖² = −½ term when b is unit
     d2 = a_sq[:, None] - 2.0 * (h - offset)
     return nn, np.maximum(d2, 0.0), h >= col_max[nn]
 
 
-def _rescore(nn: np.ndarray, d2: np.ndarray, mutual: np.ndarray, full_i: np.ndarray, full_j: np.ndarray):
-    """The two candidates of each row (found on projected descriptors) re-ranked by their full distances: the ratio
-    test then compares true distances, and the nearest is the true nearest whenever it was among the two."""
-    d_full = ((full_i[:, None, :] - full_j[nn]) ** 2).sum(axis=2, dtype=np.float32)
-    swap = d_full[:, 1] < d_full[:, 0]
-    order = np.column_stack([swap, ~swap]).astype(np.int64)
-    pick = lambda x: np.take_along_axis(x, order, axis=1)  # noqa: E731 — the same re-ordering for all three
-    return pick(nn), pick(d_full), pick(mutual)
+def _rescore(nn: np.ndarray, full_i: np.ndarray, full_j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's candidates (found on projected descriptors) re-ranked by their full squared distances: the two
+    nearest (N, 2) and those distances. The ratio test then compares true distances, and the nearest is the true
+    nearest whenever it was among the candidates."""
+    diff = full_j[nn]  # (N, k, dims), worked in place: one temporary instead of three
+    diff -= full_i[:, None, :]
+    diff *= diff
+    d_full = diff.sum(axis=2, dtype=np.float32)
+    order = np.argsort(d_full, axis=1, kind="stable")[:, :2]
+    return np.take_along_axis(nn, order, axis=1), np.take_along_axis(d_full, order, axis=1)
+
+
+def _mutual_after_rescore(rows: np.ndarray, nearest: np.ndarray, desc_i, desc_j, full_i, full_j, block: int,
+                          candidates: int) -> np.ndarray:
+    """(len(rows),) whether row r of i is the nearest, by full distance, of its nearest `nearest[r]` in j.
+
+    The projected search's column maxima judge the mutual check on projected distances, which at few dimensions
+    rejects true mutual matches (on 360_Flat at 32 dimensions all of the matches it lost against the full search
+    were lost there). Instead, the columns that rows still in the running chose are searched back, on projected
+    descriptors with their `candidates` nearest re-ranked by full distances, like the rows."""
+    columns, back = np.unique(nearest, return_inverse=True)
+    nn, _, _ = _nearest_both_ways(desc_j[columns], desc_i, block, None, min(candidates, len(desc_i)), mutual=False)
+    best_row, _ = _rescore(nn, full_j[columns], full_i)
+    return best_row[back, 0] == rows
 
 
 def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchesOptions, *,
-                      block_rows: int = BLOCK_ROWS, allowed=None, full=None) -> np.ndarray:
+                      block_rows: int = BLOCK_ROWS, allowed=None, full=None,
+                      rerank_candidates: int = RERANK_CANDIDATES) -> np.ndarray:
     """(M, 2) int array of (feature in i, feature in j) passing the ratio test (and the mutual check), ordered from
     the most distinctive match (smallest ratio) to the least. With `allowed` (see `_nearest_both_ways`) the
     neighbours, the ratio test and the mutual check are taken among the allowed candidates only. With `full` =
     (full descriptors of i, of j), desc_i / desc_j are their projections (`project_descriptors`): the search runs on
-    them and the two nearest candidates are re-ranked by full distances (`_rescore`)."""
+    them, each row's `rerank_candidates` nearest are re-ranked by full distances (`_rescore`), and the mutual check
+    searches back from the chosen features of j the same way (`_mutual_after_rescore`)."""
     if len(desc_i) < 2 or len(desc_j) < 2:
         return np.zeros((0, 2), np.int64)
     desc_i = np.ascontiguousarray(desc_i, np.float32)
     desc_j = np.ascontiguousarray(desc_j, np.float32)
-    nn, d2, mutual = _nearest_both_ways(desc_i, desc_j, block_rows, allowed)
+    candidates = 2 if full is None else max(2, min(rerank_candidates, len(desc_j)))
+    nn, d2, mutual = _nearest_both_ways(desc_i, desc_j, block_rows, allowed, candidates, mutual=full is None)
     if full is not None:
-        nn, d2, mutual = _rescore(nn, d2, mutual, *(np.asarray(f, np.float32) for f in full))
+        full_i, full_j = (np.asarray(f, np.float32) for f in full)
+        nn, d2 = _rescore(nn, full_i, full_j)
     with np.errstate(invalid="ignore"):  # inf second distances: a single candidate passes the ratio test
         keep = np.isfinite(d2[:, 0]) & (d2[:, 0] < (options.ratio**2) * d2[:, 1])
-    if options.mutual:
+    if options.mutual and full is None:
         keep &= mutual[:, 0]
+    elif options.mutual and keep.any():
+        running = np.flatnonzero(keep)
+        keep[running] = _mutual_after_rescore(running, nn[running, 0], desc_i, desc_j, full_i, full_j, block_rows,
+                                              candidates)
     rows = np.flatnonzero(keep)
     # Most distinctive first (smallest distance ratio): robust estimation samples the head more often.
     rows = rows[np.argsort(d2[rows, 0] / np.maximum(d2[rows, 1], 1e-30), kind="stable")]

@@ -169,6 +169,12 @@ def geometry_pairs(centers: np.ndarray, registered: np.ndarray, existing: Pairs,
 
 
 # ----------------------------------------------------------------------------------------------------- auto
+def uses_gps(num_images: int, options: MatchesOptions) -> bool:
+    """Whether `select_pairs` reads GPS positions for this many images (only `auto` above the exhaustive size): a
+    caller can skip reading them (a PNG's EXIF is only found by decoding the whole image)."""
+    return (options.pairs == "auto" and num_images >= options.auto_exhaustive_below and options.gps_neighbours > 0)
+
+
 def select_pairs(descriptors: list[np.ndarray], options: MatchesOptions,
                  gps: np.ndarray | None = None) -> tuple[Pairs, dict]:
     """The pair list `options.pairs` asks for, and a summary of where the pairs came from.
@@ -193,7 +199,7 @@ def select_pairs(descriptors: list[np.ndarray], options: MatchesOptions,
             sources["loops"] = loop_closures(g, window, neighbours)
         else:
             sources["retrieval"] = retrieval(g, neighbours)
-    if gps is not None and mode == "auto" and gps_k > 0:
+    if gps is not None and uses_gps(n, o):
         sources["gps"] = position_neighbours(gps_to_local(gps), gps_k, gps_radius)
     pairs = _sorted_pairs(p for s in sources.values() for p in s)
     summary = {"mode": mode, **{k: len(v) for k, v in sources.items()}}

@@ -128,18 +128,18 @@ def _local_optimization(b_i, b_j, F, threshold, steps):
 
     Starting loose lets a model from a noisy minimal sample pull in the inliers it narrowly misses.
     """
-    best_F, best_cost = F, _msac_scores(epipolar_angular_errors(F, b_i, b_j), threshold).sum()
+    errors = epipolar_angular_errors(F, b_i, b_j)  # of the current model: scored, then its inliers re-fitted
+    best_F, best_cost = F, _msac_scores(errors, threshold).sum()
     schedule = LO_THRESHOLD_SCHEDULE + (1.0,) * max(0, steps - len(LO_THRESHOLD_SCHEDULE))
-    current = F
     for factor in schedule[:max(steps, 1)]:
-        errors = epipolar_angular_errors(current, b_i, b_j)
         inliers = errors < factor * threshold
         if inliers.sum() < 8:
             break
         # Cauchy-like weights so that borderline inliers pull less than clean ones.
         w = 1.0 / (1.0 + (errors[inliers] / (factor * threshold)) ** 2)
         current = estimate_f_linear(b_i[inliers], b_j[inliers], w)
-        cost = _msac_scores(epipolar_angular_errors(current, b_i, b_j), threshold).sum()
+        errors = epipolar_angular_errors(current, b_i, b_j)
+        cost = _msac_scores(errors, threshold).sum()
         if cost < best_cost:
             best_F, best_cost = current, cost
     return best_F, best_cost
@@ -336,12 +336,14 @@ def _f_from_params(R0: np.ndarray, t0: np.ndarray, x: np.ndarray, tangent: np.nd
     return F[0] if np.ndim(x) == 1 else F
 
 
-def _sine_residuals_batch(Fs: np.ndarray, b_i: np.ndarray, b_j: np.ndarray) -> np.ndarray:
-    """(K, 2N) signed sines of both bearings' angles to the other's epipolar circle, for F (K, 3, 3)."""
+def _sine_residuals_batch(Fs: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, design: np.ndarray | None = None
+                          ) -> np.ndarray:
+    """(K, 2N) signed sines of both bearings' angles to the other's epipolar circle, for F (K, 3, 3); `design`:
+    `_design_matrix(b_i, b_j)` when the caller already has it (a refinement evaluates the same bearings often)."""
     count, n = len(Fs), len(b_i)
     n_i = (Fs.reshape(3 * count, 3) @ b_j.T).reshape(count, 3, n)
     n_j = (np.swapaxes(Fs, 1, 2).reshape(3 * count, 3) @ b_i.T).reshape(count, 3, n)
-    num = Fs.reshape(count, 9) @ _design_matrix(b_i, b_j).T
+    num = Fs.reshape(count, 9) @ (_design_matrix(b_i, b_j) if design is None else design).T
     return np.concatenate([num / np.sqrt((n_i * n_i).sum(axis=1)), num / np.sqrt((n_j * n_j).sum(axis=1))], axis=1)
 
 
@@ -353,11 +355,14 @@ def refine_f(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: float) 
     R, t = decompose_f_svd(F)[0]  # any of the four decompositions spans the same F up to sign
     T = -R.T @ t  # F = [T]× Rᵀ takes camera j's centre in camera i (starting from t itself began off F)
     tangent = tangent_basis(T[None])[0]
-    residuals = lambda x: _sine_residuals_batch(_f_from_params(R, T, x[None], tangent), b_i, b_j)[0]  # noqa: E731
+    design = _design_matrix(b_i, b_j)
+    residuals = lambda x: _sine_residuals_batch(_f_from_params(R, T, x[None], tangent), b_i, b_j,  # noqa: E731
+                                                design)[0]
 
     def jacobian(x):
         steps = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
-        rows = _sine_residuals_batch(_f_from_params(R, T, np.vstack([x, x + np.diag(steps)]), tangent), b_i, b_j)
+        rows = _sine_residuals_batch(_f_from_params(R, T, np.vstack([x, x + np.diag(steps)]), tangent), b_i, b_j,
+                                     design)
         return ((rows[1:] - rows[0]) / steps[:, None]).T
 
     sol = least_squares(residuals, np.zeros(5), jac=jacobian, loss="soft_l1", f_scale=threshold / 2, method="trf",

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from fullview.io.workspace import Workspace
 from fullview.sfm.matching import descriptor_basis, match_descriptors, pair_blocks, project_descriptors
 from fullview.sfm.options import MatchesOptions
-from fullview.sfm.pairs import select_pairs
+from fullview.sfm.pairs import select_pairs, uses_gps
 from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
@@ -48,9 +48,12 @@ class StoredDescriptors(Sequence):
 def run(ctx: StageContext) -> dict:
     options = ctx.options
     names = ctx.dataset.image_names
-    pairs, sources = select_pairs(StoredDescriptors(ctx.ws, names), options, ctx.dataset.gps_positions())
+    gps = ctx.dataset.gps_positions() if uses_gps(len(names), options) else None
+    pairs, sources = select_pairs(StoredDescriptors(ctx.ws, names), options, gps)
     block_images = max(1, min(BLOCK_IMAGES, -(-len(names) // MIN_BLOCKS_PER_SIDE)))
-    blocks = pair_blocks(pairs, block_images)
+    # Largest blocks first: the last tasks to start are small, so both threads finish together (at 6 images the
+    # blocks hold 4, 4, 4, 1, 1, 1 pairs: 8 pair-times instead of 9 in index order; results land by pair index).
+    blocks = sorted(pair_blocks(pairs, block_images), key=len, reverse=True)
     basis = descriptor_basis(StoredDescriptors(ctx.ws, names), options.descriptor_dims)
     jobs = ctx.map(partial(match_block, ctx.ws.root, names, options, basis=basis),
                    [[pairs[k] for k in b] for b in blocks])

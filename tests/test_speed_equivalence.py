@@ -1,0 +1,138 @@
+"""The speed-ups of issue 12's third pass compute exactly what the serial / straightforward code computed."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fullview.io.dataset import Dataset
+from fullview.sfm import two_view, upright
+from fullview.sfm.camera import normalize
+from fullview.stages import filter as filter_stage
+
+
+def test_gravity_in_threads_equals_serial(tiny_dataset):
+    ds = Dataset(tiny_dataset)
+    ctx = SimpleNamespace(dataset=ds, options=SimpleNamespace(seed=3))
+    gravity, std = filter_stage._gravity(ctx, "vanishing")
+    serial = []
+    for name in ds.image_names:
+        image = ds.load_image(name, width=min(filter_stage.GRAVITY_WIDTH, ds.image_sizes[name][0]))
+        serial.append(upright.estimate_gravity_with_std(image, min_lines=filter_stage.GRAVITY_MIN_LINES, seed=3))
+    assert any(found is not None for found in serial)  # the comparison must cover found gravities
+    for k, found in enumerate(serial):
+        if found is None:
+            assert np.isnan(gravity[k]).all() and np.isnan(std[k])
+        else:
+            assert np.array_equal(gravity[k], found[0]) and std[k] == found[2]
+
+
+def test_epipoles_in_threads_equal_each_pair_alone(tiny_dataset, make_pipeline):
+    pipe = make_pipeline(tiny_dataset)
+    pipe.run(until="epipoles")
+    stored, verified = pipe.ws.load_epipoles(), pipe.ws.load_inliers()
+    obs = pipe.ws.load_observations(pipe.dataset)
+    assert stored["valid"].sum() >= 2
+    for k, (i, j) in enumerate(verified.pairs):
+        m = verified.matches[k]
+        pose = two_view.relative_pose_from_f(verified.extra["F"][k], obs[i]["bearings"][m[:, 0]],
+                                             obs[j]["bearings"][m[:, 1]])
+        assert np.array_equal(stored["R_j_from_i"][k], pose.R_j_from_i)
+        assert np.array_equal(stored["t_j_from_i"][k], pose.t_j_from_i)
+        assert stored["num_cheiral"][k] == pose.num_cheiral
+
+
+def test_local_optimization_scores_each_model_once_and_finds_the_same_fit():
+    """The re-fit loop reuses each model's errors for its score and its next inliers: the model and cost equal
+    those of scoring every model afresh."""
+    rng = np.random.default_rng(0)
+    R = Rotation.from_rotvec([0.05, 0.4, -0.02]).as_matrix()
+    X = rng.uniform(-4, 4, (400, 3)) + [0, 0, 6] * rng.choice([-1, 1], (400, 1))
+    b_i = normalize(X)
+    b_j = normalize((X - [1.0, 0.1, 0.3]) @ R.T)
+    b_j[:80] = normalize(rng.normal(size=(80, 3)))  # outliers
+    noise = Rotation.from_rotvec(rng.normal(0, np.radians(0.05), (400, 3))).as_matrix()
+    b_j = np.einsum("nab,nb->na", noise, b_j)
+    F0 = two_view.estimate_f_linear(b_i[80:90], b_j[80:90])
+    threshold = np.radians(0.35)
+    F, cost = two_view._local_optimization(b_i, b_j, F0, threshold, steps=4)
+    # reference: the loop as written before, every model's errors computed again
+    best_F, best_cost = F0, two_view._msac_scores(two_view.epipolar_angular_errors(F0, b_i, b_j), threshold).sum()
+    current = F0
+    for factor in two_view.LO_THRESHOLD_SCHEDULE[:4]:
+        errors = two_view.epipolar_angular_errors(current, b_i, b_j)
+        inliers = errors < factor * threshold
+        w = 1.0 / (1.0 + (errors[inliers] / (factor * threshold)) ** 2)
+        current = two_view.estimate_f_linear(b_i[inliers], b_j[inliers], w)
+        c = two_view._msac_scores(two_view.epipolar_angular_errors(current, b_i, b_j), threshold).sum()
+        if c < best_cost:
+            best_F, best_cost = current, c
+    assert np.array_equal(F, best_F) and cost == best_cost
+    assert cost < two_view._msac_scores(two_view.epipolar_angular_errors(F0, b_i, b_j), threshold).sum()
+
+
+def test_bundle_adjustment_residuals_in_two_halves_equal_one_piece(monkeypatch):
+    """`bundle._residuals` splits large problems over two threads: the residuals, the Jacobian blocks and the whole
+    adjustment's result are bitwise those of the one-piece computation."""
+    from fullview.sfm import bundle
+
+    rng = np.random.default_rng(0)
+    n, num_points = 5, 400
+    centers = rng.normal(0, 1, (n, 3))
+    R = Rotation.from_rotvec(rng.normal(0, 0.2, (n, 3))).as_matrix()
+    t = -np.einsum("nij,nj->ni", R, centers)
+    X = rng.normal(0, 3, (num_points, 3))
+    cam = np.concatenate([rng.choice(n, 3, replace=False) for _ in range(num_points)])
+    pt = np.repeat(np.arange(num_points), 3)
+    bearings = normalize(np.einsum("kij,kj->ki", R[cam], X[pt] - centers[cam]) + rng.normal(0, 1e-3, (len(cam), 3)))
+    args = dict(R_cam_from_world=R, t_cam_from_world=t, points=X + rng.normal(0, 0.02, X.shape), obs_camera=cam,
+                obs_point=pt, obs_bearings=bearings, fixed_cameras=(0,), loss="soft_l1", max_nfev=20)
+    seen = []
+    one_piece = bundle._residuals
+    monkeypatch.setattr(bundle, "_residuals", lambda x, p, j: seen.append((x.copy(), p)) or one_piece(x, p, j))
+    serial = bundle.bundle_adjust(**args)
+    monkeypatch.setattr(bundle, "_residuals", one_piece)
+    monkeypatch.setattr(bundle, "PARALLEL_MIN_OBSERVATIONS", 100)  # 1,200 observations: two halves
+    x, problem = seen[-1]
+    monkeypatch.setattr(bundle, "PARALLEL_MIN_OBSERVATIONS", 10**9)
+    r_one, J_one = bundle._residuals(x, problem, True)
+    monkeypatch.setattr(bundle, "PARALLEL_MIN_OBSERVATIONS", 100)
+    r_two, J_two = bundle._residuals(x, problem, True)
+    assert np.array_equal(r_one, r_two) and np.array_equal(J_one, J_two)
+    halves = bundle.bundle_adjust(**args)
+    assert serial.final_cost < serial.initial_cost
+    for key in ("R_cam_from_world", "t_cam_from_world", "points", "obs_error_rad"):
+        assert np.array_equal(getattr(serial, key), getattr(halves, key))
+
+
+def test_matches_stage_stores_each_pairs_own_matches_when_blocks_run_largest_first(tmp_path, make_pipeline):
+    """The matches stage hands out its blocks of pairs largest first (5 images: blocks of 4, 2, 2, 1, 1 pairs, not
+    in index order); every stored pair must still hold that pair's own matches."""
+    from fullview.sfm.matching import descriptor_basis, match_descriptors, project_descriptors
+    from fullview.synth import write_synthetic_dataset
+
+    pipe = make_pipeline(write_synthetic_dataset(tmp_path / "five", views=5, width=512, seed=2))
+    pipe.run(until="matches")
+    stored = pipe.ws.load_matches()
+    options = pipe.config["matches"]
+    full = [pipe.ws.load_features(n)["descriptors"] for n in pipe.dataset.image_names]
+    basis = descriptor_basis(full, options.descriptor_dims)
+    assert len(stored.pairs) == 10
+    for (i, j), m in zip(stored.pairs, stored.matches):
+        own = match_descriptors(project_descriptors(full[i], basis), project_descriptors(full[j], basis), options,
+                                full=(full[i], full[j]))
+        assert len(own) > 20 and np.array_equal(m, own)
+
+
+def test_matches_stage_reads_gps_only_when_the_pair_selection_uses_it(tiny_dataset, make_pipeline, monkeypatch):
+    """Exhaustive sets never look at GPS (a PNG's EXIF costs a full decode); `auto` above its exhaustive size does."""
+    calls = []
+    original = Dataset.gps_positions
+    monkeypatch.setattr(Dataset, "gps_positions", lambda self: calls.append(1) or original(self))
+    make_pipeline(tiny_dataset).run(until="matches")
+    assert calls == []
+    pipe = make_pipeline(tiny_dataset, ["matches.auto_exhaustive_below=2"], workspace=None)
+    pipe.run(until="matches", force=True)
+    assert calls == [1]
