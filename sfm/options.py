@@ -209,6 +209,13 @@ class DensifyOptions:
                                       "support's bounding rectangle, walls each column between their lowest and "
                                       "highest support; support = closed support, enclosed holes filled; both minus "
                                       "what the views see through", choices=("gravity", "support"))
+    world_plane_snap_deg: float = setting(6.0, "world planes: level ones are made exactly level (gravity), upright "
+                                          "ones within this angle of the model's dominant wall direction (or its "
+                                          "perpendicular) are turned onto it", ge=0.0, le=45.0,
+                                          zero_means="planes keep their fitted normals")
+    free_space_confirmed: bool = setting(True, "the free-space check of the world planes counts only the stereo "
+                                         "ranges another panorama confirms (one view's errors at the lines where "
+                                         "surfaces meet see through true floors and ceilings)")
     seed: int = setting(0, "seed of the plane RANSAC of textureless filling", ge=0, le=2**31 - 1)
     mesh: bool = setting(True, "write densify/dense_mesh.ply: a Poisson mesh of the fused cloud, trimmed to what the "
                          "views support")

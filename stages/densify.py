@@ -10,8 +10,9 @@
    border depths lie on planes gets them where the views do not contradict it, and a filled pixel is kept only where
    another panorama's own result (stereo, else its own fill) agrees.
 3c. World planes (``densify.world_planes``, ``fullview.sfm.dense.world_planes``): the dominant level and upright planes
-   of the whole model (RANSAC on every panorama's stereo points and the sparse points), each within the extent its
-   points support minus what the views see through; a pixel still empty gets the nearest such plane its ray meets,
+   of the whole model (RANSAC on every panorama's stereo points and the sparse points; level ones made exactly level,
+   walls turned onto the dominant wall direction, ``densify.world_plane_snap_deg``), each within the extent its
+   points support minus what the views' confirmed stereo sees through (``densify.free_space_confirmed``); a pixel still empty gets the nearest such plane its ray meets,
    among those its image region's stereo depths support, kept under the same view checks and confirmation as 3b.
    The maps are saved as ``depth/<stem>.npz``
    (``range``, ``valid``) and a colour-mapped ``depth/<stem>.png``.
@@ -207,12 +208,15 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
     t0 = time.perf_counter()
     wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
-                                          view_tolerance=options.view_tolerance, extent=config.world_plane_extent)
+                                          view_tolerance=options.view_tolerance, extent=config.world_plane_extent,
+                                          snap_deg=config.world_plane_snap_deg)
     points, ranges, observers = _model_points(views, sparse_points)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
                                              up=camera_up(np.array([v.R_cam_from_world for v in views])),
                                              observers=observers)
-    kept = world_planes.carve_extents(found, views, wopt)
+    judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance) \
+        if config.free_space_confirmed else views
+    kept = world_planes.carve_extents(found, judges, wopt)
     log.info("world planes: %d found in %d points, %d kept after the free-space check (%.1f s)", len(found),
              len(points), len(kept), time.perf_counter() - t0)
     out = []

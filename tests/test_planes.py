@@ -271,3 +271,41 @@ def test_exposure_gain_is_one_when_only_the_view_differs():
 def test_exposure_gain_measures_a_real_exposure_difference():
     a, b = _full_stereo_views([[1.2, 0.2, 2.8], [-1.8, -0.3, -1.5]], brightness=(1.0, 0.8))
     np.testing.assert_allclose(planes.exposure_gain(a, b), 1 / 0.8, rtol=0.02)
+
+
+def _floor_plane(options):
+    """The true floor (y = 1.2) as a world plane spanning the room."""
+    y = ROOM[1, 1]
+    support = np.stack(np.meshgrid(np.linspace(-2, 2, 41), [y], np.linspace(-3, 3, 61)), -1).reshape(-1, 3)
+    normal = np.array([0.0, 1.0, 0.0])
+    origin, axes, extent, _ = world_planes._extent(support, normal, y, options.cell, 3, False)
+    return world_planes.WorldPlane(normal=normal, offset=y, origin=origin, axes=axes, cell=options.cell,
+                                   extent=extent, support=len(support))
+
+
+def test_one_views_wrong_ranges_do_not_carve_a_true_floor_when_judges_are_confirmed():
+    # view 0's stereo puts the floor 6% too far (it looks through the floor); the other views have no floor range
+    # that could confirm that, so confirmed_views drops those ranges, keeps its confirmed walls, and the floor keeps
+    # its extent; judged by the raw stereo, the floor is seen through and dropped
+    def walls_only(rng, face):
+        return np.where(face != 3, rng, np.nan).astype(np.float32)
+
+    def floor_too_far(rng, face):
+        return np.where(face == 3, 1.06 * rng, rng).astype(np.float32)
+
+    views = []
+    for k, c in enumerate(CENTERS):
+        rng, face, image = _render(c)
+        stereo = floor_too_far(rng, face) if k == 0 else walls_only(rng, face)
+        views.append(planes.view_of(np.eye(3), -c, stereo, np.ones(rng.shape, bool), image, WIDTH))
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1)
+    neighbours = [[b for b in range(len(views)) if b != a] for a in range(len(views))]
+    judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance)
+    floor_pixels = _render(CENTERS[0])[1] == 3
+    assert np.isfinite(judges[0].range_map[floor_pixels]).mean() < 0.05  # a few land on a wall near its foot
+    walls = ~floor_pixels & np.isfinite(views[0].range_map)
+    assert np.isfinite(judges[0].range_map[walls]).mean() > 0.95
+    floor = _floor_plane(options)
+    cells = floor.extent.sum()
+    assert world_planes.carve_extents([floor], judges, options) == [floor] and floor.extent.sum() > 0.95 * cells
+    assert world_planes.carve_extents([_floor_plane(options)], views, options) == []
