@@ -5,6 +5,7 @@ two surfaces meet (what SGBM finds in a plain room). Filling must recover the su
 where another view sees through the surface.
 """
 
+import cv2
 import numpy as np
 import pytest
 
@@ -309,3 +310,29 @@ def test_one_views_wrong_ranges_do_not_carve_a_true_floor_when_judges_are_confir
     cells = floor.extent.sum()
     assert world_planes.carve_extents([floor], judges, options) == [floor] and floor.extent.sum() > 0.95 * cells
     assert world_planes.carve_extents([_floor_plane(options)], views, options) == []
+
+
+def _level_plane(y, options):
+    support = np.stack(np.meshgrid(np.linspace(-2, 2, 41), [y], np.linspace(-3, 3, 61)), -1).reshape(-1, 3)
+    normal = np.array([0.0, 1.0, 0.0])
+    origin, axes, extent, _ = world_planes._extent(support, normal, y, options.cell, 3, False)
+    return world_planes.WorldPlane(normal=normal, offset=y, origin=origin, axes=axes, cell=options.cell,
+                                   extent=extent, support=len(support), level=True)
+
+
+@pytest.mark.parametrize("free_ceiling", [True, False])
+def test_the_ceiling_needs_no_support_from_the_region_the_floor_does(free_ceiling):
+    # a plain grey room whose only stereo is the +z wall: one big image region around it, whose evidence neither
+    # level plane explains; the ceiling (level, above the camera) may still fill it, the floor may not
+    rng, face, _ = _render(CENTERS[0])
+    image = np.full(rng.shape + (3,), 128, np.uint8)
+    view = planes.view_of(np.eye(3), -CENTERS[0], np.where(face == 5, rng, np.nan).astype(np.float32),
+                          np.ones(rng.shape, bool), image, WIDTH)
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1, free_ceiling=free_ceiling)
+    ceiling, floor = _level_plane(ROOM[0, 1], options), _level_plane(ROOM[1, 1], options)
+    regions = planes.image_regions(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), planes.PlaneOptions(),
+                                   np.isfinite(view.range_map))
+    allowed = world_planes.region_candidates(view, [ceiling, floor], regions, options)
+    big = np.bincount(regions.ravel())[1:].argmax() + 1
+    assert allowed[big, 0] == free_ceiling
+    assert not allowed[big, 1]

@@ -106,8 +106,10 @@ def _yawed_room_points(yaw_deg: float, seed: int = 0):
     u, v = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
     faces = [np.column_stack([4 * u, np.full(n, 1.2), 3 * v]),  # floor (y down)
              np.column_stack([4 * u, np.full(n, -1.3), 3 * v]),  # ceiling
-             np.column_stack([np.full(n, -4.0), 1.25 * v - 0.05, 3 * u]), np.column_stack([np.full(n, 4.0), 1.25 * v - 0.05, 3 * u]),
-             np.column_stack([4 * u, 1.25 * v - 0.05, np.full(n, -3.0)]), np.column_stack([4 * u, 1.25 * v - 0.05, np.full(n, 3.0)])]
+             np.column_stack([np.full(n, -4.0), 1.25 * v - 0.05, 3 * u]),  # walls
+             np.column_stack([np.full(n, 4.0), 1.25 * v - 0.05, 3 * u]),
+             np.column_stack([4 * u, 1.25 * v - 0.05, np.full(n, -3.0)]),
+             np.column_stack([4 * u, 1.25 * v - 0.05, np.full(n, 3.0)])]
     band = np.column_stack([rng.uniform(3.0, 4.0, 1000), np.full(1000, 1.2), rng.uniform(-3, 3, 1000)]) * 1.03
     points = np.vstack(faces + [band])
     points *= 1 + 0.003 * rng.standard_normal(len(points))[:, None]
