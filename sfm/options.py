@@ -213,6 +213,9 @@ class DensifyOptions:
                                           "ones within this angle of the model's dominant wall direction (or its "
                                           "perpendicular) are turned onto it", ge=0.0, le=45.0,
                                           zero_means="planes keep their fitted normals")
+    sweep_walls: bool = setting(True, "with world_plane_snap_deg > 0, also the walls along the dominant wall "
+                                "directions that RANSAC missed (a plain wall's floor and ceiling lines are explained "
+                                "by the floor and the ceiling first)")
     free_ceiling: bool = setting(True, "a level world plane above a camera (its ceiling) may fill any of its image "
                                  "regions, without their stereo support (with world_plane_snap_deg > 0)")
     free_space_confirmed: bool = setting(True, "the free-space check of the world planes counts only the stereo "

@@ -211,7 +211,8 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
     wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
                                           view_tolerance=options.view_tolerance, extent=config.world_plane_extent,
-                                          snap_deg=config.world_plane_snap_deg, free_ceiling=config.free_ceiling)
+                                          snap_deg=config.world_plane_snap_deg, free_ceiling=config.free_ceiling,
+                                          sweep_walls=config.sweep_walls)
     points, ranges, observers = _model_points(views, sparse_points)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
                                              up=camera_up(np.array([v.R_cam_from_world for v in views])),

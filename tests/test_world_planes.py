@@ -175,3 +175,32 @@ def test_a_ceilings_rectangle_follows_the_walls_not_the_stray_points_beyond_them
     assert ceiling.contains(inside).all()
     assert not ceiling.contains(beyond).any()
     assert not ceiling.contains(world_box_corner).any()
+
+
+def test_a_wall_seen_only_along_its_floor_and_ceiling_lines_is_found_by_the_sweep():
+    # the +z wall is plain: its stereo is its floor and ceiling lines, which the floor and the ceiling explain first,
+    # so RANSAC (scoring unexplained points) never takes it; the sweep along the dominant directions does
+    yaw = np.radians(20.0)
+    rot = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+    rng = np.random.default_rng(0)
+    n = 2000
+    u, v = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
+    points = np.vstack([np.column_stack([4 * u, np.full(n, 1.2), 3 * v]),
+                        np.column_stack([4 * u, np.full(n, -1.3), 3 * v]),
+                        np.column_stack([np.full(n, -4.0), 1.25 * v - 0.05, 3 * u]),
+                        np.column_stack([np.full(n, 4.0), 1.25 * v - 0.05, 3 * u]),
+                        np.column_stack([4 * u, 1.25 * v - 0.05, np.full(n, -3.0)]),
+                        _line([-4, 1.2, 3], [4, 1.2, 3]), _line([-4, -1.3, 3], [4, -1.3, 3])]) @ rot.T
+    ranges, observers = np.linalg.norm(points, axis=1), np.zeros_like(points)
+    wall_normal = rot @ np.array([0.0, 0.0, 1.0])
+
+    def has_the_wall(planes):
+        return any(abs(p.normal @ wall_normal) > 0.999 and abs((p.normal * p.offset) @ wall_normal - 3.0) < 0.03
+                   for p in planes)
+
+    for sweep in (True, False):
+        options = world_planes.WorldPlaneOptions(distance=0.015, cell=CELL, min_support=300, sweep_walls=sweep)
+        found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(0), options, up=UP,
+                                                 observers=observers)
+        assert has_the_wall(found) == sweep
+        assert all(p.front != 0 for p in found)

@@ -41,6 +41,7 @@ SCORE_SAMPLE = 8_000  # hypotheses are scored on at most this many unexplained p
 MANHATTAN_WINDOW_DEG = 3.0  # walls within this azimuth of each other count for one dominant direction
 LEVEL_TRIM_PERCENTILE = 1.0  # a level plane's gravity rectangle spans these percentiles of its support (each axis)
 SNAP_SHRINK = (1.0, 0.5)  # bands of the offset refinement of a snapped plane (x distance)
+SWEEP_SUPPORT_FACTOR = 2  # a swept wall needs this many times min_support points (its lines, seen from its side)
 
 
 @dataclass(kw_only=True)
@@ -61,6 +62,7 @@ class WorldPlaneOptions:
     min_region_support: int = 10  # stereo depths around an image region a plane must explain to be taken there
     min_region_share: float = 0.25  # ... and this share of them
     min_island_pixels: int = 50  # smaller connected pieces of one label are not filled (reduced grid)
+    sweep_walls: bool = True  # with up and observers: add the walls along the dominant directions RANSAC missed
     free_ceiling: bool = True  # a level plane above the camera may fill any image region (region_candidates)
     snap_deg: float = 6.0  # with up known: level planes exactly level, upright ones within this angle of the dominant
     # wall direction (or its perpendicular) turned onto it (_snap_to_gravity); 0: fitted normals kept
@@ -242,6 +244,8 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
                                  extent=extent, support=int(inliers.sum()), fallback=fallback, front=front))
     if up is not None and options.snap_deg > 0:
         planes = _snap_to_gravity(planes, points, tolerance, np.asarray(up, np.float64), options)
+        if options.sweep_walls and observers is not None:
+            planes = planes + _sweep_walls(planes, points, tolerance, np.asarray(up, np.float64), observers, options)
     return planes
 
 
@@ -267,6 +271,59 @@ def dominant_wall_azimuth(normals: np.ndarray, weights: np.ndarray, up: np.ndarr
     mode = grid[int(np.argmax(score))]
     near = np.real(quad * np.conj(mode)) >= window
     return float(np.angle(mode * np.exp(1j * np.angle(np.sum(weights[near] * quad[near] * np.conj(mode))))) / 4)
+
+
+def _sweep_walls(planes: list[WorldPlane], points: np.ndarray, tolerance: np.ndarray, up: np.ndarray,
+                 observers: np.ndarray, options: WorldPlaneOptions) -> list[WorldPlane]:
+    """The walls along the dominant wall directions that sequential RANSAC missed, one-sided: for each of the four
+    horizontal normals, the offsets (normal · x) of the points seen from the normal's side, peaks of at least
+    ``min_support`` points in bands of the median tolerance, away from the planes already found.
+
+    Why: a plain wall's stereo is its floor, ceiling and corner lines; RANSAC scores only the points no accepted plane
+    explains yet, and the floor and the ceiling explain most of those lines first, so the wall falls below
+    ``min_support``. What the views see through is removed later (``carve_extents``), as for every plane."""
+    up = up / np.linalg.norm(up)
+    upright = [p for p in planes if abs(p.normal @ up) < 1e-9]
+    azimuth = dominant_wall_azimuth(np.array([p.normal for p in upright]).reshape(-1, 3),
+                                    np.array([p.support for p in upright], np.float64), up)
+    if azimuth is None or not len(points):
+        return []
+    e1, e2 = _horizontal_basis(up)
+    band = float(np.median(tolerance))
+    found: list[WorldPlane] = []
+    for quarter in range(4):
+        a = azimuth + quarter * np.pi / 2
+        normal = np.cos(a) * e1 + np.sin(a) * e2
+        offsets = points @ normal
+        front = observers @ normal > offsets  # seen from the side the normal points to
+        values = offsets[front]
+        need = SWEEP_SUPPORT_FACTOR * options.min_support
+        if len(values) < need:
+            continue
+        taken = [(p.offset if p.normal @ normal > 0 else -p.offset) for p in planes + found
+                 if abs(p.normal @ normal) > 0.999 and (p.front == 0 or p.front * np.sign(p.normal @ normal) > 0)]
+        edges = np.arange(values.min(), values.max() + 2 * band, band)
+        counts = np.histogram(values, edges)[0]
+        pairs = counts[:-1] + counts[1:]  # about ± one band around each inner edge
+        for i in np.argsort(-pairs, kind="stable"):
+            if pairs[i] < need:
+                break
+            offset = float(edges[i + 1])
+            if any(abs(offset - o) < 2 * band for o in taken):
+                continue
+            for shrink in SNAP_SHRINK:
+                near = np.abs(values - offset) <= shrink * 2 * band
+                offset = float(np.median(values[near]))
+            inliers = front & (np.abs(offsets - offset) <= tolerance)
+            if inliers.sum() < need:
+                continue
+            taken.append(offset)
+            origin, axes, extent, fallback = _extent(points[inliers], normal, offset, options.cell,
+                                                     options.extent_closing_cells, options.extent_hull,
+                                                     options.extent, up)
+            found.append(WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell,
+                                    extent=extent, support=int(inliers.sum()), fallback=fallback, front=1))
+    return found
 
 
 def _snap_to_gravity(planes: list[WorldPlane], points: np.ndarray, tolerance: np.ndarray, up: np.ndarray,
@@ -435,6 +492,8 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
     for k, plane in enumerate(planes):
         if plane.front and np.sign(plane.normal @ center - plane.offset) != plane.front:
             continue  # this camera is behind the surface (it would see the back of a wall's other face)
+        if regions is not None and not allowed[:, k].any():
+            continue  # no region of this view may take it
         cos = bearings @ plane.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             r = (plane.offset - plane.normal @ center) / cos
