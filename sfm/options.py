@@ -210,6 +210,18 @@ class DensifyOptions:
                                       "support's bounding rectangle, walls each column between their lowest and "
                                       "highest support; support = closed support, enclosed holes filled; both minus "
                                       "what the views see through", choices=("gravity", "support"))
+    world_plane_snap_deg: float = setting(6.0, "world planes: level ones are made exactly level (gravity), upright "
+                                          "ones within this angle of the model's dominant wall direction (or its "
+                                          "perpendicular) are turned onto it", ge=0.0, le=45.0,
+                                          zero_means="planes keep their fitted normals")
+    sweep_walls: bool = setting(True, "with world_plane_snap_deg > 0, also the walls along the dominant wall "
+                                "directions that RANSAC missed (a plain wall's floor and ceiling lines are explained "
+                                "by the floor and the ceiling first)")
+    free_ceiling: bool = setting(True, "a level world plane above a camera (its ceiling) may fill any of its image "
+                                 "regions, without their stereo support (with world_plane_snap_deg > 0)")
+    free_space_confirmed: bool = setting(True, "the free-space check of the world planes counts only the stereo "
+                                         "ranges another panorama confirms (one view's errors at the lines where "
+                                         "surfaces meet see through true floors and ceilings)")
     seed: int = setting(0, "seed of the plane RANSAC of textureless filling", ge=0, le=2**31 - 1)
     mesh: bool = setting(True, "write densify/dense_mesh.ply: a Poisson mesh of the fused cloud, trimmed to what the "
                          "views support")

@@ -10,9 +10,12 @@
    border depths lie on planes gets them where the views do not contradict it, and a filled pixel is kept only where
    another panorama's own result (stereo, else its own fill) agrees.
 3c. World planes (``densify.world_planes``, ``fullview.sfm.dense.world_planes``): the dominant level and upright planes
-   of the whole model (RANSAC on every panorama's stereo points and the sparse points), each within the extent its
-   points support minus what the views see through; a pixel still empty gets the nearest such plane its ray meets,
-   among those its image region's stereo depths support, kept under the same view checks and confirmation as 3b.
+   of the whole model (RANSAC on every panorama's stereo points and the sparse points; level ones made exactly level,
+   walls turned onto the dominant wall direction, ``densify.world_plane_snap_deg``), each within the extent its
+   points support minus what the views' confirmed stereo sees through (``densify.free_space_confirmed``); a pixel
+   still empty gets the nearest such plane its ray meets, among those its image region's stereo depths support (a
+   ceiling needs none, ``densify.free_ceiling``), kept under the same view checks (by confirmed stereo) and
+   confirmation as 3b.
    The maps are saved as ``depth/<stem>.npz``
    (``range``, ``valid``) and a colour-mapped ``depth/<stem>.png``.
 4. Fusion: every panorama's points are kept where the nearest other panoramas agree, voxel down-sampled per
@@ -207,12 +210,16 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
     t0 = time.perf_counter()
     wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
-                                          view_tolerance=options.view_tolerance, extent=config.world_plane_extent)
+                                          view_tolerance=options.view_tolerance, extent=config.world_plane_extent,
+                                          snap_deg=config.world_plane_snap_deg, free_ceiling=config.free_ceiling,
+                                          sweep_walls=config.sweep_walls)
     points, ranges, observers = _model_points(views, sparse_points)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
                                              up=camera_up(np.array([v.R_cam_from_world for v in views])),
                                              observers=observers)
-    kept = world_planes.carve_extents(found, views, wopt)
+    judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance) \
+        if config.free_space_confirmed else views
+    kept = world_planes.carve_extents(found, judges, wopt)
     log.info("world planes: %d found in %d points, %d kept after the free-space check (%.1f s)", len(found),
              len(points), len(kept), time.perf_counter() - t0)
     out = []
@@ -221,7 +228,7 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
         empty = planes.View(R_cam_from_world=view.R_cam_from_world, t_cam_from_world=view.t_cam_from_world,
                             range_map=np.where(np.isfinite(fill), fill, view.range_map), observable=view.observable,
                             color=view.color)
-        wfill, wlabels = world_planes.fill_from_world_planes(empty, kept, [views[b] for b in neighbours[a]], wopt,
+        wfill, wlabels = world_planes.fill_from_world_planes(empty, kept, [judges[b] for b in neighbours[a]], wopt,
                                                              options)
         new = np.isfinite(wfill) & ~np.isfinite(fill)
         out.append((np.where(new, wfill, fill).astype(np.float32),

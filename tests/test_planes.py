@@ -5,6 +5,7 @@ two surfaces meet (what SGBM finds in a plain room). Filling must recover the su
 where another view sees through the surface.
 """
 
+import cv2
 import numpy as np
 import pytest
 
@@ -271,3 +272,67 @@ def test_exposure_gain_is_one_when_only_the_view_differs():
 def test_exposure_gain_measures_a_real_exposure_difference():
     a, b = _full_stereo_views([[1.2, 0.2, 2.8], [-1.8, -0.3, -1.5]], brightness=(1.0, 0.8))
     np.testing.assert_allclose(planes.exposure_gain(a, b), 1 / 0.8, rtol=0.02)
+
+
+def _floor_plane(options):
+    """The true floor (y = 1.2) as a world plane spanning the room."""
+    y = ROOM[1, 1]
+    support = np.stack(np.meshgrid(np.linspace(-2, 2, 41), [y], np.linspace(-3, 3, 61)), -1).reshape(-1, 3)
+    normal = np.array([0.0, 1.0, 0.0])
+    origin, axes, extent, _ = world_planes._extent(support, normal, y, options.cell, 3, False)
+    return world_planes.WorldPlane(normal=normal, offset=y, origin=origin, axes=axes, cell=options.cell,
+                                   extent=extent, support=len(support))
+
+
+def test_one_views_wrong_ranges_do_not_carve_a_true_floor_when_judges_are_confirmed():
+    # view 0's stereo puts the floor 6% too far (it looks through the floor); the other views have no floor range
+    # that could confirm that, so confirmed_views drops those ranges, keeps its confirmed walls, and the floor keeps
+    # its extent; judged by the raw stereo, the floor is seen through and dropped
+    def walls_only(rng, face):
+        return np.where(face != 3, rng, np.nan).astype(np.float32)
+
+    def floor_too_far(rng, face):
+        return np.where(face == 3, 1.06 * rng, rng).astype(np.float32)
+
+    views = []
+    for k, c in enumerate(CENTERS):
+        rng, face, image = _render(c)
+        stereo = floor_too_far(rng, face) if k == 0 else walls_only(rng, face)
+        views.append(planes.view_of(np.eye(3), -c, stereo, np.ones(rng.shape, bool), image, WIDTH))
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1)
+    neighbours = [[b for b in range(len(views)) if b != a] for a in range(len(views))]
+    judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance)
+    floor_pixels = _render(CENTERS[0])[1] == 3
+    assert np.isfinite(judges[0].range_map[floor_pixels]).mean() < 0.05  # a few land on a wall near its foot
+    walls = ~floor_pixels & np.isfinite(views[0].range_map)
+    assert np.isfinite(judges[0].range_map[walls]).mean() > 0.95
+    floor = _floor_plane(options)
+    cells = floor.extent.sum()
+    assert world_planes.carve_extents([floor], judges, options) == [floor] and floor.extent.sum() > 0.95 * cells
+    assert world_planes.carve_extents([_floor_plane(options)], views, options) == []
+
+
+def _level_plane(y, options):
+    support = np.stack(np.meshgrid(np.linspace(-2, 2, 41), [y], np.linspace(-3, 3, 61)), -1).reshape(-1, 3)
+    normal = np.array([0.0, 1.0, 0.0])
+    origin, axes, extent, _ = world_planes._extent(support, normal, y, options.cell, 3, False)
+    return world_planes.WorldPlane(normal=normal, offset=y, origin=origin, axes=axes, cell=options.cell,
+                                   extent=extent, support=len(support), level=True)
+
+
+@pytest.mark.parametrize("free_ceiling", [True, False])
+def test_the_ceiling_needs_no_support_from_the_region_the_floor_does(free_ceiling):
+    # a plain grey room whose only stereo is the +z wall: one big image region around it, whose evidence neither
+    # level plane explains; the ceiling (level, above the camera) may still fill it, the floor may not
+    rng, face, _ = _render(CENTERS[0])
+    image = np.full(rng.shape + (3,), 128, np.uint8)
+    view = planes.view_of(np.eye(3), -CENTERS[0], np.where(face == 5, rng, np.nan).astype(np.float32),
+                          np.ones(rng.shape, bool), image, WIDTH)
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1, free_ceiling=free_ceiling)
+    ceiling, floor = _level_plane(ROOM[0, 1], options), _level_plane(ROOM[1, 1], options)
+    regions = planes.image_regions(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), planes.PlaneOptions(),
+                                   np.isfinite(view.range_map))
+    allowed = world_planes.region_candidates(view, [ceiling, floor], regions, options)
+    big = np.bincount(regions.ravel())[1:].argmax() + 1
+    assert allowed[big, 0] == free_ceiling
+    assert not allowed[big, 1]

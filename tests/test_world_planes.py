@@ -93,3 +93,114 @@ def test_faces_of_a_thick_wall_are_one_sided_and_only_their_own_side_fills():
     assert len(walls) == 2
     for plane, x_room in zip(walls, (-2.0, 2.1)):
         assert plane.front == int(np.sign(plane.normal[0] * x_room - plane.offset))
+
+
+def _yawed_room_points(yaw_deg: float, seed: int = 0):
+    """Stereo-like points of a plain box room turned by ``yaw_deg`` about the vertical, seen from the origin: each
+    surface with 0.3% range noise, and the floor's band along one wall 3% too far (what the matching window does at
+    the line where two plain surfaces meet), which tilts a least-squares floor."""
+    rng = np.random.default_rng(seed)
+    yaw = np.radians(yaw_deg)
+    rot = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+    n = 1500
+    u, v = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
+    faces = [np.column_stack([4 * u, np.full(n, 1.2), 3 * v]),  # floor (y down)
+             np.column_stack([4 * u, np.full(n, -1.3), 3 * v]),  # ceiling
+             np.column_stack([np.full(n, -4.0), 1.25 * v - 0.05, 3 * u]),  # walls
+             np.column_stack([np.full(n, 4.0), 1.25 * v - 0.05, 3 * u]),
+             np.column_stack([4 * u, 1.25 * v - 0.05, np.full(n, -3.0)]),
+             np.column_stack([4 * u, 1.25 * v - 0.05, np.full(n, 3.0)])]
+    band = np.column_stack([rng.uniform(3.0, 4.0, 1000), np.full(1000, 1.2), rng.uniform(-3, 3, 1000)]) * 1.03
+    points = np.vstack(faces + [band])
+    points *= 1 + 0.003 * rng.standard_normal(len(points))[:, None]
+    points = points @ rot.T
+    return points, np.linalg.norm(points, axis=1), np.zeros_like(points), rot
+
+
+def test_with_gravity_planes_are_exactly_level_or_on_the_dominant_wall_directions():
+    points, ranges, observers, rot = _yawed_room_points(20.0)
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=CELL, min_support=300, max_planes=8)
+    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(0), options, up=UP,
+                                             observers=observers)
+    level = [p for p in found if abs(p.normal @ UP) > 0.5]
+    walls = [p for p in found if abs(p.normal @ UP) <= 0.5]
+    assert len(level) >= 2 and len(walls) >= 4
+    for plane in level:
+        assert abs(abs(plane.normal @ UP) - 1) < 1e-12
+    floor = max((p for p in level if p.offset * np.sign(p.normal[1]) > 0), key=lambda p: p.support)
+    assert abs(floor.offset * np.sign(floor.normal[1]) - 1.2) < 0.01
+    room_x = rot[:, 0]  # the room's own wall normals are rot's x and z columns
+    for plane in walls:
+        assert abs(plane.normal @ UP) < 1e-12
+        assert min(abs(abs(plane.normal @ room_x) - 1), abs(plane.normal @ room_x)) < np.sin(np.radians(0.3))
+    # the fit alone (no snapping) is tilted by the biased band: what the snapping removes
+    plain = world_planes.detect_world_planes(points, ranges, np.random.default_rng(0),
+                                             world_planes.WorldPlaneOptions(distance=0.015, cell=CELL, min_support=300,
+                                                                            max_planes=8, snap_deg=0.0),
+                                             up=UP, observers=observers)
+    tilt = max(np.degrees(np.arccos(min(1.0, abs(p.normal @ UP)))) for p in plain if abs(p.normal @ UP) > 0.5)
+    assert tilt > 0.1
+
+
+def test_dominant_wall_azimuth_is_the_weighted_mode_modulo_a_right_angle():
+    az = np.radians([20.0, 110.5, 199.5, 290.0, 47.0])  # four walls of one room and one odd wall
+    normals = np.column_stack([np.cos(az), np.zeros(5), np.sin(az)])
+    weights = np.array([5.0, 3.0, 3.0, 5.0, 6.0])
+    found = world_planes.dominant_wall_azimuth(normals, weights, UP)
+    e1, e2 = world_planes._horizontal_basis(UP)
+    expected = np.arctan2(np.array([np.cos(np.radians(20)), 0, np.sin(np.radians(20))]) @ e2,
+                          np.array([np.cos(np.radians(20)), 0, np.sin(np.radians(20))]) @ e1)
+    diff = np.angle(np.exp(4j * (found - expected))) / 4
+    assert abs(np.degrees(diff)) < 0.2
+
+
+def test_a_ceilings_rectangle_follows_the_walls_not_the_stray_points_beyond_them():
+    # the room turned by 20°: the ceiling's gravity rectangle is taken along the walls (a rectangle in other axes
+    # has corners outside the room, where rays past a plain wall met it); a few ceiling points 0.4 m beyond a wall
+    # (stereo too far at the line where the ceiling meets it) do not stretch it
+    points, ranges, observers, rot = _yawed_room_points(20.0)
+    rng = np.random.default_rng(1)
+    stray = np.column_stack([rng.uniform(4.2, 4.4, 15), np.full(15, -1.3), rng.uniform(-3, 3, 15)]) @ rot.T
+    points = np.vstack([points, stray])
+    ranges = np.linalg.norm(points, axis=1)
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=CELL, min_support=300, max_planes=8)
+    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(0), options, up=UP,
+                                             observers=np.zeros_like(points))
+    ceiling = max((p for p in found if abs(p.normal @ UP) > 0.5 and p.offset * np.sign(p.normal[1]) < 0),
+                  key=lambda p: p.support)
+    inside = np.array([[3.6, -1.3, 2.6], [-3.6, -1.3, -2.6], [0.0, -1.3, 0.0], [3.6, -1.3, -2.6]]) @ rot.T
+    beyond = np.array([[4.35, -1.3, 0.0], [4.35, -1.3, 2.0]]) @ rot.T
+    corner = rot @ np.array([4.0, -1.3, 3.0])  # the corner of the room's axis-aligned bounding box in the world
+    world_box_corner = np.array([[abs(corner[0]) * 0.97, -1.3, (rot @ np.array([-4.0, -1.3, 3.0]))[2] * 0.97]])
+    assert ceiling.contains(inside).all()
+    assert not ceiling.contains(beyond).any()
+    assert not ceiling.contains(world_box_corner).any()
+
+
+def test_a_wall_seen_only_along_its_floor_and_ceiling_lines_is_found_by_the_sweep():
+    # the +z wall is plain: its stereo is its floor and ceiling lines, which the floor and the ceiling explain first,
+    # so RANSAC (scoring unexplained points) never takes it; the sweep along the dominant directions does
+    yaw = np.radians(20.0)
+    rot = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+    rng = np.random.default_rng(0)
+    n = 2000
+    u, v = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
+    points = np.vstack([np.column_stack([4 * u, np.full(n, 1.2), 3 * v]),
+                        np.column_stack([4 * u, np.full(n, -1.3), 3 * v]),
+                        np.column_stack([np.full(n, -4.0), 1.25 * v - 0.05, 3 * u]),
+                        np.column_stack([np.full(n, 4.0), 1.25 * v - 0.05, 3 * u]),
+                        np.column_stack([4 * u, 1.25 * v - 0.05, np.full(n, -3.0)]),
+                        _line([-4, 1.2, 3], [4, 1.2, 3]), _line([-4, -1.3, 3], [4, -1.3, 3])]) @ rot.T
+    ranges, observers = np.linalg.norm(points, axis=1), np.zeros_like(points)
+    wall_normal = rot @ np.array([0.0, 0.0, 1.0])
+
+    def has_the_wall(planes):
+        return any(abs(p.normal @ wall_normal) > 0.999 and abs((p.normal * p.offset) @ wall_normal - 3.0) < 0.03
+                   for p in planes)
+
+    for sweep in (True, False):
+        options = world_planes.WorldPlaneOptions(distance=0.015, cell=CELL, min_support=300, sweep_walls=sweep)
+        found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(0), options, up=UP,
+                                                 observers=observers)
+        assert has_the_wall(found) == sweep
+        assert all(p.front != 0 for p in found)

@@ -31,12 +31,17 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from fullview.sfm.camera import camera_up
 from fullview.sfm.dense.planes import (PlaneOptions, View, check_against_views, exposure_gain, image_regions,
                                        pixel_points, project_into, reduced_bearings_world)
 
 RANSAC_HYPOTHESES = 256  # plane hypotheses per accepted plane
 REFINE_SHRINK = (1.0, 0.5, 0.25, 0.25)  # inlier bands of the successive least-squares refinements (x distance)
 SCORE_SAMPLE = 8_000  # hypotheses are scored on at most this many unexplained points
+MANHATTAN_WINDOW_DEG = 3.0  # walls within this azimuth of each other count for one dominant direction
+LEVEL_TRIM_PERCENTILE = 1.0  # a level plane's gravity rectangle spans these percentiles of its support (each axis)
+SNAP_SHRINK = (1.0, 0.5)  # bands of the offset refinement of a snapped plane (x distance)
+SWEEP_SUPPORT_FACTOR = 2  # a swept wall needs this many times min_support points (its lines, seen from its side)
 
 
 @dataclass(kw_only=True)
@@ -57,6 +62,10 @@ class WorldPlaneOptions:
     min_region_support: int = 10  # stereo depths around an image region a plane must explain to be taken there
     min_region_share: float = 0.25  # ... and this share of them
     min_island_pixels: int = 50  # smaller connected pieces of one label are not filled (reduced grid)
+    sweep_walls: bool = True  # with up and observers: add the walls along the dominant directions RANSAC missed
+    free_ceiling: bool = True  # a level plane above the camera may fill any image region (region_candidates)
+    snap_deg: float = 6.0  # with up known: level planes exactly level, upright ones within this angle of the dominant
+    # wall direction (or its perpendicular) turned onto it (_snap_to_gravity); 0: fitted normals kept
 
 
 @dataclass(kw_only=True)
@@ -71,6 +80,12 @@ class WorldPlane:
     front: int = 0  # side (sign of normal · x − offset) its points were seen from; 0: unknown
     fallback: np.ndarray | None = None  # (rows, cols) bool: the support's own extent (closed, holes filled), used
     # when the views see through most of a generous ``extent``
+    level: bool = False  # made exactly level, gravity known (_snap_to_gravity)
+
+    def is_ceiling_of(self, center: np.ndarray, up: np.ndarray) -> bool:
+        """Whether this is a level plane above ``center`` (``up``: the vertical, either sign of it)."""
+        cos = float(self.normal @ up)
+        return self.level and abs(cos) > 0.5 and (self.offset - self.normal @ center) / cos > 0
 
     def cells_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(row, col, inside the grid) of world points (assumed on the plane)."""
@@ -127,9 +142,10 @@ def _fit(points: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def _extent(support: np.ndarray, normal: np.ndarray, offset: float, cell: float, closing: int, hull: bool,
-            mode: str = "support", up: np.ndarray | None = None):
-    """(origin, axes, extent grid) of a plane from its supporting points (``WorldPlaneOptions.extent``)."""
-    axes = _plane_basis(normal, up if mode == "gravity" else None)
+            mode: str = "support", up: np.ndarray | None = None, axes: np.ndarray | None = None):
+    """(origin, axes, extent grid) of a plane from its supporting points (``WorldPlaneOptions.extent``); ``axes``
+    (2, 3): the grid's in-plane axes, if not the default ones (``_plane_basis``)."""
+    axes = _plane_basis(normal, up if mode == "gravity" else None) if axes is None else axes
     uv = support @ axes.T
     lo = uv.min(axis=0) - cell
     idx = np.floor((uv - lo) / cell).astype(np.intp)
@@ -145,6 +161,13 @@ def _extent(support: np.ndarray, normal: np.ndarray, offset: float, cell: float,
     closed = ndimage.binary_fill_holes(grid > 0)
     extent = _gravity_extent(grid > 0, upright=abs(normal @ up) < 0.5) if mode == "gravity" and up is not None \
         else closed
+    if mode == "gravity" and up is not None and abs(normal @ up) >= 0.5 and LEVEL_TRIM_PERCENTILE > 0:
+        # the rectangle between low and high percentiles of the support: stereo a few per cent too far at the
+        # lines where the ceiling meets the outer walls supports the ceiling plane beyond those walls
+        first, last = np.percentile(idx, [LEVEL_TRIM_PERCENTILE, 100 - LEVEL_TRIM_PERCENTILE], axis=0)
+        rows, cols = np.arange(shape[0])[:, None], np.arange(shape[1])[None]
+        extent = extent & (cols >= np.floor(first[0])) & (cols <= np.ceil(last[0])) \
+            & (rows >= np.floor(first[1])) & (rows <= np.ceil(last[1]))
     origin = normal * offset + lo @ axes
     return origin, axes, extent, (closed if extent is not closed else None)
 
@@ -219,10 +242,165 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
                                        options.extent_hull, options.extent, up)
         planes.append(WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell,
                                  extent=extent, support=int(inliers.sum()), fallback=fallback, front=front))
+    if up is not None and options.snap_deg > 0:
+        planes = _snap_to_gravity(planes, points, tolerance, np.asarray(up, np.float64), options)
+        if options.sweep_walls and observers is not None:
+            planes = planes + _sweep_walls(planes, points, tolerance, np.asarray(up, np.float64), observers, options)
     return planes
 
 
+# ------------------------------------------------------------------------------------------------ gravity
+def _horizontal_basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors spanning the plane perpendicular to ``up``."""
+    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1)
+
+
+def dominant_wall_azimuth(normals: np.ndarray, weights: np.ndarray, up: np.ndarray) -> float | None:
+    """The azimuth (radians, about ``up``) of the model's dominant wall direction modulo 90°: the weighted mode of
+    the upright normals' azimuths (walls of a building meet at right angles), refined by the weighted circular
+    mean within ``MANHATTAN_WINDOW_DEG`` of it; None without upright normals."""
+    if not len(normals):
+        return None
+    e1, e2 = _horizontal_basis(up)
+    quad = np.exp(4j * np.arctan2(normals @ e2, normals @ e1))  # period 90°
+    grid = np.exp(4j * np.radians(np.arange(0.0, 90.0, 0.25)))
+    window = np.cos(np.radians(4 * MANHATTAN_WINDOW_DEG))
+    score = ((np.real(quad[None] * np.conj(grid[:, None])) >= window) * weights[None]).sum(axis=1)
+    mode = grid[int(np.argmax(score))]
+    near = np.real(quad * np.conj(mode)) >= window
+    return float(np.angle(mode * np.exp(1j * np.angle(np.sum(weights[near] * quad[near] * np.conj(mode))))) / 4)
+
+
+def _sweep_walls(planes: list[WorldPlane], points: np.ndarray, tolerance: np.ndarray, up: np.ndarray,
+                 observers: np.ndarray, options: WorldPlaneOptions) -> list[WorldPlane]:
+    """The walls along the dominant wall directions that sequential RANSAC missed, one-sided: for each of the four
+    horizontal normals, the offsets (normal · x) of the points seen from the normal's side, peaks of at least
+    ``min_support`` points in bands of the median tolerance, away from the planes already found.
+
+    Why: a plain wall's stereo is its floor, ceiling and corner lines; RANSAC scores only the points no accepted plane
+    explains yet, and the floor and the ceiling explain most of those lines first, so the wall falls below
+    ``min_support``. What the views see through is removed later (``carve_extents``), as for every plane."""
+    up = up / np.linalg.norm(up)
+    upright = [p for p in planes if abs(p.normal @ up) < 1e-9]
+    azimuth = dominant_wall_azimuth(np.array([p.normal for p in upright]).reshape(-1, 3),
+                                    np.array([p.support for p in upright], np.float64), up)
+    if azimuth is None or not len(points):
+        return []
+    e1, e2 = _horizontal_basis(up)
+    band = float(np.median(tolerance))
+    found: list[WorldPlane] = []
+    for quarter in range(4):
+        a = azimuth + quarter * np.pi / 2
+        normal = np.cos(a) * e1 + np.sin(a) * e2
+        offsets = points @ normal
+        front = observers @ normal > offsets  # seen from the side the normal points to
+        values = offsets[front]
+        need = SWEEP_SUPPORT_FACTOR * options.min_support
+        if len(values) < need:
+            continue
+        taken = [(p.offset if p.normal @ normal > 0 else -p.offset) for p in planes + found
+                 if abs(p.normal @ normal) > 0.999 and (p.front == 0 or p.front * np.sign(p.normal @ normal) > 0)]
+        edges = np.arange(values.min(), values.max() + 2 * band, band)
+        counts = np.histogram(values, edges)[0]
+        pairs = counts[:-1] + counts[1:]  # about ± one band around each inner edge
+        for i in np.argsort(-pairs, kind="stable"):
+            if pairs[i] < need:
+                break
+            offset = float(edges[i + 1])
+            if any(abs(offset - o) < 2 * band for o in taken):
+                continue
+            for shrink in SNAP_SHRINK:
+                near = np.abs(values - offset) <= shrink * 2 * band
+                offset = float(np.median(values[near]))
+            inliers = front & (np.abs(offsets - offset) <= tolerance)
+            if inliers.sum() < need:
+                continue
+            taken.append(offset)
+            origin, axes, extent, fallback = _extent(points[inliers], normal, offset, options.cell,
+                                                     options.extent_closing_cells, options.extent_hull,
+                                                     options.extent, up)
+            found.append(WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell,
+                                    extent=extent, support=int(inliers.sum()), fallback=fallback, front=1))
+    return found
+
+
+def _snap_to_gravity(planes: list[WorldPlane], points: np.ndarray, tolerance: np.ndarray, up: np.ndarray,
+                     options: WorldPlaneOptions) -> list[WorldPlane]:
+    """Planes with gravity imposed: a level plane's normal becomes ``up`` exactly and an upright plane within
+    ``snap_deg`` of the dominant wall direction (or its perpendicular) takes that direction; each then gets the
+    offset of its points (median, in shrinking bands) and the extent of its new support.
+
+    Why: least squares on stereo points tilts a plane by 1-4° (the points along the lines where surfaces meet are
+    biased, a few per cent too far), and on the home one floor came out as seven tilted pieces; a tilted floor is
+    seen through on half of its rectangle and loses its extent, a tilted wall is wrong a metre from its support."""
+    up = up / np.linalg.norm(up)
+    upright = [p for p in planes if abs(p.normal @ up) < 0.5]
+    azimuth = dominant_wall_azimuth(np.array([p.normal for p in upright]).reshape(-1, 3),
+                                    np.array([p.support for p in upright], np.float64), up)
+    e1, e2 = _horizontal_basis(up)
+    out = []
+    for plane in planes:
+        axes = None
+        if abs(plane.normal @ up) >= 0.5:
+            normal = up * np.sign(plane.normal @ up)
+            if azimuth is not None:
+                # the grid along the walls: a floor's or ceiling's rectangle is then the building's footprint, not
+                # the larger rectangle around it in arbitrary axes, whose corners outside the walls no view sees
+                # through and rays past a plain wall (no plane of its own) met
+                along = np.cos(azimuth) * e1 + np.sin(azimuth) * e2
+                axes = np.stack([along, np.cross(normal, along)])
+        else:
+            a = np.arctan2(plane.normal @ e2, plane.normal @ e1)
+            quarter = np.round((a - azimuth) / (np.pi / 2))
+            if abs(a - azimuth - quarter * np.pi / 2) > np.radians(options.snap_deg):
+                out.append(plane)  # a wall of its own direction keeps its fit
+                continue
+            a = azimuth + quarter * np.pi / 2
+            normal = np.cos(a) * e1 + np.sin(a) * e2
+        inliers = np.abs(points @ plane.normal - plane.offset) <= tolerance
+        offset = float(np.median(points[inliers] @ normal))
+        for shrink in SNAP_SHRINK:
+            band = np.abs(points @ normal - offset) <= shrink * tolerance
+            if band.sum() < 3:
+                break
+            offset = float(np.median(points[band] @ normal))
+        inliers = np.abs(points @ normal - offset) <= tolerance
+        if inliers.sum() < 3:
+            continue
+        origin, axes, extent, fallback = _extent(points[inliers], normal, offset, options.cell,
+                                                 options.extent_closing_cells, options.extent_hull, options.extent, up,
+                                                 axes)
+        out.append(WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell,
+                              extent=extent, support=int(inliers.sum()), fallback=fallback, front=plane.front,
+                              level=abs(normal @ up) > 0.5))
+    return out
+
+
 # ------------------------------------------------------------------------------------------------ free space
+def confirmed_views(views: list[View], neighbours: list[list[int]], tolerance: float) -> list[View]:
+    """The views with only the stereo ranges that another view's stereo confirms: the point lands within
+    ``tolerance`` (relative) of a neighbour's own range (``neighbours[a]``: the views checking view a). Stereo
+    along the lines where two plain surfaces meet is often a few per cent too far (the matching window takes the
+    corner's disparity); such ranges look through the true floor or ceiling, and on the home they were nearly all
+    of the votes that carved those planes away. The errors of one view seldom land on another view's range."""
+    out = []
+    for a, view in enumerate(views):
+        rows, cols = np.nonzero(np.isfinite(view.range_map))
+        points = pixel_points(view, view.range_map, rows, cols)
+        confirmed = np.zeros(len(rows), bool)
+        for b in neighbours[a]:
+            row, col, r_pred = project_into(views[b], points, views[b].range_map.shape)
+            with np.errstate(invalid="ignore"):
+                confirmed |= np.abs(views[b].range_map[row, col] - r_pred) <= tolerance * r_pred
+        ranges = np.full(view.range_map.shape, np.nan, np.float32)
+        ranges[rows[confirmed], cols[confirmed]] = view.range_map[rows[confirmed], cols[confirmed]]
+        out.append(View(R_cam_from_world=view.R_cam_from_world, t_cam_from_world=view.t_cam_from_world,
+                        range_map=ranges, observable=view.observable, color=view.color))
+    return out
+
+
 def carve_extents(planes: list[WorldPlane], views: list[View], options: WorldPlaneOptions) -> list[WorldPlane]:
     """Remove the extent cells that a view's stereo sees through; drop planes seen through on most of their
     of the cells some view has a range for (invented planes). Returns the planes kept (extents modified in place)."""
@@ -286,7 +464,13 @@ def region_candidates(ref: View, planes: list[WorldPlane], regions: np.ndarray, 
     counts = np.zeros(allowed.shape, np.int64)
     np.add.at(counts, region, on.astype(np.int64))
     total = np.bincount(region, minlength=len(allowed))[:, None]
-    return (counts >= options.min_region_support) & (counts >= options.min_region_share * total)
+    allowed = (counts >= options.min_region_support) & (counts >= options.min_region_share * total)
+    if options.free_ceiling:
+        # nothing but the ceiling is level and above the camera in a room: its plane needs no support from the
+        # region (on the home, the region rule dropped 42% of the ceiling's pixels, 98% of which were right)
+        up = camera_up(ref.R_cam_from_world[None])
+        allowed[1:, [k for k, p in enumerate(planes) if p.is_ceiling_of(center, up)]] = True
+    return allowed
 
 
 def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, options: WorldPlaneOptions,
@@ -308,6 +492,8 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
     for k, plane in enumerate(planes):
         if plane.front and np.sign(plane.normal @ center - plane.offset) != plane.front:
             continue  # this camera is behind the surface (it would see the back of a wall's other face)
+        if regions is not None and not allowed[:, k].any():
+            continue  # no region of this view may take it
         cos = bearings @ plane.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             r = (plane.offset - plane.normal @ center) / cos
