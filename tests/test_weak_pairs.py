@@ -125,12 +125,18 @@ def _rooms_at_a_door_one_with_two_close_cameras():
     R = Rotation.from_euler("y", rng.uniform(-np.pi, np.pi, (9, 1))).as_matrix()
     X = np.column_stack([rng.uniform(-10, 10, 2000), rng.uniform(-1.5, 1.5, 2000), rng.uniform(-4, 4, 2000)])
     seen = [np.ones(len(X), bool)] + [(X[:, 0] > 0) == (r == 1) for r in room[1:]]
+    return _exact_scene(centres, R, X, seen, lambda i, j: room[i] == room[j] or room[i] < 0)
+
+
+def _exact_scene(centres, R, X, seen, matched):
+    """Noise-free links, tracks and bearings of cameras (centres, R_cam_from_world) seeing the points X where `seen`
+    says, every pair (i, j) with `matched(i, j)` matched on all the points both see."""
     feature_of = [np.flatnonzero(s) for s in seen]
     bearings = [normalize((X[f] - c) @ r.T) for f, c, r in zip(feature_of, centres, R)]
     matches = {}
-    for i in range(9):
-        for j in range(i + 1, 9):
-            if room[i] == room[j] or room[i] < 0:
+    for i in range(len(centres)):
+        for j in range(i + 1, len(centres)):
+            if matched(i, j):
                 _, a, b = np.intersect1d(feature_of[i], feature_of[j], return_indices=True)
                 matches[(i, j)] = np.column_stack([a, b])
     pairs = np.array(list(matches))
@@ -168,22 +174,7 @@ def _rooms_joined_by_a_doorway_pair():
     X = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-1.5, 1.5, n), rng.uniform(-4, 4, n)])
     door = np.abs(X[:, 0]) < 0.6
     seen = [(X[:, 0] < -0.6) | (door & (k == 3)) if k < 4 else (X[:, 0] > 0.6) | (door & (k == 4)) for k in range(8)]
-    feature_of = [np.flatnonzero(s) for s in seen]
-    bearings = [normalize((X[f] - c) @ r.T) for f, c, r in zip(feature_of, centres, R)]
-    matches = {}
-    for i in range(8):
-        for j in range(i + 1, 8):
-            if (i < 4) == (j < 4) or (i, j) == (3, 4):
-                _, a, b = np.intersect1d(feature_of[i], feature_of[j], return_indices=True)
-                matches[(i, j)] = np.column_stack([a, b])
-    pairs = np.array(list(matches))
-    t = -np.einsum("nab,nb->na", R, centres)
-    R_rel = R[pairs[:, 1]] @ np.swapaxes(R[pairs[:, 0]], 1, 2)
-    t_rel = normalize(t[pairs[:, 1]] - np.einsum("pab,pb->pa", R_rel, t[pairs[:, 0]]))
-    links = PairLinks(pairs=pairs, R_j_from_i=R_rel, t_j_from_i=t_rel,
-                      weights=np.array([len(matches[tuple(p)]) for p in pairs], float))
-    tracks, _ = build_tracks(matches, [len(b) for b in bearings])
-    return centres, links, tracks, bearings
+    return _exact_scene(centres, R, X, seen, lambda i, j: (i < 4) == (j < 4) or (i, j) == (3, 4))
 
 
 def test_a_part_beyond_a_doorway_pair_does_not_rescale_the_pair():
