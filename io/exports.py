@@ -109,23 +109,79 @@ def write_colmap_model(model: SparseModel, out_dir: Path, *, binary: bool) -> Pa
     other format's files of the same model are removed (pycolmap would read a stale .bin before a fresh .txt).
     """
     model.validate()
-    rec = build_reconstruction(model)
+    direct = not binary and _text_points_writable(model)
+    rec = build_reconstruction(model, with_points=not direct)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     ext, other = (".bin", ".txt") if binary else (".txt", ".bin")
     with tempfile.TemporaryDirectory(prefix=".colmap.", dir=out_dir) as tmp:
         (rec.write_binary if binary else rec.write_text)(tmp)
+        if direct:
+            _write_text_points(model, Path(tmp))
         for name in COLMAP_FILES:
             (out_dir / (name + other)).unlink(missing_ok=True)
             if (Path(tmp) / (name + ext)).exists():
                 os.replace(Path(tmp) / (name + ext), out_dir / (name + ext))
     log.info("COLMAP %s model: %d images, %d points -> %s", "binary" if binary else "text",
-             rec.num_reg_images(), rec.num_points3D(), out_dir)
+             rec.num_reg_images(), len(model.points) if direct else rec.num_points3D(), out_dir)
     return out_dir
 
 
-def build_reconstruction(model: SparseModel):
-    """A pycolmap.Reconstruction holding `model` (see `write_colmap_model` for ids and units)."""
+def _registered_observations(model: SparseModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(point, image index, feature) of the observations in registered images, grouped by point (stable)."""
+    point, image, feature = (np.asarray(a, np.int64) for a in
+                             (model.track_point3d, model.track_image, model.track_point2d))
+    keep = np.asarray(model.registered, bool)[image]
+    order = np.argsort(point[keep], kind="stable")
+    return point[keep][order], image[keep][order], feature[keep][order]
+
+
+def _text_points_writable(model: SparseModel) -> bool:
+    """True when `_write_text_points` gives pycolmap's own files: every point keeps an observation in a registered
+    image and no 2-D feature serves two points (pycolmap's handling of either is left to pycolmap)."""
+    point, image, feature = _registered_observations(model)
+    if len(np.unique(point)) != len(model.points):
+        return False
+    key = image * (int(feature.max(initial=0)) + 1) + feature
+    return len(np.unique(key)) == len(key)
+
+
+def _write_text_points(model: SparseModel, folder: Path) -> None:
+    """points3D.txt and the 2-D point lines of images.txt in `folder`, as COLMAP's text writer gives them (17
+    significant digits, %g style), over files pycolmap wrote for the model without its points: its image lines
+    (poses as COLMAP converts them to quaternions) are kept. pycolmap's per-point constructor cost ~9 µs a point."""
+    point, image, feature = _registered_observations(model)
+    num_points, num_obs = len(model.points), len(point)
+    g17 = "%.17g".__mod__
+    xyz = list(map(g17, np.asarray(model.points, np.float64).ravel().tolist()))
+    errors = list(map(g17, np.degrees(np.asarray(model.point_errors_rad, np.float64)).tolist()))
+    rgb = np.asarray(model.colors, np.uint8).tolist()
+    observations = list(map("%d %d".__mod__, zip((image + 1).tolist(), feature.tolist())))
+    starts = np.searchsorted(point, np.arange(num_points + 1)).tolist()
+    lines = [f"{p + 1} {xyz[3 * p]} {xyz[3 * p + 1]} {xyz[3 * p + 2]} {rgb[p][0]} {rgb[p][1]} {rgb[p][2]} "
+             f"{errors[p]} " + " ".join(observations[starts[p]:starts[p + 1]]) for p in range(num_points)]
+    header = ("# 3D point list with one line of data per point:\n"
+              "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
+              f"# Number of points: {num_points}, mean track length: {g17(num_obs / num_points if num_points else 0)}\n")
+    (folder / "points3D.txt").write_text(header + "".join(line + "\n" for line in lines))
+
+    text = (folder / "images.txt").read_text().split("\n")
+    num_reg = int(np.asarray(model.registered, bool).sum())
+    mean_obs = g17(num_obs / num_reg if num_reg else 0)
+    text[3] = text[3][:text[3].rindex(": ") + 2] + mean_obs  # "# Number of images: N, mean observations ...: X"
+    for row in range(4, len(text) - 1, 2):  # an image line, then its 2-D points
+        k = int(text[row].split(" ", 1)[0]) - 1
+        ids = np.full(len(model.pixels[k]), -1, np.int64)
+        here = image == k
+        ids[feature[here]] = point[here] + 1
+        xy = np.asarray(model.pixels[k], np.float64).reshape(-1, 2)
+        text[row + 1] = "".join(map("%.17g %.17g %d ".__mod__, zip(*xy.T.tolist(), ids.tolist())))
+    (folder / "images.txt").write_text("\n".join(text))
+
+
+def build_reconstruction(model: SparseModel, *, with_points: bool = True):
+    """A pycolmap.Reconstruction holding `model` (see `write_colmap_model` for ids and units); its images with
+    no 3-D points unless `with_points`."""
     import pycolmap
 
     rec = pycolmap.Reconstruction()
@@ -142,7 +198,8 @@ def build_reconstruction(model: SparseModel):
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(model.R_cam_from_world[k], np.float64)),
                                 np.asarray(model.t_cam_from_world[k], np.float64))
         rec.add_image_with_trivial_frame(image, pose)
-    _add_points(rec, model)
+    if with_points:
+        _add_points(rec, model)
     return rec
 
 
