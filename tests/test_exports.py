@@ -208,7 +208,7 @@ def test_point_cloud_with_normals_facing_the_cameras(tmp_path):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_direct_colmap_text_points_equal_pycolmap_files(tmp_path, seed):
-    """The points3D.txt / images.txt we format ourselves are byte for byte what pycolmap writes for the model."""
+    """The text model we format ourselves is byte for byte what pycolmap writes for the model."""
     from fullview.io.exports import _text_points_writable, build_reconstruction
 
     m = make_model(seed, num_points=200)
@@ -241,3 +241,17 @@ def test_colmap_text_falls_back_to_pycolmap_for_a_point_without_registered_obser
     build_reconstruction(m).write_text(tmp_path / "theirs")
     for name in ("images", "points3D"):
         assert (ours / f"{name}.txt").read_bytes() == (tmp_path / "theirs" / f"{name}.txt").read_bytes(), name
+
+
+def test_quaternions_are_bitwise_pycolmaps():
+    """Poses are written from our own matrix-to-quaternion conversion: it must be pycolmap's to the last bit, on
+    both branches (trace > 0 or not) and on matrices a little off orthonormal, as after bundle adjustment."""
+    from fullview.io.exports import _quaternions_wxyz
+
+    R = Rotation.random(3000, random_state=7).as_matrix()
+    R[:1500] += np.random.default_rng(7).normal(scale=1e-12, size=(1500, 3, 3))
+    R[0], R[1] = np.eye(3), np.diag([1.0, -1.0, -1.0])  # trace 3 and -1
+    trace = np.trace(R, axis1=1, axis2=2)
+    assert (trace > 0).any() and (trace <= 0).any()
+    theirs = np.array([pycolmap.Rotation3d(m).quat for m in R])  # x, y, z, w
+    assert np.array_equal(_quaternions_wxyz(R), theirs[:, [3, 0, 1, 2]])
