@@ -176,3 +176,26 @@ def test_point_descriptors_buffered_add_equals_add_at():
     want = _point_descriptors_with_add_at(tracks, cameras, point_of_track, descriptors)
     assert got.tobytes() == want.tobytes()  # bitwise: the sums are added in the same order
     assert np.array_equal(point_of_track[track_of_point], np.arange(len(got)))
+
+
+def test_basis_from_moments_on_threads_is_descriptor_basis_bitwise():
+    from fullview.sfm.matching import basis_from_moments, descriptor_basis, second_moment
+    from fullview.stages.protocol import thread_map
+
+    rng = np.random.default_rng(11)
+    sets = [normalize(rng.random((int(n), 128))).astype(np.float32) for n in rng.integers(50, 400, 7)]
+    for dims in (16, 32):
+        got = basis_from_moments(thread_map(second_moment, sets, threads=2), dims)
+        assert got.tobytes() == descriptor_basis(sets, dims).tobytes()
+    assert basis_from_moments(map(second_moment, sets), 0) is None
+
+
+def test_partial_feature_loads_equal_the_full_load(tiny_dataset, make_pipeline):
+    pipe = make_pipeline(tiny_dataset)
+    pipe.run(until="features")
+    name = pipe.dataset.image_names[0]
+    full = pipe.ws.load_features(name)
+    part = pipe.ws.load_features(name, ("pixels", "image_size"))
+    assert sorted(part) == ["image_size", "pixels"]
+    assert all(np.array_equal(part[k], full[k]) for k in part)
+    assert np.array_equal(pipe.ws.load_descriptors(name), full["descriptors"])
