@@ -61,8 +61,9 @@ def save_npz(path: Path, version: int, **arrays: np.ndarray) -> Path:
     return Path(path)
 
 
-def load_npz(path: Path, version: int, keys: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
-    """Load an npz written by `save_npz`, checking its version and required keys."""
+def load_npz(path: Path, version: int, keys: tuple[str, ...] = (), *, only: bool = False) -> dict[str, np.ndarray]:
+    """Load an npz written by `save_npz`, checking its version and required keys; with `only`, just those keys are
+    read (an npz member is read when asked for: the features' descriptors are 90% of their file)."""
     path = Path(path)
     if not path.exists():
         raise ArtifactError(f"missing artifact {path}")
@@ -74,7 +75,7 @@ def load_npz(path: Path, version: int, keys: tuple[str, ...] = ()) -> dict[str, 
             missing = [k for k in keys if k not in data]
             if missing:
                 raise ArtifactError(f"{path}: missing keys {missing}")
-            return {k: data[k] for k in data.files if k != FORMAT_KEY}
+            return {k: data[k] for k in (keys if only else data.files) if k != FORMAT_KEY}
     except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
         raise ArtifactError(f"{path}: corrupt artifact ({type(e).__name__}: {e}); rerun its stage with --from") from None
 

@@ -99,8 +99,10 @@ def split_models(model: SparseModel, model_id: np.ndarray) -> list[SparseModel]:
 def write_colmap_model(model: SparseModel, out_dir: Path, *, binary: bool) -> Path:
     """Write `model` as a COLMAP model (cameras, images, points3D, rigs, frames; .txt or .bin) into `out_dir`.
 
-    Built as a pycolmap.Reconstruction and written by pycolmap itself, so the files are whatever this COLMAP
-    version reads (4.x wants a rig and a frame per image). One EQUIRECTANGULAR camera per distinct image size;
+    Binary models (and text models pycolmap would treat specially: a point with no observation in a registered
+    image, a 2-D feature shared by two points) are built as a pycolmap.Reconstruction and written by pycolmap
+    itself, so the files are whatever this COLMAP version reads (4.x wants a rig and a frame per image); other
+    text models are formatted here, byte for byte the files pycolmap writes (tests compare them). One EQUIRECTANGULAR camera per distinct image size;
     image id = image index + 1, point id = point index + 1 (so ids match the rows of our arrays); only registered
     images are written, with all their 2-D features, and observations in unregistered images are dropped.
     A point's ERROR is our angular reprojection error in DEGREES, not pixels: the equirectangular pixel size
@@ -109,19 +111,128 @@ def write_colmap_model(model: SparseModel, out_dir: Path, *, binary: bool) -> Pa
     other format's files of the same model are removed (pycolmap would read a stale .bin before a fresh .txt).
     """
     model.validate()
-    rec = build_reconstruction(model)
+    direct = not binary and _text_points_writable(model)
+    rec = None if direct else build_reconstruction(model)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     ext, other = (".bin", ".txt") if binary else (".txt", ".bin")
     with tempfile.TemporaryDirectory(prefix=".colmap.", dir=out_dir) as tmp:
-        (rec.write_binary if binary else rec.write_text)(tmp)
+        if direct:
+            _write_text_model(model, Path(tmp))
+        else:
+            (rec.write_binary if binary else rec.write_text)(tmp)
         for name in COLMAP_FILES:
             (out_dir / (name + other)).unlink(missing_ok=True)
             if (Path(tmp) / (name + ext)).exists():
                 os.replace(Path(tmp) / (name + ext), out_dir / (name + ext))
     log.info("COLMAP %s model: %d images, %d points -> %s", "binary" if binary else "text",
-             rec.num_reg_images(), rec.num_points3D(), out_dir)
+             np.count_nonzero(model.registered), len(model.points), out_dir)
     return out_dir
+
+
+def _registered_observations(model: SparseModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(point, image index, feature) of the observations in registered images, grouped by point (stable)."""
+    point, image, feature = (np.asarray(a, np.int64) for a in
+                             (model.track_point3d, model.track_image, model.track_point2d))
+    keep = np.asarray(model.registered, bool)[image]
+    order = np.argsort(point[keep], kind="stable")
+    return point[keep][order], image[keep][order], feature[keep][order]
+
+
+def _text_points_writable(model: SparseModel) -> bool:
+    """True when `_write_text_model` gives pycolmap's own files: every point keeps an observation in a registered
+    image and no 2-D feature serves two points (pycolmap's handling of either is left to pycolmap)."""
+    point, image, feature = _registered_observations(model)
+    if len(np.unique(point)) != len(model.points):
+        return False
+    key = image * (int(feature.max(initial=0)) + 1) + feature
+    return len(np.unique(key)) == len(key)
+
+
+G17 = "%.17g".__mod__  # COLMAP's text writer: 17 significant digits, %g style
+
+
+def _quaternions_wxyz(R: np.ndarray) -> np.ndarray:
+    """(N, 4) quaternions (w, x, y, z) of rotation matrices (N, 3, 3) computed as Eigen's Quaternion(Matrix3)
+    does, operation for operation (its trace is m00 + (m11 + m22)): bitwise what pycolmap writes (a test checks)."""
+    R = np.asarray(R, np.float64).reshape(-1, 3, 3)
+    q = np.empty((len(R), 4))
+    trace = R[:, 0, 0] + (R[:, 1, 1] + R[:, 2, 2])
+    pos = trace > 0
+    t = np.sqrt(trace[pos] + 1.0)
+    q[pos, 0] = 0.5 * t
+    t = 0.5 / t
+    q[pos, 1] = (R[pos, 2, 1] - R[pos, 1, 2]) * t
+    q[pos, 2] = (R[pos, 0, 2] - R[pos, 2, 0]) * t
+    q[pos, 3] = (R[pos, 1, 0] - R[pos, 0, 1]) * t
+    for n in np.flatnonzero(~pos):
+        m = R[n]
+        i = 0
+        if m[1, 1] > m[0, 0]:
+            i = 1
+        if m[2, 2] > m[i, i]:
+            i = 2
+        j, k = (i + 1) % 3, (i + 2) % 3
+        t = np.sqrt(m[i, i] - m[j, j] - m[k, k] + 1.0)
+        q[n, 1 + i] = 0.5 * t
+        t = 0.5 / t
+        q[n, 0] = (m[k, j] - m[j, k]) * t
+        q[n, 1 + j] = (m[j, i] + m[i, j]) * t
+        q[n, 1 + k] = (m[k, i] + m[i, k]) * t
+    return q
+
+
+def _write_text_model(model: SparseModel, folder: Path) -> None:
+    """The five files of COLMAP's text model in `folder`, byte for byte what pycolmap writes for
+    `build_reconstruction(model)` (tests compare them), without building it: pycolmap's per-point constructor
+    cost ~9 µs a point and its import 0.2 s, the largest parts of the export."""
+    point, image, feature = _registered_observations(model)
+    num_points, num_obs = len(model.points), len(point)
+    reg = np.flatnonzero(model.registered)
+    sizes = sorted({tuple(int(v) for v in model.image_sizes[k]) for k in reg})
+    camera_of = {size: cid for cid, size in enumerate(sizes, start=1)}
+    cams = [f"{cid} EQUIRECTANGULAR {w} {h} {G17(float(w))} {G17(float(h))}\n" for (w, h), cid in camera_of.items()]
+    (folder / "cameras.txt").write_text(
+        "# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+        f"# Number of cameras: {len(cams)}\n" + "".join(cams))
+    (folder / "rigs.txt").write_text(
+        "# Rig calib list with one line of data per calib:\n#   RIG_ID, NUM_SENSORS, REF_SENSOR_TYPE, REF_SENSOR_ID, "
+        "SENSORS[] as (SENSOR_TYPE, SENSOR_ID, HAS_POSE, [QW, QX, QY, QZ, TX, TY, TZ])\n"
+        f"# Number of rigs: {len(cams)}\n" + "".join(f"{cid} 1 CAMERA {cid}\n" for cid in camera_of.values()))
+    quats = _quaternions_wxyz(np.asarray(model.R_cam_from_world)[reg])
+    t = np.asarray(model.t_cam_from_world, np.float64)[reg]
+    poses = [" ".join(map(G17, row)) for row in np.concatenate([quats, t], axis=1).tolist()]
+    cam_ids = [camera_of[tuple(int(v) for v in model.image_sizes[k])] for k in reg.tolist()]
+    (folder / "frames.txt").write_text(
+        "# Frame list with one line of data per frame:\n#   FRAME_ID, RIG_ID, RIG_FROM_WORLD[QW, QX, QY, QZ, TX, TY, TZ], "
+        "NUM_DATA_IDS, DATA_IDS[] as (SENSOR_TYPE, SENSOR_ID, DATA_ID)\n"
+        f"# Number of frames: {len(reg)}\n"
+        + "".join(f"{k + 1} {c} {pose} 1 CAMERA {c} {k + 1}\n" for k, c, pose in zip(reg.tolist(), cam_ids, poses)))
+
+    lines = ["# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
+             "#   POINTS2D[] as (X, Y, POINT3D_ID)\n"
+             f"# Number of images: {len(reg)}, mean observations per image: {G17(num_obs / len(reg) if len(reg) else 0)}\n"]
+    for k, c, pose in zip(reg.tolist(), cam_ids, poses):
+        ids = np.full(len(model.pixels[k]), -1, np.int64)
+        here = image == k
+        ids[feature[here]] = point[here] + 1
+        xy = np.asarray(model.pixels[k], np.float64).reshape(-1, 2)
+        lines.append(f"{k + 1} {pose} {c} {model.image_names[k]}\n"
+                     + "".join(map("%.17g %.17g %d ".__mod__, zip(*xy.T.tolist(), ids.tolist()))) + "\n")
+    (folder / "images.txt").write_text("".join(lines))
+
+    xyz = list(map(G17, np.asarray(model.points, np.float64).ravel().tolist()))
+    errors = list(map(G17, np.degrees(np.asarray(model.point_errors_rad, np.float64)).tolist()))
+    rgb = np.asarray(model.colors, np.uint8).tolist()
+    observations = list(map("%d %d".__mod__, zip((image + 1).tolist(), feature.tolist())))
+    starts = np.searchsorted(point, np.arange(num_points + 1)).tolist()
+    rows = [f"{p + 1} {xyz[3 * p]} {xyz[3 * p + 1]} {xyz[3 * p + 2]} {rgb[p][0]} {rgb[p][1]} {rgb[p][2]} "
+            f"{errors[p]} " + " ".join(observations[starts[p]:starts[p + 1]]) + "\n" for p in range(num_points)]
+    (folder / "points3D.txt").write_text(
+        "# 3D point list with one line of data per point:\n"
+        "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
+        f"# Number of points: {num_points}, mean track length: {G17(num_obs / num_points if num_points else 0)}\n"
+        + "".join(rows))
 
 
 def build_reconstruction(model: SparseModel):

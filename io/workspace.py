@@ -178,8 +178,15 @@ class Workspace:
         return None
 
     # ---- typed readers, one per artifact
-    def load_features(self, image_name: str) -> dict[str, np.ndarray]:
-        return load_npz(self.path("features", stem=image_stem(image_name)), FEATURES_VERSION, FEATURE_KEYS)
+    def load_features(self, image_name: str, keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+        """An image's features; only `keys` of them when given (the others are not read)."""
+        path = self.path("features", stem=image_stem(image_name))
+        if keys is None:
+            return load_npz(path, FEATURES_VERSION, FEATURE_KEYS)
+        return load_npz(path, FEATURES_VERSION, keys, only=True)
+
+    def load_descriptors(self, image_name: str) -> np.ndarray:
+        return self.load_features(image_name, ("descriptors",))["descriptors"]
 
     def load_matches(self) -> PairData:
         return _load_pair_data(self.path("matches"))
@@ -237,7 +244,7 @@ class Workspace:
         hand = dataset.hand_observations
         out = []
         for name in dataset.image_names:
-            feats = self.load_features(name)
+            feats = self.load_features(name, ("pixels", "bearings", "colors", "image_size"))
             w, h = (int(v) for v in feats["image_size"])
             _, hand_px = hand[name]
             out.append({

@@ -25,10 +25,21 @@ def descriptor_basis(descriptor_sets: Iterable[np.ndarray], dims: int) -> np.nda
     distances approximate the full ones from below, missing only the dropped components' energy (~6% on RootSIFT
     at 64 dimensions): the ratio test and mutual check keep 99% of the full search's matches (README, "Speed of
     matching") for half the matrix product."""
+    return basis_from_moments(map(second_moment, descriptor_sets), dims)
+
+
+def second_moment(desc: np.ndarray) -> np.ndarray:
+    """(128, 128) float64 DᵀD of one image's descriptors: `basis_from_moments` sums them."""
+    d = np.asarray(desc, np.float64)
+    return d.T @ d
+
+
+def basis_from_moments(moments: Iterable[np.ndarray], dims: int) -> np.ndarray | None:
+    """`descriptor_basis` from the images' `second_moment`s, summed in the order given (computed anywhere, e.g.
+    on threads: the same basis, bit for bit, as one loop)."""
     outer = None
-    for desc in descriptor_sets:
-        d = np.asarray(desc, np.float64)
-        outer = d.T @ d if outer is None else outer + d.T @ d
+    for moment in moments:
+        outer = moment if outer is None else outer + moment
     if not dims or outer is None or dims >= len(outer):
         return None
     _, vectors = np.linalg.eigh(outer)  # ascending eigenvalues

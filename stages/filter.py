@@ -50,8 +50,8 @@ def run(ctx: StageContext) -> dict:
     raw = ctx.ws.load_matches()
     # Guided matching reads descriptors per pair, the recent ones cached (pairs arrive grouped by their first image),
     # so they are never all in memory at once.
-    descriptors = (lru_cache(maxsize=DESCRIPTOR_CACHE)(lambda k: ctx.ws.load_features(ctx.dataset.image_names[k])
-                                                        ["descriptors"]) if options.guided_matching else None)
+    descriptors = (lru_cache(maxsize=DESCRIPTOR_CACHE)(lambda k: ctx.ws.load_descriptors(ctx.dataset.image_names[k]))
+                   if options.guided_matching else None)
     gravity, gravity_std = _gravity(ctx, options.upright)
     num_sift = [int(o["num_sift"]) for o in obs]
     guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)

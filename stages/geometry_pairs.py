@@ -41,7 +41,7 @@ def geometry_matches(ctx: StageContext, attempted: list[tuple[int, int]], model_
     if not new:
         return {}
     names = ctx.dataset.image_names
-    descriptors = lru_cache(maxsize=DESCRIPTOR_CACHE)(lambda k: ctx.ws.load_features(names[k])["descriptors"])
+    descriptors = lru_cache(maxsize=DESCRIPTOR_CACHE)(lambda k: ctx.ws.load_descriptors(names[k]))
     check = partial(_match_and_check, descriptors, bearings, R, t, threshold_rad, min_inliers)
     found = {pair: m for pair, m in zip(new, thread_map(check, new)) if m is not None}
     log.info("geometry pairs: %d new pairs among the registered cameras' nearest, %d hold under the poses",

@@ -18,7 +18,8 @@ import numpy as np
 from tqdm import tqdm
 
 from fullview.io.workspace import Workspace
-from fullview.sfm.matching import descriptor_basis, match_descriptors, pair_blocks, project_descriptors
+from fullview.sfm.matching import (basis_from_moments, match_descriptors, pair_blocks, project_descriptors,
+                                   second_moment)
 from fullview.sfm.options import MatchesOptions
 from fullview.sfm.pairs import select_pairs, uses_gps
 from fullview.stages.protocol import StageContext
@@ -42,7 +43,7 @@ class StoredDescriptors(Sequence):
         return len(self.names)
 
     def __getitem__(self, k: int) -> np.ndarray:
-        return self.ws.load_features(self.names[k])["descriptors"]
+        return self.ws.load_descriptors(self.names[k])
 
 
 def run(ctx: StageContext) -> dict:
@@ -54,7 +55,10 @@ def run(ctx: StageContext) -> dict:
     # Largest blocks first: the last tasks to start are small, so both threads finish together (at 6 images the
     # blocks hold 4, 4, 4, 1, 1, 1 pairs: 8 pair-times instead of 9 in index order; results land by pair index).
     blocks = sorted(pair_blocks(pairs, block_images), key=len, reverse=True)
-    basis = descriptor_basis(StoredDescriptors(ctx.ws, names), options.descriptor_dims)
+    # The images' second moments on the executor (the other core idled while one loop read and multiplied them),
+    # summed in image order: the basis of `descriptor_basis`, bit for bit.
+    basis = (basis_from_moments(ctx.map(partial(image_moment, ctx.ws.root, names), range(len(names))),
+                                options.descriptor_dims) if options.descriptor_dims else None)
     jobs = ctx.map(partial(match_block, ctx.ws.root, names, options, basis=basis),
                    [[pairs[k] for k in b] for b in blocks])
     per_pair: list[np.ndarray | None] = [None] * len(pairs)
@@ -69,12 +73,17 @@ def run(ctx: StageContext) -> dict:
             "median_matches": int(np.median(counts)) if counts else 0}
 
 
+def image_moment(ws_root: Path, names: list[str], k: int) -> np.ndarray:
+    """Image k's descriptor second moment, read from the workspace (a top-level function: a cluster task)."""
+    return second_moment(Workspace(Path(ws_root).parent, Path(ws_root).name).load_descriptors(names[k]))
+
+
 def match_block(ws_root: Path, names: list[str], options: MatchesOptions, pairs: list[tuple[int, int]], *,
                 basis: np.ndarray | None = None) -> list[np.ndarray]:
     """The matches of `pairs`, reading the features of their images from the workspace itself (a top-level function
     of picklable arguments: a cluster task of its own), searched on `basis`'s components when given."""
     ws = Workspace(Path(ws_root).parent, Path(ws_root).name)
-    full = {i: ws.load_features(names[i])["descriptors"] for i in sorted({i for p in pairs for i in p})}
+    full = {i: ws.load_descriptors(names[i]) for i in sorted({i for p in pairs for i in p})}
     if basis is None:
         return [match_descriptors(full[i], full[j], options) for i, j in pairs]
     projected = {i: project_descriptors(d, basis) for i, d in full.items()}

@@ -86,7 +86,7 @@ def _descriptors(ctx: StageContext) -> list[np.ndarray]:
     """Per image, its SIFT descriptors L2-normalised (2D-3D matching compares them by Euclidean distance)."""
     out = []
     for name in ctx.dataset.image_names:
-        d = np.asarray(ctx.ws.load_features(name)["descriptors"], np.float32)
+        d = np.asarray(ctx.ws.load_descriptors(name), np.float32)
         out.append(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12))
     return out
 

@@ -204,3 +204,54 @@ def test_point_cloud_with_normals_facing_the_cameras(tmp_path):
     assert np.array_equal(np.stack([ply["red"], ply["green"], ply["blue"]], 1), colors)
     with pytest.raises(ValueError, match="normals"):
         write_point_cloud(tmp_path / "bad.ply", points, colors, normals[:3])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_direct_colmap_text_points_equal_pycolmap_files(tmp_path, seed):
+    """The text model we format ourselves is byte for byte what pycolmap writes for the model."""
+    from fullview.io.exports import _text_points_writable, build_reconstruction
+
+    m = make_model(seed, num_points=200)
+    rng = np.random.default_rng(seed)
+    # values whose %.17g forms differ: negative zero, integers, tiny and huge coordinates
+    m.points[:4] = [[-0.0, 1.0, 2.5], [1e-300, -3e12, 7.0], [0.1, 0.2, 0.3], [np.pi, -np.e, 1e-7]]
+    m.point_errors_rad[:2] = [0.0, 1e-9]
+    m.pixels[0][:2] = [[0.0, 0.5], [1023.999, 1e-5]]
+    m.points[4:] += rng.normal(size=m.points[4:].shape)
+    assert _text_points_writable(m)
+    ours = write_colmap_model(m, tmp_path / "ours", binary=False)
+    (tmp_path / "theirs").mkdir()
+    build_reconstruction(m).write_text(tmp_path / "theirs")
+    for name in ("cameras", "images", "points3D", "rigs", "frames"):
+        assert (ours / f"{name}.txt").read_bytes() == (tmp_path / "theirs" / f"{name}.txt").read_bytes(), name
+
+
+def test_colmap_text_falls_back_to_pycolmap_for_a_point_without_registered_observations(tmp_path):
+    from fullview.io.exports import _text_points_writable, build_reconstruction
+
+    m = make_model(3)
+    unregistered = np.flatnonzero(~np.asarray(m.registered))
+    assert len(unregistered)
+    alone = m.track_point3d[0]
+    m.track_image[m.track_point3d == alone] = unregistered[0]
+    m.track_point2d[m.track_point3d == alone] = 0
+    assert not _text_points_writable(m)
+    ours = write_colmap_model(m, tmp_path / "ours", binary=False)
+    (tmp_path / "theirs").mkdir()
+    build_reconstruction(m).write_text(tmp_path / "theirs")
+    for name in ("images", "points3D"):
+        assert (ours / f"{name}.txt").read_bytes() == (tmp_path / "theirs" / f"{name}.txt").read_bytes(), name
+
+
+def test_quaternions_are_bitwise_pycolmaps():
+    """Poses are written from our own matrix-to-quaternion conversion: it must be pycolmap's to the last bit, on
+    both branches (trace > 0 or not) and on matrices a little off orthonormal, as after bundle adjustment."""
+    from fullview.io.exports import _quaternions_wxyz
+
+    R = Rotation.random(3000, random_state=7).as_matrix()
+    R[:1500] += np.random.default_rng(7).normal(scale=1e-12, size=(1500, 3, 3))
+    R[0], R[1] = np.eye(3), np.diag([1.0, -1.0, -1.0])  # trace 3 and -1
+    trace = np.trace(R, axis1=1, axis2=2)
+    assert (trace > 0).any() and (trace <= 0).any()
+    theirs = np.array([pycolmap.Rotation3d(m).quat for m in R])  # x, y, z, w
+    assert np.array_equal(_quaternions_wxyz(R), theirs[:, [3, 0, 1, 2]])

@@ -136,3 +136,66 @@ def test_matches_stage_reads_gps_only_when_the_pair_selection_uses_it(tiny_datas
     pipe = make_pipeline(tiny_dataset, ["matches.auto_exhaustive_below=2"], workspace=None)
     pipe.run(until="matches", force=True)
     assert calls == [1]
+
+
+def _point_descriptors_with_add_at(tracks, cameras, point_of_track, descriptors):
+    """The loop as it was before the buffered add (np.add.at for every image)."""
+    num_sift = np.array([len(d) for d in descriptors])
+    sel = (cameras[tracks.image_ids] & (point_of_track[tracks.track_ids] >= 0)
+           & (tracks.feature_ids < num_sift[tracks.image_ids]))
+    rows = point_of_track[tracks.track_ids[sel]]
+    sums = np.zeros((len(point_of_track[point_of_track >= 0]), descriptors[0].shape[1]))
+    for b in np.unique(tracks.image_ids[sel]):
+        here = tracks.image_ids[sel] == b
+        np.add.at(sums, rows[here], descriptors[b][tracks.feature_ids[sel][here]])
+    return (sums / np.maximum(np.linalg.norm(sums, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+
+
+def test_point_descriptors_buffered_add_equals_add_at():
+    from fullview.sfm.registration.models import _point_descriptors
+    from fullview.sfm.tracks import Tracks
+
+    rng = np.random.default_rng(5)
+    n_images, n_tracks = 5, 400
+    descriptors = [rng.random((300, 128), dtype=np.float32) for _ in range(n_images)]
+    image_ids, feature_ids, track_ids = [], [], []
+    for t in range(n_tracks):
+        seen = np.sort(rng.choice(n_images, size=rng.integers(2, n_images + 1), replace=False))
+        if t % 50 == 0:  # a track meeting one image twice: the np.add.at fallback must give the same sums
+            seen = np.sort(np.append(seen, seen[0]))
+        image_ids += seen.tolist()
+        feature_ids += rng.integers(0, 320, len(seen)).tolist()  # some beyond the SIFT rows: skipped
+        track_ids += [t] * len(seen)
+    track_ids = np.array(track_ids)
+    tracks = Tracks(track_ids=track_ids, image_ids=np.array(image_ids), feature_ids=np.array(feature_ids),
+                    offsets=np.searchsorted(track_ids, np.arange(n_tracks + 1)), num_images=n_images)
+    cameras = np.array([True, True, False, True, True])
+    point_of_track = np.where(rng.random(n_tracks) < 0.8, 0, -1)
+    point_of_track[point_of_track >= 0] = rng.permutation((point_of_track >= 0).sum())
+    got, track_of_point = _point_descriptors(tracks, cameras, point_of_track, descriptors)
+    want = _point_descriptors_with_add_at(tracks, cameras, point_of_track, descriptors)
+    assert got.tobytes() == want.tobytes()  # bitwise: the sums are added in the same order
+    assert np.array_equal(point_of_track[track_of_point], np.arange(len(got)))
+
+
+def test_basis_from_moments_on_threads_is_descriptor_basis_bitwise():
+    from fullview.sfm.matching import basis_from_moments, descriptor_basis, second_moment
+    from fullview.stages.protocol import thread_map
+
+    rng = np.random.default_rng(11)
+    sets = [normalize(rng.random((int(n), 128))).astype(np.float32) for n in rng.integers(50, 400, 7)]
+    for dims in (16, 32):
+        got = basis_from_moments(thread_map(second_moment, sets, threads=2), dims)
+        assert got.tobytes() == descriptor_basis(sets, dims).tobytes()
+    assert basis_from_moments(map(second_moment, sets), 0) is None
+
+
+def test_partial_feature_loads_equal_the_full_load(tiny_dataset, make_pipeline):
+    pipe = make_pipeline(tiny_dataset)
+    pipe.run(until="features")
+    name = pipe.dataset.image_names[0]
+    full = pipe.ws.load_features(name)
+    part = pipe.ws.load_features(name, ("pixels", "image_size"))
+    assert sorted(part) == ["image_size", "pixels"]
+    assert all(np.array_equal(part[k], full[k]) for k in part)
+    assert np.array_equal(pipe.ws.load_descriptors(name), full["descriptors"])

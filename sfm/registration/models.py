@@ -610,9 +610,16 @@ def _point_descriptors(tracks: Tracks, cameras: np.ndarray, point_of_track: np.n
     rows = point_of_track[tracks.track_ids[sel]]
     width = descriptors[int(np.flatnonzero(num_sift)[0])].shape[1] if num_sift.any() else 128
     sums = np.zeros((len(point_of_track[point_of_track >= 0]), width))
-    for b in np.unique(tracks.image_ids[sel]):  # one gather per image
-        here = tracks.image_ids[sel] == b
-        np.add.at(sums, rows[here], descriptors[b][tracks.feature_ids[sel][here]])
+    image_ids, feature_ids = tracks.image_ids[sel], tracks.feature_ids[sel]
+    for b in np.unique(image_ids):  # one gather per image
+        here = image_ids == b
+        target = rows[here]
+        if len(np.unique(target)) == len(target):
+            # A point meets an image once (the usual case): a buffered add, each row summed in the same order as
+            # np.add.at would (image by image), so bitwise the same sums, ~10x faster.
+            sums[target] += descriptors[b][feature_ids[here]]
+        else:
+            np.add.at(sums, target, descriptors[b][feature_ids[here]])
     norms = np.linalg.norm(sums, axis=1, keepdims=True)
     track_of_point = np.empty(len(sums), np.int64)
     track_of_point[point_of_track[point_of_track >= 0]] = np.flatnonzero(point_of_track >= 0)
