@@ -139,6 +139,27 @@ def pose_along_pair(a: int, b: int, pair, R_j_from_i: np.ndarray, t_j_from_i: np
     return R_j_from_i.T @ R_a, normalize(R_a.T @ t_j_from_i)
 
 
+def distance_by_few_points(direction: np.ndarray, u: np.ndarray, P: np.ndarray, max_error_rad: float,
+                           min_points: int) -> tuple[float, int] | None:
+    """A camera on the ray `direction` (unit, world) from a model camera, whose rays u (K, 3) (unit, world) see the
+    model points P (K, 3) (relative to that camera's centre): the distance most points agree on (each point's own
+    least-squares distance is a candidate, scored by the points within `max_error_rad` there; the inliers' median),
+    and how many agree; None when fewer than `min_points` do. For a camera too few points reach to attach it
+    (`attach_cameras`' `min_points`), still better than a guessed distance when they agree."""
+    s, lam = _ray_distances(direction, u, P)
+    ok = np.isfinite(s) & (s > 0) & (lam > 0)
+    if ok.sum() < min_points:
+        return None
+    s, u, P = s[ok], u[ok], P[ok]
+    seen = normalize(P[None, :, :] - s[:, None, None] * direction)  # (candidate, point, 3) from each candidate
+    errors = np.arctan2(np.linalg.norm(np.cross(u, seen), axis=-1), np.einsum("ka,cka->ck", u, seen))
+    agree = errors < max_error_rad
+    best = int(np.argmax(agree.sum(axis=1)))
+    if agree[best].sum() < min_points:
+        return None
+    return float(np.median(s[agree[best]])), int(agree[best].sum())
+
+
 def _ray_distances(direction: np.ndarray, u: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per point: least-squares (s, λ) with s·direction + λ·u_k ≈ P_k (2x2 normal equations, vectorised)."""
     du = u @ direction

@@ -25,7 +25,7 @@ from typing import Sequence
 
 import numpy as np
 
-from fullview.sfm.attach import attach_cameras, model_points, pose_along_pair
+from fullview.sfm.attach import attach_cameras, distance_by_few_points, model_points, pose_along_pair
 from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.metrics import umeyama
 from fullview.sfm.options import MatchesOptions, RegistrationOptions
@@ -48,6 +48,8 @@ MERGE_ITERATIONS = 500  # RANSAC samples of the similarity between two models
 MERGE_START_FACTOR = 5.0  # common points agreeing with a candidate similarity: this many resection thresholds
 WEAK_PAIR_MAX_OFF_DEG = 5.0  # a weak pair's baseline must lie this close to its model's: on the bare 1024 px homes
 # (seeds 0, 1, 3, 4) the true ones lie within 3.2° (a part's guessed scale), the chance fits 4.5-8.6° off
+MIN_LEAF_POINTS = 2  # model points that must agree on the distance of a camera attached along one pair (fewer: a
+# guess); two points that agree within the resection threshold along a ray are rarely chance
 GROWTH_BA_ITERATIONS = 30  # function evaluations of the bundle adjustment after each growth round
 
 
@@ -459,15 +461,17 @@ def _grow(state: ModelSet, m: int, links: PairLinks, bearings, options: Registra
 
 def _attach_by_a_guess(state: ModelSet, m: int, links: PairLinks, bearings, options: RegistrationOptions) -> bool:
     """`unjoined_parts: keep`: the free camera with the strongest verified pair into model m, placed along that
-    pair's baseline at the model's median verified-pair baseline length, as averaging guesses the scale of a part
-    no points fix (a chain of rooms past a doorway whose end cameras see too few of the model's points); recorded as
-    a join with 0 tracks, so that weak pairs into it may fix it (`_weak_pair_matches`). Never along a pair averaging
-    rejected or into the side of a contradicted bridge, nor a camera that sees `min_join_points` of the model's
-    points (they did not attach it: they contradict the pair). True if one was placed."""
+    pair's baseline at the distance the few model points it sees agree on (`MIN_LEAF_POINTS`; recorded as a join
+    with that many tracks), or else at the model's median verified-pair baseline length, as averaging guesses the
+    scale of a part no points fix (a chain of rooms past a doorway whose end cameras see too few of the model's
+    points; recorded as a join with 0 tracks, so that weak pairs into it may fix it: `_weak_pair_matches`). Never
+    along a pair averaging rejected or into the side of a contradicted bridge, nor a camera that sees
+    `min_join_points` of the model's points (they did not attach it: they contradict the pair). True if one was
+    placed."""
     if options.unjoined_parts != "keep":
         return False
     pairs, inside, tracks = links.pairs, state.model_id == m, state.tracks
-    _, point_of_track = _points_of(state, m, tracks, bearings)
+    X, point_of_track = _points_of(state, m, tracks, bearings)
     sees = np.bincount(tracks.image_ids[point_of_track[tracks.track_ids] >= 0], minlength=len(inside))
     unchecked = (state.model_id < 0) & (sees < options.min_join_points)
     into = ((links.weights > 0) & ~state.rejected_pairs & (inside[pairs[:, 0]] != inside[pairs[:, 1]])
@@ -479,13 +483,38 @@ def _attach_by_a_guess(state: ModelSet, m: int, links: PairLinks, bearings, opti
     a, b = (int(v) for v in (pairs[k] if inside[pairs[k, 0]] else pairs[k, ::-1]))
     R_b, direction = pose_along_pair(a, b, pairs[k], links.R_j_from_i[k], links.t_j_from_i[k],
                                      state.R_cam_from_world[a])
-    length = float(np.median(np.linalg.norm(np.diff(state.centers[pairs[within]], axis=1)[:, 0], axis=1)))
+    by_points = _distance_by_the_points_seen(state, b, a, R_b, direction, X, point_of_track, bearings, options)
     state.model_id[b] = m
+    if by_points is not None:
+        length, agreeing = by_points
+        state.R_cam_from_world[b], state.centers[b] = R_b, state.centers[a] + length * direction
+        state.joins.append({"model": m, "images": [b], "tracks": agreeing, "scale": 1.0})
+        log.warning("image %d attached to model %d along its pair with image %d at the distance %d of the model's "
+                    "points it sees agree on (%.3f)", b, m, a, agreeing, length)
+        return True
+    length = float(np.median(np.linalg.norm(np.diff(state.centers[pairs[within]], axis=1)[:, 0], axis=1)))
     state.R_cam_from_world[b], state.centers[b] = R_b, state.centers[a] + length * direction
     state.joins.append({"model": m, "images": [b], "tracks": 0, "scale": 1.0})
     log.warning("image %d attached to model %d along its pair with image %d at a guessed distance (%.3f, the median "
                 "baseline): no points fix it", b, m, a, length)
     return True
+
+
+def _distance_by_the_points_seen(state: ModelSet, b: int, a: int, R_b: np.ndarray, direction: np.ndarray,
+                                 X: np.ndarray, point_of_track: np.ndarray, bearings, options: RegistrationOptions
+                                 ) -> tuple[float, int] | None:
+    """(distance from a along `direction`, agreeing points) where `MIN_LEAF_POINTS` or more of the model's points
+    camera b sees (fewer than attachment needs) agree on one distance; None otherwise. The median verified-pair
+    baseline is a poor guess where long pairs verify (hand points join cameras rooms apart): on a 10-view home
+    (seed 7) it put a leaf 1.9 times too far, and the hand points it sees through three views, which would have
+    placed it, were then dropped by triangulation as outliers."""
+    tracks = state.tracks
+    sel = (tracks.image_ids == b) & (point_of_track[tracks.track_ids] >= 0)
+    if sel.sum() < MIN_LEAF_POINTS:
+        return None
+    P = X[point_of_track[tracks.track_ids[sel]]] - state.centers[a]
+    u = gather_bearings(bearings, tracks.image_ids[sel], tracks.feature_ids[sel]) @ R_b  # R_bᵀ z, world rays
+    return distance_by_few_points(direction, u, P, np.radians(options.resection_threshold_deg), MIN_LEAF_POINTS)
 
 
 def _grow_by_points(state: ModelSet, m: int, links: PairLinks, bearings, options: RegistrationOptions,
