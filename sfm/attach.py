@@ -113,17 +113,15 @@ def _attach_one(b, R, C, reg, pairs, R_j_from_i, t_j_from_i, weights, tracks: Tr
     i, j = pairs[best]
     a = j if i == b else i
     R_b, direction = pose_along_pair(a, b, pairs[best], R_j_from_i[best], t_j_from_i[best], R[a])
-    sel = (tracks.image_ids == b) & (point_of_track[tracks.track_ids] >= 0)
-    if sel.sum() < min_points:
+    u, seen = points_seen_by(b, R_b, tracks, bearings, X, point_of_track)
+    if len(u) < min_points:
         return None
-    P = X[point_of_track[tracks.track_ids[sel]]] - C[a]
-    u = gather_bearings(bearings, tracks.image_ids[sel], tracks.feature_ids[sel]) @ R_b  # R_bᵀ z, world rays
-    s, lam = _ray_distances(direction, u, P)
+    s, lam = _ray_distances(direction, u, seen - C[a])
     ok = (s > 0) & (lam > 0)
     if ok.sum() < min_points:
         return None
     c_b = C[a] + np.median(s[ok]) * direction
-    err = angular_errors(u, X[point_of_track[tracks.track_ids[sel]]] - c_b)
+    err = angular_errors(u, seen - c_b)
     if (err < 4 * max_error_rad).sum() < min_points:
         return None
     return R_b, c_b
@@ -139,6 +137,15 @@ def pose_along_pair(a: int, b: int, pair, R_j_from_i: np.ndarray, t_j_from_i: np
     return R_j_from_i.T @ R_a, normalize(R_a.T @ t_j_from_i)
 
 
+def points_seen_by(b: int, R_b: np.ndarray, tracks: Tracks, bearings, X: np.ndarray, point_of_track: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Camera b's observations of the model points X (rows `point_of_track`, -1: none): its rays in the world frame
+    under rotation R_b (K, 3) and the points they see (K, 3)."""
+    sel = (tracks.image_ids == b) & (point_of_track[tracks.track_ids] >= 0)
+    u = gather_bearings(bearings, tracks.image_ids[sel], tracks.feature_ids[sel]) @ R_b  # R_bᵀ z, world rays
+    return u, X[point_of_track[tracks.track_ids[sel]]]
+
+
 def distance_by_few_points(direction: np.ndarray, u: np.ndarray, P: np.ndarray, max_error_rad: float,
                            min_points: int) -> tuple[float, int] | None:
     """A camera on the ray `direction` (unit, world) from a model camera, whose rays u (K, 3) (unit, world) see the
@@ -151,8 +158,8 @@ def distance_by_few_points(direction: np.ndarray, u: np.ndarray, P: np.ndarray, 
     if ok.sum() < min_points:
         return None
     s, u, P = s[ok], u[ok], P[ok]
-    seen = normalize(P[None, :, :] - s[:, None, None] * direction)  # (candidate, point, 3) from each candidate
-    errors = np.arctan2(np.linalg.norm(np.cross(u, seen), axis=-1), np.einsum("ka,cka->ck", u, seen))
+    seen = P[None, :, :] - s[:, None, None] * direction  # (candidate, point, 3) from each candidate
+    errors = angular_errors(np.broadcast_to(u, seen.shape).reshape(-1, 3), seen.reshape(-1, 3)).reshape(len(s), -1)
     agree = errors < max_error_rad
     best = int(np.argmax(agree.sum(axis=1)))
     if agree[best].sum() < min_points:

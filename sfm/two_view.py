@@ -123,21 +123,24 @@ class FResult:
 LO_THRESHOLD_SCHEDULE = (3.0, 2.0, 1.5, 1.0)  # inlier-set thresholds of the LO re-fits, in units of the threshold
 
 
-def _local_optimization(b_i, b_j, F, threshold, steps):
+def _local_optimization(b_i, b_j, F, threshold, steps, fit=None, min_points: int = 8):
     """LO step: weighted re-fits on inlier sets chosen at a shrinking threshold; keep the best-scoring model.
 
-    Starting loose lets a model from a noisy minimal sample pull in the inliers it narrowly misses.
+    Starting loose lets a model from a noisy minimal sample pull in the inliers it narrowly misses. `fit(b_i, b_j,
+    weights)` is the linear re-fit (the 8-point `estimate_f_linear` by default; the upright model passes its own),
+    which needs `min_points` inliers.
     """
+    fit = estimate_f_linear if fit is None else fit
     errors = epipolar_angular_errors(F, b_i, b_j)  # of the current model: scored, then its inliers re-fitted
     best_F, best_cost = F, _msac_scores(errors, threshold).sum()
     schedule = LO_THRESHOLD_SCHEDULE + (1.0,) * max(0, steps - len(LO_THRESHOLD_SCHEDULE))
     for factor in schedule[:max(steps, 1)]:
         inliers = errors < factor * threshold
-        if inliers.sum() < 8:
+        if inliers.sum() < min_points:
             break
         # Cauchy-like weights so that borderline inliers pull less than clean ones.
         w = 1.0 / (1.0 + (errors[inliers] / (factor * threshold)) ** 2)
-        current = estimate_f_linear(b_i[inliers], b_j[inliers], w)
+        current = fit(b_i[inliers], b_j[inliers], w)
         errors = epipolar_angular_errors(current, b_i, b_j)
         cost = _msac_scores(errors, threshold).sum()
         if cost < best_cost:

@@ -223,20 +223,8 @@ def _draw_upright_samples(rng: np.random.Generator, batch: int, n: int, head_sha
 
 def _local_optimization_upright(b_i, b_j, F, threshold, steps):
     """two_view's LO schedule (shrinking inlier thresholds, Cauchy weights) with the upright linear re-fit."""
-    errors = tv.epipolar_angular_errors(F, b_i, b_j)  # of the current model: scored, then its inliers re-fitted
-    best_F, best_cost = F, tv._msac_scores(errors, threshold).sum()
-    schedule = tv.LO_THRESHOLD_SCHEDULE + (1.0,) * max(0, steps - len(tv.LO_THRESHOLD_SCHEDULE))
-    for factor in schedule[:max(steps, 1)]:
-        inliers = errors < factor * threshold
-        if inliers.sum() < MIN_LINEAR_POINTS:
-            break
-        w = 1.0 / (1.0 + (errors[inliers] / (factor * threshold)) ** 2)
-        current = estimate_f_upright_linear(b_i[inliers], b_j[inliers], w)
-        errors = tv.epipolar_angular_errors(current, b_i, b_j)
-        cost = tv._msac_scores(errors, threshold).sum()
-        if cost < best_cost:
-            best_F, best_cost = current, cost
-    return best_F, best_cost
+    return tv._local_optimization(b_i, b_j, F, threshold, steps, fit=estimate_f_upright_linear,
+                                  min_points=MIN_LINEAR_POINTS)
 
 
 def ransac_f_upright(b_i: np.ndarray, b_j: np.ndarray, options: tv.RansacOptions) -> tv.FResult:

@@ -25,7 +25,8 @@ from typing import Sequence
 
 import numpy as np
 
-from fullview.sfm.attach import attach_cameras, distance_by_few_points, model_points, pose_along_pair
+from fullview.sfm.attach import (attach_cameras, distance_by_few_points, model_points, points_seen_by,
+                                 pose_along_pair)
 from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.metrics import umeyama
 from fullview.sfm.options import MatchesOptions, RegistrationOptions
@@ -484,19 +485,18 @@ def _attach_by_a_guess(state: ModelSet, m: int, links: PairLinks, bearings, opti
     R_b, direction = pose_along_pair(a, b, pairs[k], links.R_j_from_i[k], links.t_j_from_i[k],
                                      state.R_cam_from_world[a])
     by_points = _distance_by_the_points_seen(state, b, a, R_b, direction, X, point_of_track, bearings, options)
-    state.model_id[b] = m
     if by_points is not None:
         length, agreeing = by_points
-        state.R_cam_from_world[b], state.centers[b] = R_b, state.centers[a] + length * direction
-        state.joins.append({"model": m, "images": [b], "tracks": agreeing, "scale": 1.0})
         log.warning("image %d attached to model %d along its pair with image %d at the distance %d of the model's "
                     "points it sees agree on (%.3f)", b, m, a, agreeing, length)
-        return True
-    length = float(np.median(np.linalg.norm(np.diff(state.centers[pairs[within]], axis=1)[:, 0], axis=1)))
+    else:
+        length = float(np.median(np.linalg.norm(np.diff(state.centers[pairs[within]], axis=1)[:, 0], axis=1)))
+        agreeing = 0
+        log.warning("image %d attached to model %d along its pair with image %d at a guessed distance (%.3f, the "
+                    "median baseline): no points fix it", b, m, a, length)
+    state.model_id[b] = m
     state.R_cam_from_world[b], state.centers[b] = R_b, state.centers[a] + length * direction
-    state.joins.append({"model": m, "images": [b], "tracks": 0, "scale": 1.0})
-    log.warning("image %d attached to model %d along its pair with image %d at a guessed distance (%.3f, the median "
-                "baseline): no points fix it", b, m, a, length)
+    state.joins.append({"model": m, "images": [b], "tracks": agreeing, "scale": 1.0})
     return True
 
 
@@ -508,13 +508,11 @@ def _distance_by_the_points_seen(state: ModelSet, b: int, a: int, R_b: np.ndarra
     baseline is a poor guess where long pairs verify (hand points join cameras rooms apart): on a 10-view home
     (seed 7) it put a leaf 1.9 times too far, and the hand points it sees through three views, which would have
     placed it, were then dropped by triangulation as outliers."""
-    tracks = state.tracks
-    sel = (tracks.image_ids == b) & (point_of_track[tracks.track_ids] >= 0)
-    if sel.sum() < MIN_LEAF_POINTS:
+    u, seen = points_seen_by(b, R_b, state.tracks, bearings, X, point_of_track)
+    if len(u) < MIN_LEAF_POINTS:
         return None
-    P = X[point_of_track[tracks.track_ids[sel]]] - state.centers[a]
-    u = gather_bearings(bearings, tracks.image_ids[sel], tracks.feature_ids[sel]) @ R_b  # R_bᵀ z, world rays
-    return distance_by_few_points(direction, u, P, np.radians(options.resection_threshold_deg), MIN_LEAF_POINTS)
+    return distance_by_few_points(direction, u, seen - state.centers[a], np.radians(options.resection_threshold_deg),
+                                  MIN_LEAF_POINTS)
 
 
 def _grow_by_points(state: ModelSet, m: int, links: PairLinks, bearings, options: RegistrationOptions,
