@@ -261,13 +261,9 @@ def _add_points(rec, model: SparseModel) -> None:
     """Every point with its track (observations in registered images), colour and error in degrees."""
     import pycolmap
 
-    point, image, feature = (np.asarray(a, np.int64) for a in
-                             (model.track_point3d, model.track_image, model.track_point2d))
-    keep = np.asarray(model.registered, bool)[image]
-    point, image, feature = point[keep], image[keep] + 1, feature[keep]
-    order = np.argsort(point, kind="stable")
-    starts = np.searchsorted(point[order], np.arange(len(model.points) + 1)).tolist()
-    image, feature = image[order].tolist(), feature[order].tolist()
+    point, image, feature = _registered_observations(model)
+    starts = np.searchsorted(point, np.arange(len(model.points) + 1)).tolist()
+    image, feature = (image + 1).tolist(), feature.tolist()
     errors_deg = np.degrees(np.asarray(model.point_errors_rad, np.float64)).tolist()
     points = np.asarray(model.points, np.float64)
     colors = np.asarray(model.colors, np.uint8)
