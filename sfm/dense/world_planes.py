@@ -544,7 +544,7 @@ def _drop_islands(label: np.ndarray, min_pixels: int) -> np.ndarray:
     return out
 
 
-def nearest_plane_ranges(view: View, planes: list[WorldPlane], options: WorldPlaneOptions, step: int = 2
+def nearest_plane_ranges(view: View, planes: list[WorldPlane], options: WorldPlaneOptions, step: int = 4
                          ) -> np.ndarray:
     """(h / step, w / step) float32: the range of the nearest plane each ray of ``view`` meets inside its extent
     (every ``step``-th pixel; NaN: none), what the model predicts the view sees. Used as occluders by the view check:
@@ -572,8 +572,15 @@ def fill_from_world_planes(ref: View, planes: list[WorldPlane], others: list[Vie
     if not len(rows):
         return fill, label
     points = pixel_points(ref, fill, rows, cols)
-    keep = check_against_views(points, ref.color[rows, cols], others, [exposure_gain(ref, o) for o in others],
-                               view_options, occluders)
+    gains = [exposure_gain(ref, o) for o in others]
+    colors = ref.color[rows, cols]
+    # the occluders only for the floor and the ceiling (level planes): on walls they also let through the pixels
+    # labelled with a wall behind the right one (home 3: wrong wall fills 5.7% -> 7.2% of the wall pixels)
+    level = np.array([False] + [p.level for p in planes])[label[rows, cols]] if occluders is not None \
+        else np.zeros(len(rows), bool)
+    keep = np.zeros(len(rows), bool)
+    keep[~level] = check_against_views(points[~level], colors[~level], others, gains, view_options)
+    keep[level] = check_against_views(points[level], colors[level], others, gains, view_options, occluders)
     fill[rows[~keep], cols[~keep]] = np.nan
     label[rows[~keep], cols[~keep]] = 0
     return fill, label
