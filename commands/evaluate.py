@@ -9,6 +9,7 @@ import numpy as np
 
 from fullview.io.dataset import Dataset, DatasetError
 from fullview.io.workspace import Workspace, WorkspaceBusy, folder_of
+from fullview.sfm.dense_agreement import visible_agreement
 from fullview.sfm.dense_metrics import dense_metrics, leave_one_out_agreement
 from fullview.sfm.metrics import Similarity, pose_metrics, umeyama
 from fullview.stages.runner import Pipeline, RunnerError
@@ -60,15 +61,23 @@ def _against_ground_truth(pipeline: Pipeline, est: dict, source: str) -> dict:
 
 def dense_agreement(dataset: Dataset, ws: Workspace, est: dict) -> dict:
     """Leave-one-out agreement of the densify range maps (no ground truth needed): per panorama of model 0 its valid
-    share and the share of its ranged pixels within 2% of what the other panoramas predict; with the medians."""
+    share and the share of its ranged pixels within 2% of what the other panoramas predict, splatted
+    (``agreement``) and with visibility (``visible_agreement``: ``sfm.dense_metrics.visible_agreement``); with the
+    medians."""
     names = [n for n, ok in zip(dataset.image_names, est["registered"]) if ok]
     keep = np.asarray(est["registered"], bool)
     maps = [(d["range"] if d is not None else None) for d in (ws.load_depth(n) for n in names)]
     per_image = leave_one_out_agreement(maps, est["R_cam_from_world"][keep], est["t_cam_from_world"][keep],
                                         tolerance=AGREEMENT_TOLERANCE, stride=AGREEMENT_STRIDE)
+    visible = visible_agreement(maps, est["R_cam_from_world"][keep], est["t_cam_from_world"][keep],
+                                tolerance=AGREEMENT_TOLERANCE, stride=AGREEMENT_STRIDE)
+    for entry, seen in zip(per_image, visible):
+        entry["visible_agreement"], entry["visible_checked_share"] = seen["agreement"], seen["checked_share"]
     values = [p["agreement"] for p in per_image if p["agreement"] is not None]
+    seen_values = [p["agreement"] for p in visible if p["agreement"] is not None]
     return {"tolerance": AGREEMENT_TOLERANCE,
             "median_agreement": float(np.median(values)) if values else None,
+            "median_visible_agreement": float(np.median(seen_values)) if seen_values else None,
             "median_valid_share": float(np.median([p["valid_share"] for p in per_image])) if per_image else None,
             "per_image": dict(zip(names, per_image))}
 

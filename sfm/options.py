@@ -237,6 +237,12 @@ class DensifyOptions:
                                   odd=True)
     mesh_min_component_triangles: int = setting(50, "connected mesh pieces with fewer triangles are dropped", ge=0,
                                                 le=1_000_000_000)
+    occlusion_aware_vote: bool = setting(True, "the world fill's view check of floor and ceiling pixels: another "
+                                         "colour seen by a panorama whose world planes put a surface in front of "
+                                         "the point (a floor next to a cupboard) is no vote against it")
+    one_level_plane_per_band: bool = setting(True, "world planes: of the level planes facing one way within 3 median "
+                                             "tolerances (one ceiling found in pieces a few cm apart) only the best "
+                                             "supported is kept (with world_plane_snap_deg > 0)")
     RULES: ClassVar[list[Rule]] = [
         ("min_triangulation_angle_deg < max_triangulation_angle_deg",
          lambda o: o.min_triangulation_angle_deg < o.max_triangulation_angle_deg),

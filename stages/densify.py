@@ -212,7 +212,8 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
                                           view_tolerance=options.view_tolerance, extent=config.world_plane_extent,
                                           snap_deg=config.world_plane_snap_deg, free_ceiling=config.free_ceiling,
-                                          sweep_walls=config.sweep_walls)
+                                          sweep_walls=config.sweep_walls,
+                                          one_level_per_band=config.one_level_plane_per_band)
     points, ranges, observers = _model_points(views, sparse_points)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
                                              up=camera_up(np.array([v.R_cam_from_world for v in views])),
@@ -222,14 +223,17 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
     kept = world_planes.carve_extents(found, judges, wopt)
     log.info("world planes: %d found in %d points, %d kept after the free-space check (%.1f s)", len(found),
              len(points), len(kept), time.perf_counter() - t0)
+    occluders = [world_planes.nearest_plane_ranges(v, kept, wopt) for v in views] \
+        if config.occlusion_aware_vote else None
     out = []
     for a, view in enumerate(tqdm(views, desc="world planes", unit="pano")):
         fill, labels = fills[a]
         empty = planes.View(R_cam_from_world=view.R_cam_from_world, t_cam_from_world=view.t_cam_from_world,
                             range_map=np.where(np.isfinite(fill), fill, view.range_map), observable=view.observable,
                             color=view.color)
-        wfill, wlabels = world_planes.fill_from_world_planes(empty, kept, [judges[b] for b in neighbours[a]], wopt,
-                                                             options)
+        wfill, wlabels = world_planes.fill_from_world_planes(
+            empty, kept, [judges[b] for b in neighbours[a]], wopt, options,
+            [occluders[b] for b in neighbours[a]] if occluders is not None else None)
         new = np.isfinite(wfill) & ~np.isfinite(fill)
         out.append((np.where(new, wfill, fill).astype(np.float32),
                     np.where(new, wlabels + labels.max() + 1, labels).astype(np.int32)))

@@ -336,3 +336,34 @@ def test_the_ceiling_needs_no_support_from_the_region_the_floor_does(free_ceilin
     big = np.bincount(regions.ravel())[1:].argmax() + 1
     assert allowed[big, 0] == free_ceiling
     assert not allowed[big, 1]
+
+
+def test_a_colour_the_model_says_is_hidden_is_no_vote_against_a_point():
+    # a floor point next to a cupboard: two of the three neighbours stand behind the cupboard, have no stereo there
+    # and see its colour; the third sees the floor's. Without the model's occluders the point loses 1:2; with
+    # their predicted ranges (the cupboard, nearer than the point) only the view that sees it votes
+    rng, face, image = _render(CENTERS[0])
+    row, col = 200 * WIDTH // 256 // 2, WIDTH // 3  # a floor pixel of view 0
+    assert face[row, col] == 3
+    point = planes.pixel_points(planes.view_of(np.eye(3), -CENTERS[0], rng, np.ones(rng.shape, bool), image, WIDTH),
+                                rng, np.array([row]), np.array([col]))
+    colour = np.array([[float(FACE_GREY[3])] * 3], np.float32)
+    others, occluders = [], []
+    for k, c in enumerate(CENTERS):
+        r_k, _, img_k = _render(c)
+        view = planes.view_of(np.eye(3), -c, np.full(r_k.shape, np.nan, np.float32), np.ones(r_k.shape, bool),
+                              img_k, WIDTH)
+        o_row, o_col, r_pred = planes.project_into(view, point, view.range_map.shape)
+        if k > 0:  # behind the cupboard: another colour at the point, a nearer surface in the model
+            view.color[o_row, o_col] = 30.0
+        occluder = np.full(r_k.shape, np.nan, np.float32)
+        occluder[o_row, o_col] = 0.5 * r_pred if k > 0 else np.nan
+        others.append(view)
+        occluders.append(occluder)
+    gains = [np.ones(3, np.float32)] * len(others)
+    options = planes.PlaneOptions()
+    assert not planes.check_against_views(point, colour, others, gains, options)[0]
+    assert planes.check_against_views(point, colour, others, gains, options, occluders)[0]
+    # a hidden view's own colour still counts for the point, and a view that is not hidden still votes against it
+    far = [np.full(o.shape, np.nan, np.float32) for o in occluders]
+    assert not planes.check_against_views(point, colour, others, gains, options, far)[0]

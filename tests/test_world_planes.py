@@ -204,3 +204,24 @@ def test_a_wall_seen_only_along_its_floor_and_ceiling_lines_is_found_by_the_swee
                                                  observers=observers)
         assert has_the_wall(found) == sweep
         assert all(p.front != 0 for p in found)
+
+
+def _level(y, support, normal_sign=1.0):
+    normal = np.array([0.0, normal_sign, 0.0])
+    points = np.stack(np.meshgrid(np.linspace(-2, 2, 21), [y], np.linspace(-2, 2, 21)), -1).reshape(-1, 3)
+    origin, axes, extent, _ = world_planes._extent(points, normal, normal_sign * y, CELL, 3, False)
+    return world_planes.WorldPlane(normal=normal, offset=normal_sign * y, origin=origin, axes=axes, cell=CELL,
+                                   extent=extent, support=support, level=True)
+
+
+def test_one_level_plane_per_band_keeps_the_best_supported_piece_of_a_ceiling():
+    # three pieces of one ceiling 2-4 cm apart (the nearest piece would win every ray), the floor and a table top
+    ceiling = [_level(-1.30, 900), _level(-1.27, 300), _level(-1.33, 200)]
+    floor, table = _level(1.2, 800, -1.0), _level(0.45, 150, -1.0)
+    wall = world_planes.WorldPlane(normal=np.array([0.0, 0.0, 1.0]), offset=3.0, origin=np.zeros(3),
+                                   axes=np.eye(3)[:2], cell=CELL, extent=np.ones((2, 2), bool), support=100)
+    planes = [ceiling[1], floor, ceiling[0], wall, table, ceiling[2]]
+    kept = world_planes._one_level_plane_per_band(planes, band=0.02)
+    assert [p.support for p in kept] == [800, 900, 100, 150]  # input order, the 300 and 200 pieces dropped
+    # pieces farther apart than the bands are separate surfaces (a shelf under the ceiling)
+    assert len(world_planes._one_level_plane_per_band([ceiling[0], _level(-1.0, 300)], band=0.02)) == 2

@@ -124,27 +124,33 @@ def project_into(view: View, points: np.ndarray, shape: tuple[int, int]
 
 
 def check_against_views(points: np.ndarray, colors: np.ndarray, views: list[View], gains: list[np.ndarray],
-                        options: PlaneOptions) -> np.ndarray:
+                        options: PlaneOptions, occluders: list[np.ndarray] | None = None) -> np.ndarray:
     """Keep mask (N,) of candidate world points: no view sees a valid range clearly beyond one (it would look
     through the surface), at least one view sees its colour there, and no more views see another colour than see
     its own. Views see a point only inside their observable area and unless their range there is clearly nearer
-    (occluded)."""
+    (occluded). ``occluders`` (one (h', w') range map per view, any size, NaN: nothing): where a view's own stereo
+    is empty, the surfaces the model predicts in front of it (``world_planes.nearest_plane_ranges``) explain another
+    colour there: that view's vote against the point does not count (its vote for it still does)."""
     contradicted = np.zeros(len(points), bool)
     same = np.zeros(len(points), np.int32)
     other = np.zeros(len(points), np.int32)
     tol = options.view_tolerance
-    for view, gain in zip(views, gains):
+    for v, (view, gain) in enumerate(zip(views, gains)):
         row, col, r_pred = project_into(view, points, view.range_map.shape)
         seen = view.observable[row, col]
         r_obs = view.range_map[row, col]
         with np.errstate(invalid="ignore"):
             beyond = r_obs > (1 + tol) * r_pred
             occluded = r_obs < (1 - tol) * r_pred
+            hidden = occluded.copy()
+            if occluders is not None:
+                o_row, o_col, _ = project_into(view, points, occluders[v].shape)
+                hidden |= occluders[v][o_row, o_col] < (1 - tol) * r_pred
         contradicted |= seen & beyond
         looks = seen & ~occluded
         agree = _colour_agrees(colors, view.color[row, col], gain, options.max_color_difference)
         same += looks & agree
-        other += looks & ~agree
+        other += looks & ~agree & ~hidden
     return ~contradicted & (same >= 1) & (same >= other)
 
 
