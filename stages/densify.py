@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import time
+from functools import partial
 
 import cv2
 import numpy as np
@@ -44,7 +45,7 @@ from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimat
 from fullview.sfm.dense_metrics import voxel_downsample
 from fullview.sfm.options import DensifyOptions
 from fullview.stages import mesh_step
-from fullview.stages.protocol import StageContext
+from fullview.stages.protocol import StageContext, thread_map
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +54,7 @@ UPSTREAM = ("triangulation",)
 INPUTS = ("images", "masks")
 WORLD_PLANE_CELL_SHARE = 0.04  # extent cells of the world planes: this share of the scene's median depth
 DEFAULT_VOXEL_SHARE = 0.002  # voxel size = this share of the scene size when densify.voxel_size is 0
+PAIR_THREADS = 2  # stereo pairs densified at once (each holds ~0.2 GB of 2048-px temporaries)
 
 
 def run(ctx: StageContext) -> dict:
@@ -123,7 +125,9 @@ def _stereo_pairs(epi: dict, centers, registered, median_depth, config: DensifyO
 
 
 def _range_maps(ctx: StageContext, images, R, t, near, pairs):
-    """Densify every pair; combine each panorama's estimates as soon as its last pair is done.
+    """Densify every pair (two at a time on local threads: rectification, SGBM and the back-mapping run in OpenCV
+    and numpy without the GIL); combine each panorama's estimates, in pair order, as soon as its last pair is done
+    (the same maps as one pair after the other).
 
     Returns ({camera: (range float32 NaN-invalid, valid bool)}, per-pair log)."""
     config: DensifyOptions = ctx.options
@@ -132,41 +136,53 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
     estimates: dict[int, list[np.ndarray]] = {k: [] for k in remaining}
     errors: dict[int, list[np.ndarray]] = {k: [] for k in remaining}
     maps, pair_log = {}, []
-    params = dense.SgbmParams(block_size=config.block_size, min_texture_std=config.min_texture_std)
     # never upsample: the rectified grid spans 180° in at most as many rows as the panoramas have
     rect_height = min(config.rect_height, min(image.shape[0] for image in images.values()))
-    for i, j in tqdm(pairs, desc="densify", unit="pair"):
-        baseline = float(np.linalg.norm(camera_center(R[i], t[i]) - camera_center(R[j], t[j])))
-        ratio = pair_min_depth_ratio(near[i], near[j], baseline, config.min_depth_factor, config.max_disparity_deg)
-        t0 = time.perf_counter()
-        res = dense.densify_pair(images[i], images[j], R[i], t[i], R[j], t[j], rect_height=rect_height,
-                                 out_width=images[i].shape[1], min_depth_ratio=ratio,
-                                 min_epipole_angle_deg=config.epipole_margin_deg, params=params)
-        elapsed = time.perf_counter() - t0
-        kept = {}
-        for cam, other, rng in ((i, j, res.range_i), (j, i, res.range_j)):
-            err = range_error_per_pixel(rng, R[cam], camera_center(R[cam], t[cam]), camera_center(R[other], t[other]),
-                                        np.pi / rect_height)
-            with np.errstate(invalid="ignore"):
-                rng[~(err <= config.max_range_error_per_px)] = np.nan
-            kept[cam] = float(np.isfinite(rng).mean())
-            errors[cam].append(err)
+    work = partial(_densify_pair, config, images, R, t, near, rect_height)
+    for (i, j), (res, pair_errors, kept, ratio, baseline, elapsed) in zip(
+            pairs, tqdm(thread_map(work, [tuple(p) for p in pairs], threads=PAIR_THREADS), total=len(pairs),
+                        desc="densify", unit="pair")):
         pair_log.append({"pair": [names[i], names[j]], "baseline": baseline, "min_depth_ratio": ratio,
                          "num_disparities": dense.disparity_search_range(rect_height, ratio),
                          "valid_i": float(res.valid_i.mean()), "valid_j": float(res.valid_j.mean()),
-                         "well_conditioned_i": kept[i], "well_conditioned_j": kept[j],
+                         "well_conditioned_i": kept[0], "well_conditioned_j": kept[1],
                          "time_s": round(elapsed, 3), "timings_s": {k: round(v, 3) for k, v in res.timings.items()}})
         log.info("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%% (well conditioned %.0f%% / "
                  "%.0f%%), %.1f s", names[i], names[j], baseline, ratio, 100 * res.valid_i.mean(),
-                 100 * res.valid_j.mean(), 100 * kept[i], 100 * kept[j], elapsed)
-        for cam, rng in ((i, res.range_i), (j, res.range_j)):
+                 100 * res.valid_j.mean(), 100 * kept[0], 100 * kept[1], elapsed)
+        for cam, rng, err in ((i, res.range_i, pair_errors[0]), (j, res.range_j, pair_errors[1])):
             estimates[cam].append(rng)
+            errors[cam].append(err)
             remaining[cam] -= 1
             if remaining[cam] == 0:
                 combined = combine_range_estimates(estimates.pop(cam), config.combine_tolerance, errors.pop(cam))
                 combined = mask_below_latitude(*combined, config.min_latitude_deg, config.max_latitude_deg)
                 maps[cam] = apply_mask(*combined, ctx.dataset.load_mask(names[cam]))
     return maps, pair_log
+
+
+def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, pair: tuple[int, int]):
+    """One stereo pair (``_range_maps``): its ``PairDepth`` with the ill-conditioned ranges dropped, the expected
+    relative range error per pixel of both maps, their well-conditioned shares, the depth ratio, the baseline and
+    the time taken."""
+    i, j = pair
+    baseline = float(np.linalg.norm(camera_center(R[i], t[i]) - camera_center(R[j], t[j])))
+    ratio = pair_min_depth_ratio(near[i], near[j], baseline, config.min_depth_factor, config.max_disparity_deg)
+    params = dense.SgbmParams(block_size=config.block_size, min_texture_std=config.min_texture_std)
+    t0 = time.perf_counter()
+    res = dense.densify_pair(images[i], images[j], R[i], t[i], R[j], t[j], rect_height=rect_height,
+                             out_width=images[i].shape[1], min_depth_ratio=ratio,
+                             min_epipole_angle_deg=config.epipole_margin_deg, params=params)
+    elapsed = time.perf_counter() - t0
+    pair_errors, kept = [], []
+    for cam, other, rng in ((i, j, res.range_i), (j, i, res.range_j)):
+        err = range_error_per_pixel(rng, R[cam], camera_center(R[cam], t[cam]), camera_center(R[other], t[other]),
+                                    np.pi / rect_height)
+        with np.errstate(invalid="ignore"):
+            rng[~(err <= config.max_range_error_per_px)] = np.nan
+        kept.append(float(np.isfinite(rng).mean()))
+        pair_errors.append(err)
+    return res, pair_errors, kept, ratio, baseline, elapsed
 
 
 # ------------------------------------------------------------------------------------------------ textureless
