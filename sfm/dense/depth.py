@@ -23,6 +23,8 @@ from fullview.sfm.dense.rectify import rectify_pair, theta_of_columns
 
 log = logging.getLogger(__name__)
 
+BACKMAP_ROWS = 64  # panorama rows resampled at a time (temporaries of a few MB, not ~250 MB per map)
+
 
 def depth_from_disparity(theta_i: np.ndarray, disparity_angle: np.ndarray, baseline: float) -> np.ndarray:
     """Range ``|O_i P|`` from the angle θ_i (at O_i, from the epipole) and the angular disparity d (radians).
@@ -107,16 +109,21 @@ def range_map_to_panorama(
         raise ValueError(f"interpolation must be 'nearest' or 'edge_aware', got {interpolation!r}")
     height = int(height or width // 2)
     n_phi, n_theta = range_rect.shape
-    b_rect = pixel_grid_bearings(width, height, np.float32) @ np.asarray(R_rect_from_cam, np.float32).T
-    # the rectified frame is an equirectangular camera (n_phi x n_theta) whose top pole is the epipole: θ from the pole
-    v, u = bearings_to_pixels_f32(b_rect, n_phi, n_theta, from_pole=True)
+    grid = pixel_grid_bearings(width, height, np.float32)
+    R_t = np.asarray(R_rect_from_cam, np.float32).T
     values = np.asarray(range_rect, dtype=np.float32)
-    if interpolation == "nearest":
-        col = np.clip(np.floor(u), 0, n_theta - 1).astype(np.intp)
-        row = np.mod(np.floor(v), n_phi).astype(np.intp)
-        out = values[row, col]
-    else:
-        out = sample_edge_aware(values, u, v, edge_tol, wrap_rows=True)
+    out = np.empty((height, width), np.float32)
+    for top in range(0, height, BACKMAP_ROWS):  # elementwise per pixel: the same numbers as in one piece
+        rows = slice(top, top + BACKMAP_ROWS)
+        # the rectified frame is an equirectangular camera (n_phi x n_theta) whose top pole is the epipole: θ from
+        # the pole
+        v, u = bearings_to_pixels_f32(grid[rows] @ R_t, n_phi, n_theta, from_pole=True)
+        if interpolation == "nearest":
+            col = np.clip(np.floor(u), 0, n_theta - 1).astype(np.intp)
+            row = np.mod(np.floor(v), n_phi).astype(np.intp)
+            out[rows] = values[row, col]
+        else:
+            out[rows] = sample_edge_aware(values, u, v, edge_tol, wrap_rows=True)
     valid = np.isfinite(out) & (out > 0)
     return np.where(valid, out, np.nan).astype(np.float32), valid
 
