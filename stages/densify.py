@@ -189,7 +189,8 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
 def _fill_textureless(ctx: StageContext, images, maps, R, t, centers, sparse_points, median_depth: float
                       ) -> dict[str, float]:
     """Fill each range map's textureless regions in place (module doc, step 3b); returns the filled share per
-    panorama. Only where a stereo range could be: inside the latitude caps and the image mask."""
+    panorama. Only where a stereo range could be: inside the latitude caps and the image mask. Every per-panorama
+    step runs on local threads (numpy and OpenCV release the GIL); each result depends on its panorama alone."""
     config: DensifyOptions = ctx.options
     names = ctx.dataset.image_names
     cams = sorted(maps)
@@ -200,16 +201,17 @@ def _fill_textureless(ctx: StageContext, images, maps, R, t, centers, sparse_poi
                             min(config.fill_width, maps[k][0].shape[1])) for a, k in enumerate(cams)]
     fills = [(np.full(v.range_map.shape, np.nan, np.float32), np.zeros(v.range_map.shape, np.int32)) for v in views]
     if config.fill_planes:
-        fills = [planes.fill_plane_ranges(views[a], [views[b] for b in neighbours[a]], options, config.seed + k)
-                 for a, k in enumerate(tqdm(cams, desc="planes", unit="pano"))]
+        fills = list(tqdm(thread_map(lambda a: planes.fill_plane_ranges(
+            views[a], [views[b] for b in neighbours[a]], options, config.seed + cams[a]), range(len(cams))),
+            total=len(cams), desc="planes", unit="pano"))
     if config.world_planes:
         fills = _fill_world_planes(config, views, fills, neighbours, options, sparse_points, median_depth)
+    confirmed = list(thread_map(lambda a: planes.confirmed_by_views(
+        views[a], *fills[a], [views[b] for b in neighbours[a]], [fills[b][0] for b in neighbours[a]], options),
+        range(len(cams))))
     shares = {}
     for a, k in enumerate(cams):
-        others = neighbours[a]
-        fill, labels = fills[a]
-        kept = planes.confirmed_by_views(views[a], fill, labels, [views[b] for b in others],
-                                         [fills[b][0] for b in others], options)
+        fill, kept = fills[a][0], confirmed[a]
         rng, valid = maps[k]
         fill = cv2.resize(np.where(kept, fill, np.nan), (rng.shape[1], rng.shape[0]),
                           interpolation=cv2.INTER_NEAREST)
@@ -238,18 +240,19 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
     kept = world_planes.carve_extents(found, judges, wopt)
     log.info("world planes: %d found in %d points, %d kept after the free-space check (%.1f s)", len(found),
              len(points), len(kept), time.perf_counter() - t0)
-    out = []
-    for a, view in enumerate(tqdm(views, desc="world planes", unit="pano")):
-        fill, labels = fills[a]
+
+    def fill(a: int) -> tuple[np.ndarray, np.ndarray]:
+        view, (fill, labels) = views[a], fills[a]
         empty = planes.View(R_cam_from_world=view.R_cam_from_world, t_cam_from_world=view.t_cam_from_world,
                             range_map=np.where(np.isfinite(fill), fill, view.range_map), observable=view.observable,
                             color=view.color)
         wfill, wlabels = world_planes.fill_from_world_planes(empty, kept, [judges[b] for b in neighbours[a]], wopt,
                                                              options)
         new = np.isfinite(wfill) & ~np.isfinite(fill)
-        out.append((np.where(new, wfill, fill).astype(np.float32),
-                    np.where(new, wlabels + labels.max() + 1, labels).astype(np.int32)))
-    return out
+        return (np.where(new, wfill, fill).astype(np.float32),
+                np.where(new, wlabels + labels.max() + 1, labels).astype(np.int32))
+
+    return list(tqdm(thread_map(fill, range(len(views))), total=len(views), desc="world planes", unit="pano"))
 
 
 def _model_points(views: list[planes.View], sparse_points: np.ndarray
@@ -288,22 +291,24 @@ def _observable(config: DensifyOptions, mask: np.ndarray | None, shape: tuple[in
 
 # ------------------------------------------------------------------------------------------------ fusion
 def _fuse(config: DensifyOptions, images, maps, R, t, centers, sparse):
-    """Consistency-checked, voxel-merged, cleaned cloud: (points, RGB colours, normals, voxel size)."""
+    """Consistency-checked, voxel-merged, cleaned cloud: (points, RGB colours, normals, voxel size). Each
+    panorama's points are checked and down-sampled on local threads, then merged in panorama order."""
     cams = sorted(maps)
     voxel = config.voxel_size or DEFAULT_VOXEL_SHARE * scene_size(centers[cams], sparse["points"])
     ranges = [maps[k][0] for k in cams]
     rgb = [images[k][..., ::-1] for k in cams]
     neighbours = fusion_neighbours(centers[cams], config.fusion_views)
-    parts, part_cols, raw = [], [], 0
-    for v in tqdm(range(len(cams)), desc="fusion", unit="pano"):
+
+    def fuse(v: int) -> tuple[np.ndarray, np.ndarray, int]:
         pts, cols = dense.fuse_depth_maps(ranges, rgb, R[cams], t[cams], min_consistent=config.min_consistent,
                                           rel_tol=config.consistency_tolerance, stride=config.fusion_stride,
                                           neighbors=neighbours, views=[v])
-        raw += len(pts)
-        pts, cols = voxel_downsample(pts, voxel, cols)
-        parts.append(pts)
-        part_cols.append(cols)
-    points, colors = voxel_downsample(np.concatenate(parts), voxel, np.concatenate(part_cols))
+        return *voxel_downsample(pts, voxel, cols), len(pts)
+
+    parts = list(tqdm(thread_map(fuse, range(len(cams))), total=len(cams), desc="fusion", unit="pano"))
+    raw = sum(part[2] for part in parts)
+    points, colors = voxel_downsample(np.concatenate([part[0] for part in parts]), voxel,
+                                      np.concatenate([part[1] for part in parts]))
     log.info("fusion: %d consistent points, %d after voxel merging (voxel %.4g)", raw, len(points), voxel)
     points, colors, normals = dense.clean_point_cloud(
         points, colors, voxel_size=0.0, nb_neighbors=config.outlier_neighbours,
