@@ -1,4 +1,5 @@
 import dataclasses
+import shutil
 
 import cv2
 import numpy as np
@@ -17,6 +18,7 @@ from fullview.sfm.dense_metrics import (backproject_range_map, cloud_accuracy_co
 from fullview.sfm.metrics import Similarity, umeyama
 from fullview.stages import densify
 from fullview.commands.evaluate import evaluate
+from fullview.stages.protocol import thread_map
 from fullview.stages.runner import Pipeline
 
 SMALL = [
@@ -75,6 +77,27 @@ def test_depth_maps_are_saved_per_panorama(reconstructed):
         assert png.shape == (256, 512, 3) and png[valid].any(axis=-1).mean() > 0.99
     preview = cv2.imread(str(ws.path("dense_preview")))
     assert preview is not None and preview.std() > 10
+
+
+def test_densify_reruns_are_byte_identical_on_one_thread(reconstructed, tmp_path, monkeypatch):
+    """densify again on a copy of the workspace with every pool of the stage and OpenCV on one thread: the range
+    maps, the cloud and the mesh are the same bytes (the threads over pairs and panoramas change only the time)."""
+    dataset, ws, _ = reconstructed
+    shutil.copytree(ws.root, tmp_path / dataset.name)
+    copy = Workspace(tmp_path, dataset.name)
+    monkeypatch.setattr(densify, "thread_map", lambda fn, items, threads=None: thread_map(fn, items, threads=1))
+    opencv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        Pipeline(dataset, copy, load_config(None, SMALL)).run(start="densify", until="densify")
+    finally:
+        cv2.setNumThreads(opencv_threads)
+    for name in dataset.image_names:
+        stem = name.rsplit(".", 1)[0]
+        with np.load(ws.path("depth", stem=stem)) as a, np.load(copy.path("depth", stem=stem)) as b:
+            assert a["range"].tobytes() == b["range"].tobytes() and np.array_equal(a["valid"], b["valid"])
+    for artifact in ("dense_cloud", "dense_mesh"):
+        assert ws.path(artifact).read_bytes() == copy.path(artifact).read_bytes(), artifact
 
 
 def test_dense_mesh_is_saved_with_its_summary_and_preview(reconstructed):
