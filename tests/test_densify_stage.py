@@ -1,4 +1,5 @@
 import dataclasses
+import itertools
 import shutil
 
 import cv2
@@ -181,6 +182,20 @@ def test_combine_range_estimates():
     err_a, err_c = np.full(a.shape, 0.001, np.float32), np.full(a.shape, 0.01, np.float32)
     rng, valid = dense.combine_range_estimates([a, c], rel_tol=0.02, errors=[err_a, err_c])
     assert abs(rng[0, 0] - (2.0 * 100 + 1.98) / 101) < 1e-5 and valid[0, 0]
+
+
+def test_combined_estimates_use_the_order_statistics_np_sort_gives():
+    """The few-estimate sorting network (invalid ones as +inf) holds at every position below a pixel's count of
+    finite estimates what np.sort (NaN last) holds there: every pattern of NaN, ties and order of 2-4 estimates."""
+    from fullview.sfm.dense.depth import _sorted_finite_first
+
+    for n in (2, 3, 4):
+        raw = np.array(list(itertools.product([np.nan, 1.0, 2.0, 2.0, 3.0], repeat=n)), np.float32).T
+        reference, network = np.sort(raw, axis=0), _sorted_finite_first(raw)
+        count = np.isfinite(raw).sum(0)
+        for position in range(n):
+            used = count > position
+            assert np.array_equal(network[position, used], reference[position, used]), (n, position)
 
 
 def test_mask_below_latitude():

@@ -24,6 +24,8 @@ from fullview.sfm.dense.rectify import rectify_pair, theta_of_columns
 log = logging.getLogger(__name__)
 
 BACKMAP_ROWS = 64  # panorama rows resampled at a time (temporaries of a few MB, not ~250 MB per map)
+COMBINE_ROWS = 64  # panorama rows whose pair estimates are combined at a time
+SORTING_NETWORKS = {2: [(0, 1)], 3: [(0, 1), (1, 2), (0, 1)], 4: [(0, 1), (2, 3), (0, 2), (1, 3), (1, 2)]}
 
 
 def depth_from_disparity(theta_i: np.ndarray, disparity_angle: np.ndarray, baseline: float) -> np.ndarray:
@@ -212,8 +214,20 @@ def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float,
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(rng) & (rng > 0)
         return np.where(valid, rng, np.nan).astype(np.float32), valid
+    shape = np.shape(estimates[0])
+    out, valid = np.empty(shape, np.float32), np.empty(shape, bool)
+    for top in range(0, shape[0], COMBINE_ROWS):  # per pixel: the same numbers as in one piece, in cache
+        rows = slice(top, top + COMBINE_ROWS)
+        out[rows], valid[rows] = _combine_rows([e[rows] for e in estimates], rel_tol,
+                                               None if errors is None else [e[rows] for e in errors])
+    return out, valid
+
+
+def _combine_rows(estimates: list[np.ndarray], rel_tol: float, errors: list[np.ndarray] | None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``combine_range_estimates`` of a block of rows of two or more estimates."""
     raw = np.stack(estimates).astype(np.float32)
-    stack = np.sort(raw, axis=0)  # NaN sorts last
+    stack = _sorted_finite_first(raw)
     count = np.isfinite(stack).sum(0)
     lo = np.take_along_axis(stack, np.maximum((count - 1) // 2, 0)[None], 0)[0]
     hi = np.take_along_axis(stack, np.maximum(count // 2, 0)[None], 0)[0]
@@ -233,6 +247,18 @@ def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float,
     out = np.where(count == 1, stack[0], mean)
     valid &= np.isfinite(out) & (out > 0)
     return np.where(valid, out, np.nan).astype(np.float32), valid
+
+
+def _sorted_finite_first(raw: np.ndarray) -> np.ndarray:
+    """(n, ...) the estimates sorted along axis 0 with the finite ones first: at each pixel, positions below its
+    count of finite values hold exactly what ``np.sort`` gives there (a sorting network of minima and maxima for a
+    few estimates, the invalid ones as +inf; the positions beyond the count are not NaN then, and not used)."""
+    if len(raw) not in SORTING_NETWORKS:
+        return np.sort(raw, axis=0)  # NaN sorts last
+    s = list(np.where(np.isfinite(raw), raw, np.float32(np.inf)))
+    for a, b in SORTING_NETWORKS[len(s)]:
+        s[a], s[b] = np.minimum(s[a], s[b]), np.maximum(s[a], s[b])
+    return np.stack(s)
 
 
 def mask_below_latitude(rng: np.ndarray, valid: np.ndarray, min_latitude_deg: float,
