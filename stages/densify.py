@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 import cv2
@@ -75,28 +76,32 @@ def run(ctx: StageContext) -> dict:
     width = min(config.working_width or native, native)  # never upsample
     log.info("densify: %d stereo pairs over %d panoramas at %dx%d: %s", len(pairs), len(cams), width, width // 2,
              ", ".join(f"{i}-{j}" for i, j in pairs))
-    images = {k: ctx.dataset.load_image(names[k], width=width) for k in cams}
+    images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
     maps, pair_log = _range_maps(ctx, images, R, t, near, pairs)
     filled = _fill_textureless(ctx, images, maps, R, t, centers, sparse["points"], float(np.nanmedian(median_depth))) \
         if config.fill_planes or config.world_planes else {}
-    for k, (rng, valid) in maps.items():
-        ctx.out.save_depth(names[k], rng, valid, colorize_range(rng, valid))
+    list(thread_map(lambda k: ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k])), sorted(maps)))
     checkers = min(config.fusion_views, len(maps) - 1)
     if config.min_consistent > checkers:
         raise ConfigError(f"densify.min_consistent={config.min_consistent}: a point can be checked by at most "
                           f"{checkers} other panorama(s) here (densify.fusion_views={config.fusion_views}, "
                           f"{len(maps)} range maps); no point could be kept")
     points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
-    if config.preview and len(points) >= 3:
-        render_point_cloud(ctx.out.path("dense_preview"), points, colors, normals=normals, up=camera_up(R[cams]),
-                           cameras=centers[cams], title=f"{ctx.dataset.name}: {len(points)} points")
+    with ThreadPoolExecutor(max_workers=1) as pool:  # the preview is drawn while the mesh is made
+        preview = pool.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
+                              up=camera_up(R[cams]), cameras=centers[cams],
+                              title=f"{ctx.dataset.name}: {len(points)} points") \
+            if config.preview and len(points) >= 3 else None
+        mesh = mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel)
+        if preview is not None:
+            preview.result()
     summary = {
         "pairs": int(len(pairs)), "panoramas": len(maps), "points": int(len(points)), "voxel_size": voxel,
         "width": int(width), "median_pair_time_s": float(np.median([p["time_s"] for p in pair_log])),
         "valid_share": {names[k]: float(np.mean(m[1])) for k, m in maps.items()},
         "filled_share": filled,
         "pair_log": pair_log,
-        "mesh": mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel),
+        "mesh": mesh,
     }
     summary["wall_time_s"] = round(time.perf_counter() - t_start, 2)  # mesh included
     ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=summary)
