@@ -60,6 +60,7 @@ PAIR_THREADS = 2  # stereo pairs densified at once (each holds ~0.2 GB of 2048-p
 
 def run(ctx: StageContext) -> dict:
     t_start = time.perf_counter()
+    clock = _Clock()
     config: DensifyOptions = ctx.options
     sparse = ctx.ws.load_sparse_model(0)
     names = ctx.dataset.image_names
@@ -77,16 +78,21 @@ def run(ctx: StageContext) -> dict:
     log.info("densify: %d stereo pairs over %d panoramas at %dx%d: %s", len(pairs), len(cams), width, width // 2,
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
+    clock.lap("load")
     maps, pair_log = _range_maps(ctx, images, R, t, near, pairs)
+    clock.lap("stereo")
     filled = _fill_textureless(ctx, images, maps, R, t, centers, sparse["points"], float(np.nanmedian(median_depth))) \
         if config.fill_planes or config.world_planes else {}
+    clock.lap("fill")
     list(thread_map(lambda k: ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k])), sorted(maps)))
+    clock.lap("save_maps")
     checkers = min(config.fusion_views, len(maps) - 1)
     if config.min_consistent > checkers:
         raise ConfigError(f"densify.min_consistent={config.min_consistent}: a point can be checked by at most "
                           f"{checkers} other panorama(s) here (densify.fusion_views={config.fusion_views}, "
                           f"{len(maps)} range maps); no point could be kept")
     points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
+    clock.lap("fusion")
     with ThreadPoolExecutor(max_workers=1) as pool:  # the preview is drawn while the mesh is made
         preview = pool.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
                               up=camera_up(R[cams]), cameras=centers[cams],
@@ -95,6 +101,8 @@ def run(ctx: StageContext) -> dict:
         mesh = mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel)
         if preview is not None:
             preview.result()
+    clock.lap("mesh_and_preview")
+    log.info("densify phases (wall / CPU s): %s", ", ".join(f"{k} {v['wall']} / {v['cpu']}" for k, v in clock.phases.items()))
     summary = {
         "pairs": int(len(pairs)), "panoramas": len(maps), "points": int(len(points)), "voxel_size": voxel,
         "width": int(width), "median_pair_time_s": float(np.median([p["time_s"] for p in pair_log])),
@@ -102,10 +110,25 @@ def run(ctx: StageContext) -> dict:
         "filled_share": filled,
         "pair_log": pair_log,
         "mesh": mesh,
+        "phases_s": clock.phases,
     }
     summary["wall_time_s"] = round(time.perf_counter() - t_start, 2)  # mesh included
     ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=summary)
     return summary
+
+
+class _Clock:
+    """Wall and process CPU seconds of each phase of the stage (summary ``phases_s``): the CPU seconds do not depend
+    on the machine's load, and CPU / wall tells how busy the phase kept the cores."""
+
+    def __init__(self):
+        self.phases: dict[str, dict[str, float]] = {}
+        self._last = (time.perf_counter(), time.process_time())
+
+    def lap(self, phase: str) -> None:
+        now = (time.perf_counter(), time.process_time())
+        self.phases[phase] = {"wall": round(now[0] - self._last[0], 2), "cpu": round(now[1] - self._last[1], 2)}
+        self._last = now
 
 
 # ------------------------------------------------------------------------------------------------ pairs and depth
