@@ -34,6 +34,7 @@ from functools import partial
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from fullview.io.config import ConfigError
@@ -59,6 +60,14 @@ PAIR_THREADS = 2  # stereo pairs densified at once (each holds ~0.2 GB of 2048-p
 
 
 def run(ctx: StageContext) -> dict:
+    # the stage runs its own threads over pairs and panoramas; BLAS's threads on top only spin (on 360_Flat they
+    # doubled the CPU time of the world planes' RANSAC for the same numbers: each product's rows are split, not
+    # summed differently)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _run(ctx)
+
+
+def _run(ctx: StageContext) -> dict:
     t_start = time.perf_counter()
     clock = _Clock()
     config: DensifyOptions = ctx.options
