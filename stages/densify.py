@@ -237,12 +237,15 @@ def _fill_textureless(ctx: StageContext, images, maps, R, t, centers, sparse_poi
     views = [planes.view_of(R[k], t[k], maps[k][0], observable[a], images[k],
                             min(config.fill_width, maps[k][0].shape[1])) for a, k in enumerate(cams)]
     fills = [(np.full(v.range_map.shape, np.nan, np.float32), np.zeros(v.range_map.shape, np.int32)) for v in views]
-    if config.fill_planes:
-        fills = list(tqdm(thread_map(lambda a: planes.fill_plane_ranges(
-            views[a], [views[b] for b in neighbours[a]], options, config.seed + cams[a]), range(len(cams))),
-            total=len(cams), desc="planes", unit="pano"))
-    if config.world_planes:
-        fills = _fill_world_planes(config, views, fills, neighbours, options, sparse_points, median_depth)
+    with ThreadPoolExecutor(max_workers=1) as side:  # the world planes come from the stereo alone: found meanwhile
+        world = side.submit(_world_planes, config, views, neighbours, options, sparse_points, median_depth) \
+            if config.world_planes else None
+        if config.fill_planes:
+            fills = list(tqdm(thread_map(lambda a: planes.fill_plane_ranges(
+                views[a], [views[b] for b in neighbours[a]], options, config.seed + cams[a]), range(len(cams))),
+                total=len(cams), desc="planes", unit="pano"))
+        if world is not None:
+            fills = _fill_world_planes(views, fills, neighbours, options, *world.result())
     confirmed = list(thread_map(lambda a: planes.confirmed_by_views(
         views[a], *fills[a], [views[b] for b in neighbours[a]], [fills[b][0] for b in neighbours[a]], options),
         range(len(cams))))
@@ -259,9 +262,9 @@ def _fill_textureless(ctx: StageContext, images, maps, R, t, centers, sparse_poi
     return shares
 
 
-def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options, sparse_points, median_depth):
-    """Pixels the region fill left empty get the world plane their ray meets (``sfm.dense.world_planes``); the
-    labels of the two fills are kept apart (world plane labels are offset past the region labels)."""
+def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_points, median_depth):
+    """The world planes of the model (``sfm.dense.world_planes``) kept after the free-space check: (options, planes,
+    the views judging with their confirmed stereo)."""
     t0 = time.perf_counter()
     wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
@@ -277,6 +280,12 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
     kept = world_planes.carve_extents(found, judges, wopt)
     log.info("world planes: %d found in %d points, %d kept after the free-space check (%.1f s)", len(found),
              len(points), len(kept), time.perf_counter() - t0)
+    return wopt, kept, judges
+
+
+def _fill_world_planes(views, fills, neighbours, options, wopt, kept, judges):
+    """Pixels the region fill left empty get the world plane their ray meets (``sfm.dense.world_planes``); the
+    labels of the two fills are kept apart (world plane labels are offset past the region labels)."""
 
     def fill(a: int) -> tuple[np.ndarray, np.ndarray]:
         view, (fill, labels) = views[a], fills[a]
