@@ -39,11 +39,13 @@ def depth_from_disparity(theta_i: np.ndarray, disparity_angle: np.ndarray, basel
     (By symmetry, |O_j P| = T sin(θ_i) / sin(d) = depth_from_disparity(π − θ_j, d, T).)
     Non-positive disparities give NaN.
     """
-    theta_i = np.asarray(theta_i, dtype=np.float64)
-    d = np.asarray(disparity_angle, dtype=np.float64)
+    theta_i, d = np.broadcast_arrays(np.asarray(theta_i, dtype=np.float64), np.asarray(disparity_angle, np.float64))
+    out = np.full(d.shape, np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
-        r = baseline * np.sin(theta_i + d) / np.sin(d)
-        return np.where((d > 0) & (r > 0), r, np.nan)
+        matched = d > 0  # the law of sines only where there is a disparity (elementwise: the same numbers)
+        r = baseline * np.sin(theta_i[matched] + d[matched]) / np.sin(d[matched])
+        out[matched] = np.where(r > 0, r, np.nan)
+    return out
 
 
 def rectified_range_maps(disparity: DisparityResult, baseline: float) -> tuple[np.ndarray, np.ndarray]:
