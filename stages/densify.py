@@ -32,6 +32,7 @@ result is gathered in a fixed order, so the outputs are the same bytes on any nu
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -98,6 +99,7 @@ def _run(ctx: StageContext) -> dict:
     filled = _fill_textureless(ctx, images, maps, R, t, centers, sparse["points"], float(np.nanmedian(median_depth))) \
         if config.fill_planes or config.world_planes else {}
     clock.lap("fill")
+    _release_freed_memory()
     list(thread_map(lambda k: ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k])), sorted(maps)))
     clock.lap("save_maps")
     checkers = min(config.fusion_views, len(maps) - 1)
@@ -107,6 +109,7 @@ def _run(ctx: StageContext) -> dict:
                           f"{len(maps)} range maps); no point could be kept")
     points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
     clock.lap("fusion")
+    _release_freed_memory()
     with ThreadPoolExecutor(max_workers=1) as pool:  # the preview is drawn while the mesh is made
         preview = pool.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
                               up=camera_up(R[cams]), cameras=centers[cams],
@@ -129,6 +132,15 @@ def _run(ctx: StageContext) -> dict:
     summary["wall_time_s"] = round(time.perf_counter() - t_start, 2)  # mesh included
     ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=summary)
     return summary
+
+
+def _release_freed_memory() -> None:
+    """Hand the memory the stage's threads have freed back to the system: glibc keeps a heap per thread and returns
+    its free blocks only when asked, and the mesh's peak would come on top of them."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc: nothing to do
+        pass
 
 
 class _Clock:
