@@ -23,15 +23,24 @@
    ``dense.ply``; ``dense_preview.png`` renders it.
 
 Panoramas are never upsampled: the working width is at most the native width.
+
+Threads: pairs run two at a time, the per-panorama steps (region fill, world fill, confirmation, fusion, saving)
+on a pool of local threads, the world planes are found while the region fill runs, and BLAS keeps one thread; every
+result is gathered in a fixed order, so the outputs are the same bytes on any number of threads
+(``tests/test_densify_stage.py``). ``phases_s`` in the summary gives each phase's wall and CPU seconds.
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from fullview.io.config import ConfigError
@@ -44,7 +53,7 @@ from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimat
 from fullview.sfm.dense_metrics import voxel_downsample
 from fullview.sfm.options import DensifyOptions
 from fullview.stages import mesh_step
-from fullview.stages.protocol import StageContext
+from fullview.stages.protocol import StageContext, thread_map
 
 log = logging.getLogger(__name__)
 
@@ -53,10 +62,20 @@ UPSTREAM = ("triangulation",)
 INPUTS = ("images", "masks")
 WORLD_PLANE_CELL_SHARE = 0.04  # extent cells of the world planes: this share of the scene's median depth
 DEFAULT_VOXEL_SHARE = 0.002  # voxel size = this share of the scene size when densify.voxel_size is 0
+PAIR_THREADS = 2  # stereo pairs densified at once (each holds ~0.2 GB of 2048-px temporaries)
 
 
 def run(ctx: StageContext) -> dict:
+    # the stage runs its own threads over pairs and panoramas; BLAS's threads on top only spin (on 360_Flat they
+    # doubled the CPU time of the world planes' RANSAC for the same numbers: each product's rows are split, not
+    # summed differently)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _run(ctx)
+
+
+def _run(ctx: StageContext) -> dict:
     t_start = time.perf_counter()
+    clock = _Clock()
     config: DensifyOptions = ctx.options
     sparse = ctx.ws.load_sparse_model(0)
     names = ctx.dataset.image_names
@@ -73,32 +92,69 @@ def run(ctx: StageContext) -> dict:
     width = min(config.working_width or native, native)  # never upsample
     log.info("densify: %d stereo pairs over %d panoramas at %dx%d: %s", len(pairs), len(cams), width, width // 2,
              ", ".join(f"{i}-{j}" for i, j in pairs))
-    images = {k: ctx.dataset.load_image(names[k], width=width) for k in cams}
+    images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
+    clock.lap("load")
     maps, pair_log = _range_maps(ctx, images, R, t, near, pairs)
+    clock.lap("stereo")
     filled = _fill_textureless(ctx, images, maps, R, t, centers, sparse["points"], float(np.nanmedian(median_depth))) \
         if config.fill_planes or config.world_planes else {}
-    for k, (rng, valid) in maps.items():
-        ctx.out.save_depth(names[k], rng, valid, colorize_range(rng, valid))
+    clock.lap("fill")
+    _release_freed_memory()
+    list(thread_map(lambda k: ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k])), sorted(maps)))
+    clock.lap("save_maps")
     checkers = min(config.fusion_views, len(maps) - 1)
     if config.min_consistent > checkers:
         raise ConfigError(f"densify.min_consistent={config.min_consistent}: a point can be checked by at most "
                           f"{checkers} other panorama(s) here (densify.fusion_views={config.fusion_views}, "
                           f"{len(maps)} range maps); no point could be kept")
     points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
-    if config.preview and len(points) >= 3:
-        render_point_cloud(ctx.out.path("dense_preview"), points, colors, normals=normals, up=camera_up(R[cams]),
-                           cameras=centers[cams], title=f"{ctx.dataset.name}: {len(points)} points")
+    clock.lap("fusion")
+    _release_freed_memory()
+    with ThreadPoolExecutor(max_workers=1) as pool:  # the preview is drawn while the mesh is made
+        preview = pool.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
+                              up=camera_up(R[cams]), cameras=centers[cams],
+                              title=f"{ctx.dataset.name}: {len(points)} points") \
+            if config.preview and len(points) >= 3 else None
+        mesh = mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel)
+        if preview is not None:
+            preview.result()
+    clock.lap("mesh_and_preview")
+    log.info("densify phases (wall / CPU s): %s", ", ".join(f"{k} {v['wall']} / {v['cpu']}" for k, v in clock.phases.items()))
     summary = {
         "pairs": int(len(pairs)), "panoramas": len(maps), "points": int(len(points)), "voxel_size": voxel,
         "width": int(width), "median_pair_time_s": float(np.median([p["time_s"] for p in pair_log])),
         "valid_share": {names[k]: float(np.mean(m[1])) for k, m in maps.items()},
         "filled_share": filled,
         "pair_log": pair_log,
-        "mesh": mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel),
+        "mesh": mesh,
+        "phases_s": clock.phases,
     }
     summary["wall_time_s"] = round(time.perf_counter() - t_start, 2)  # mesh included
     ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=summary)
     return summary
+
+
+def _release_freed_memory() -> None:
+    """Hand the memory the stage's threads have freed back to the system: glibc keeps a heap per thread and returns
+    its free blocks only when asked, and the mesh's peak would come on top of them."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc: nothing to do
+        pass
+
+
+class _Clock:
+    """Wall and process CPU seconds of each phase of the stage (summary ``phases_s``): the CPU seconds do not depend
+    on the machine's load, and CPU / wall tells how busy the phase kept the cores."""
+
+    def __init__(self):
+        self.phases: dict[str, dict[str, float]] = {}
+        self._last = (time.perf_counter(), time.process_time())
+
+    def lap(self, phase: str) -> None:
+        now = (time.perf_counter(), time.process_time())
+        self.phases[phase] = {"wall": round(now[0] - self._last[0], 2), "cpu": round(now[1] - self._last[1], 2)}
+        self._last = now
 
 
 # ------------------------------------------------------------------------------------------------ pairs and depth
@@ -123,7 +179,9 @@ def _stereo_pairs(epi: dict, centers, registered, median_depth, config: DensifyO
 
 
 def _range_maps(ctx: StageContext, images, R, t, near, pairs):
-    """Densify every pair; combine each panorama's estimates as soon as its last pair is done.
+    """Densify every pair (two at a time on local threads: rectification, SGBM and the back-mapping run in OpenCV
+    and numpy without the GIL); combine each panorama's estimates, in pair order, as soon as its last pair is done
+    (the same maps as one pair after the other).
 
     Returns ({camera: (range float32 NaN-invalid, valid bool)}, per-pair log)."""
     config: DensifyOptions = ctx.options
@@ -132,35 +190,23 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
     estimates: dict[int, list[np.ndarray]] = {k: [] for k in remaining}
     errors: dict[int, list[np.ndarray]] = {k: [] for k in remaining}
     maps, pair_log = {}, []
-    params = dense.SgbmParams(block_size=config.block_size, min_texture_std=config.min_texture_std)
     # never upsample: the rectified grid spans 180° in at most as many rows as the panoramas have
     rect_height = min(config.rect_height, min(image.shape[0] for image in images.values()))
-    for i, j in tqdm(pairs, desc="densify", unit="pair"):
-        baseline = float(np.linalg.norm(camera_center(R[i], t[i]) - camera_center(R[j], t[j])))
-        ratio = pair_min_depth_ratio(near[i], near[j], baseline, config.min_depth_factor, config.max_disparity_deg)
-        t0 = time.perf_counter()
-        res = dense.densify_pair(images[i], images[j], R[i], t[i], R[j], t[j], rect_height=rect_height,
-                                 out_width=images[i].shape[1], min_depth_ratio=ratio,
-                                 min_epipole_angle_deg=config.epipole_margin_deg, params=params)
-        elapsed = time.perf_counter() - t0
-        kept = {}
-        for cam, other, rng in ((i, j, res.range_i), (j, i, res.range_j)):
-            err = range_error_per_pixel(rng, R[cam], camera_center(R[cam], t[cam]), camera_center(R[other], t[other]),
-                                        np.pi / rect_height)
-            with np.errstate(invalid="ignore"):
-                rng[~(err <= config.max_range_error_per_px)] = np.nan
-            kept[cam] = float(np.isfinite(rng).mean())
-            errors[cam].append(err)
+    work = partial(_densify_pair, config, images, R, t, near, rect_height)
+    for (i, j), (res, pair_errors, kept, ratio, baseline, elapsed) in zip(
+            pairs, tqdm(thread_map(work, [tuple(p) for p in pairs], threads=PAIR_THREADS), total=len(pairs),
+                        desc="densify", unit="pair")):
         pair_log.append({"pair": [names[i], names[j]], "baseline": baseline, "min_depth_ratio": ratio,
                          "num_disparities": dense.disparity_search_range(rect_height, ratio),
                          "valid_i": float(res.valid_i.mean()), "valid_j": float(res.valid_j.mean()),
-                         "well_conditioned_i": kept[i], "well_conditioned_j": kept[j],
+                         "well_conditioned_i": kept[0], "well_conditioned_j": kept[1],
                          "time_s": round(elapsed, 3), "timings_s": {k: round(v, 3) for k, v in res.timings.items()}})
         log.info("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%% (well conditioned %.0f%% / "
                  "%.0f%%), %.1f s", names[i], names[j], baseline, ratio, 100 * res.valid_i.mean(),
-                 100 * res.valid_j.mean(), 100 * kept[i], 100 * kept[j], elapsed)
-        for cam, rng in ((i, res.range_i), (j, res.range_j)):
+                 100 * res.valid_j.mean(), 100 * kept[0], 100 * kept[1], elapsed)
+        for cam, rng, err in ((i, res.range_i, pair_errors[0]), (j, res.range_j, pair_errors[1])):
             estimates[cam].append(rng)
+            errors[cam].append(err)
             remaining[cam] -= 1
             if remaining[cam] == 0:
                 combined = combine_range_estimates(estimates.pop(cam), config.combine_tolerance, errors.pop(cam))
@@ -169,11 +215,36 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
     return maps, pair_log
 
 
+def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, pair: tuple[int, int]):
+    """One stereo pair (``_range_maps``): its ``PairDepth`` with the ill-conditioned ranges dropped, the expected
+    relative range error per pixel of both maps, their well-conditioned shares, the depth ratio, the baseline and
+    the time taken."""
+    i, j = pair
+    baseline = float(np.linalg.norm(camera_center(R[i], t[i]) - camera_center(R[j], t[j])))
+    ratio = pair_min_depth_ratio(near[i], near[j], baseline, config.min_depth_factor, config.max_disparity_deg)
+    params = dense.SgbmParams(block_size=config.block_size, min_texture_std=config.min_texture_std)
+    t0 = time.perf_counter()
+    res = dense.densify_pair(images[i], images[j], R[i], t[i], R[j], t[j], rect_height=rect_height,
+                             out_width=images[i].shape[1], min_depth_ratio=ratio,
+                             min_epipole_angle_deg=config.epipole_margin_deg, params=params)
+    elapsed = time.perf_counter() - t0
+    pair_errors, kept = [], []
+    for cam, other, rng in ((i, j, res.range_i), (j, i, res.range_j)):
+        err = range_error_per_pixel(rng, R[cam], camera_center(R[cam], t[cam]), camera_center(R[other], t[other]),
+                                    np.pi / rect_height)
+        with np.errstate(invalid="ignore"):
+            rng[~(err <= config.max_range_error_per_px)] = np.nan
+        kept.append(float(np.isfinite(rng).mean()))
+        pair_errors.append(err)
+    return res, pair_errors, kept, ratio, baseline, elapsed
+
+
 # ------------------------------------------------------------------------------------------------ textureless
 def _fill_textureless(ctx: StageContext, images, maps, R, t, centers, sparse_points, median_depth: float
                       ) -> dict[str, float]:
     """Fill each range map's textureless regions in place (module doc, step 3b); returns the filled share per
-    panorama. Only where a stereo range could be: inside the latitude caps and the image mask."""
+    panorama. Only where a stereo range could be: inside the latitude caps and the image mask. Every per-panorama
+    step runs on local threads (numpy and OpenCV release the GIL); each result depends on its panorama alone."""
     config: DensifyOptions = ctx.options
     names = ctx.dataset.image_names
     cams = sorted(maps)
@@ -183,17 +254,21 @@ def _fill_textureless(ctx: StageContext, images, maps, R, t, centers, sparse_poi
     views = [planes.view_of(R[k], t[k], maps[k][0], observable[a], images[k],
                             min(config.fill_width, maps[k][0].shape[1])) for a, k in enumerate(cams)]
     fills = [(np.full(v.range_map.shape, np.nan, np.float32), np.zeros(v.range_map.shape, np.int32)) for v in views]
-    if config.fill_planes:
-        fills = [planes.fill_plane_ranges(views[a], [views[b] for b in neighbours[a]], options, config.seed + k)
-                 for a, k in enumerate(tqdm(cams, desc="planes", unit="pano"))]
-    if config.world_planes:
-        fills = _fill_world_planes(config, views, fills, neighbours, options, sparse_points, median_depth)
+    with ThreadPoolExecutor(max_workers=1) as side:  # the world planes come from the stereo alone: found meanwhile
+        world = side.submit(_world_planes, config, views, neighbours, options, sparse_points, median_depth) \
+            if config.world_planes else None
+        if config.fill_planes:
+            fills = list(tqdm(thread_map(lambda a: planes.fill_plane_ranges(
+                views[a], [views[b] for b in neighbours[a]], options, config.seed + cams[a]), range(len(cams))),
+                total=len(cams), desc="planes", unit="pano"))
+        if world is not None:
+            fills = _fill_world_planes(views, fills, neighbours, options, *world.result())
+    confirmed = list(thread_map(lambda a: planes.confirmed_by_views(
+        views[a], *fills[a], [views[b] for b in neighbours[a]], [fills[b][0] for b in neighbours[a]], options),
+        range(len(cams))))
     shares = {}
     for a, k in enumerate(cams):
-        others = neighbours[a]
-        fill, labels = fills[a]
-        kept = planes.confirmed_by_views(views[a], fill, labels, [views[b] for b in others],
-                                         [fills[b][0] for b in others], options)
+        fill, kept = fills[a][0], confirmed[a]
         rng, valid = maps[k]
         fill = cv2.resize(np.where(kept, fill, np.nan), (rng.shape[1], rng.shape[0]),
                           interpolation=cv2.INTER_NEAREST)
@@ -204,9 +279,9 @@ def _fill_textureless(ctx: StageContext, images, maps, R, t, centers, sparse_poi
     return shares
 
 
-def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options, sparse_points, median_depth):
-    """Pixels the region fill left empty get the world plane their ray meets (``sfm.dense.world_planes``); the
-    labels of the two fills are kept apart (world plane labels are offset past the region labels)."""
+def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_points, median_depth):
+    """The world planes of the model (``sfm.dense.world_planes``) kept after the free-space check: (options, planes,
+    the views judging with their confirmed stereo, each view's nearest plane per ray or None)."""
     t0 = time.perf_counter()
     wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
@@ -225,9 +300,16 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
              len(points), len(kept), time.perf_counter() - t0)
     occluders = [world_planes.nearest_plane_ranges(v, kept, wopt) for v in views] \
         if config.occlusion_aware_vote else None
-    out = []
-    for a, view in enumerate(tqdm(views, desc="world planes", unit="pano")):
-        fill, labels = fills[a]
+    return wopt, kept, judges, occluders
+
+
+def _fill_world_planes(views, fills, neighbours, options, wopt, kept, judges, occluders):
+    """Pixels the region fill left empty get the world plane their ray meets (``sfm.dense.world_planes``); the
+    labels of the two fills are kept apart (world plane labels are offset past the region labels). With
+    `occluders` (each view's nearest world plane per ray) a view's colour the model says is hidden is no vote."""
+
+    def fill(a: int) -> tuple[np.ndarray, np.ndarray]:
+        view, (fill, labels) = views[a], fills[a]
         empty = planes.View(R_cam_from_world=view.R_cam_from_world, t_cam_from_world=view.t_cam_from_world,
                             range_map=np.where(np.isfinite(fill), fill, view.range_map), observable=view.observable,
                             color=view.color)
@@ -235,9 +317,10 @@ def _fill_world_planes(config: DensifyOptions, views, fills, neighbours, options
             empty, kept, [judges[b] for b in neighbours[a]], wopt, options,
             [occluders[b] for b in neighbours[a]] if occluders is not None else None)
         new = np.isfinite(wfill) & ~np.isfinite(fill)
-        out.append((np.where(new, wfill, fill).astype(np.float32),
-                    np.where(new, wlabels + labels.max() + 1, labels).astype(np.int32)))
-    return out
+        return (np.where(new, wfill, fill).astype(np.float32),
+                np.where(new, wlabels + labels.max() + 1, labels).astype(np.int32))
+
+    return list(tqdm(thread_map(fill, range(len(views))), total=len(views), desc="world planes", unit="pano"))
 
 
 def _model_points(views: list[planes.View], sparse_points: np.ndarray
@@ -276,22 +359,24 @@ def _observable(config: DensifyOptions, mask: np.ndarray | None, shape: tuple[in
 
 # ------------------------------------------------------------------------------------------------ fusion
 def _fuse(config: DensifyOptions, images, maps, R, t, centers, sparse):
-    """Consistency-checked, voxel-merged, cleaned cloud: (points, RGB colours, normals, voxel size)."""
+    """Consistency-checked, voxel-merged, cleaned cloud: (points, RGB colours, normals, voxel size). Each
+    panorama's points are checked and down-sampled on local threads, then merged in panorama order."""
     cams = sorted(maps)
     voxel = config.voxel_size or DEFAULT_VOXEL_SHARE * scene_size(centers[cams], sparse["points"])
     ranges = [maps[k][0] for k in cams]
     rgb = [images[k][..., ::-1] for k in cams]
     neighbours = fusion_neighbours(centers[cams], config.fusion_views)
-    parts, part_cols, raw = [], [], 0
-    for v in tqdm(range(len(cams)), desc="fusion", unit="pano"):
+
+    def fuse(v: int) -> tuple[np.ndarray, np.ndarray, int]:
         pts, cols = dense.fuse_depth_maps(ranges, rgb, R[cams], t[cams], min_consistent=config.min_consistent,
                                           rel_tol=config.consistency_tolerance, stride=config.fusion_stride,
                                           neighbors=neighbours, views=[v])
-        raw += len(pts)
-        pts, cols = voxel_downsample(pts, voxel, cols)
-        parts.append(pts)
-        part_cols.append(cols)
-    points, colors = voxel_downsample(np.concatenate(parts), voxel, np.concatenate(part_cols))
+        return *voxel_downsample(pts, voxel, cols), len(pts)
+
+    parts = list(tqdm(thread_map(fuse, range(len(cams))), total=len(cams), desc="fusion", unit="pano"))
+    raw = sum(part[2] for part in parts)
+    points, colors = voxel_downsample(np.concatenate([part[0] for part in parts]), voxel,
+                                      np.concatenate([part[1] for part in parts]))
     log.info("fusion: %d consistent points, %d after voxel merging (voxel %.4g)", raw, len(points), voxel)
     points, colors, normals = dense.clean_point_cloud(
         points, colors, voxel_size=0.0, nb_neighbors=config.outlier_neighbours,

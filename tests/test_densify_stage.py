@@ -1,4 +1,6 @@
 import dataclasses
+import itertools
+import shutil
 
 import cv2
 import numpy as np
@@ -17,6 +19,7 @@ from fullview.sfm.dense_metrics import (backproject_range_map, cloud_accuracy_co
 from fullview.sfm.metrics import Similarity, umeyama
 from fullview.stages import densify
 from fullview.commands.evaluate import evaluate
+from fullview.stages.protocol import thread_map
 from fullview.stages.runner import Pipeline
 
 SMALL = [
@@ -75,6 +78,27 @@ def test_depth_maps_are_saved_per_panorama(reconstructed):
         assert png.shape == (256, 512, 3) and png[valid].any(axis=-1).mean() > 0.99
     preview = cv2.imread(str(ws.path("dense_preview")))
     assert preview is not None and preview.std() > 10
+
+
+def test_densify_reruns_are_byte_identical_on_one_thread(reconstructed, tmp_path, monkeypatch):
+    """densify again on a copy of the workspace with every pool of the stage and OpenCV on one thread: the range
+    maps, the cloud and the mesh are the same bytes (the threads over pairs and panoramas change only the time)."""
+    dataset, ws, _ = reconstructed
+    shutil.copytree(ws.root, tmp_path / dataset.name)
+    copy = Workspace(tmp_path, dataset.name)
+    monkeypatch.setattr(densify, "thread_map", lambda fn, items, threads=None: thread_map(fn, items, threads=1))
+    opencv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        Pipeline(dataset, copy, load_config(None, SMALL)).run(start="densify", until="densify")
+    finally:
+        cv2.setNumThreads(opencv_threads)
+    for name in dataset.image_names:
+        stem = name.rsplit(".", 1)[0]
+        with np.load(ws.path("depth", stem=stem)) as a, np.load(copy.path("depth", stem=stem)) as b:
+            assert a["range"].tobytes() == b["range"].tobytes() and np.array_equal(a["valid"], b["valid"])
+    for artifact in ("dense_cloud", "dense_mesh"):
+        assert ws.path(artifact).read_bytes() == copy.path(artifact).read_bytes(), artifact
 
 
 def test_dense_mesh_is_saved_with_its_summary_and_preview(reconstructed):
@@ -158,6 +182,20 @@ def test_combine_range_estimates():
     err_a, err_c = np.full(a.shape, 0.001, np.float32), np.full(a.shape, 0.01, np.float32)
     rng, valid = dense.combine_range_estimates([a, c], rel_tol=0.02, errors=[err_a, err_c])
     assert abs(rng[0, 0] - (2.0 * 100 + 1.98) / 101) < 1e-5 and valid[0, 0]
+
+
+def test_combined_estimates_use_the_order_statistics_np_sort_gives():
+    """The few-estimate sorting network (invalid ones as +inf) holds at every position below a pixel's count of
+    finite estimates what np.sort (NaN last) holds there: every pattern of NaN, ties and order of 2-4 estimates."""
+    from fullview.sfm.dense.depth import _sorted_finite_first
+
+    for n in (2, 3, 4):
+        raw = np.array(list(itertools.product([np.nan, 1.0, 2.0, 2.0, 3.0], repeat=n)), np.float32).T
+        reference, network = np.sort(raw, axis=0), _sorted_finite_first(raw)
+        count = np.isfinite(raw).sum(0)
+        for position in range(n):
+            used = count > position
+            assert np.array_equal(network[position, used], reference[position, used]), (n, position)
 
 
 def test_mask_below_latitude():

@@ -23,6 +23,10 @@ from fullview.sfm.dense.rectify import rectify_pair, theta_of_columns
 
 log = logging.getLogger(__name__)
 
+BACKMAP_ROWS = 64  # panorama rows resampled at a time (temporaries of a few MB, not ~250 MB per map)
+COMBINE_ROWS = 64  # panorama rows whose pair estimates are combined at a time
+SORTING_NETWORKS = {2: [(0, 1)], 3: [(0, 1), (1, 2), (0, 1)], 4: [(0, 1), (2, 3), (0, 2), (1, 3), (1, 2)]}
+
 
 def depth_from_disparity(theta_i: np.ndarray, disparity_angle: np.ndarray, baseline: float) -> np.ndarray:
     """Range ``|O_i P|`` from the angle θ_i (at O_i, from the epipole) and the angular disparity d (radians).
@@ -35,11 +39,13 @@ def depth_from_disparity(theta_i: np.ndarray, disparity_angle: np.ndarray, basel
     (By symmetry, |O_j P| = T sin(θ_i) / sin(d) = depth_from_disparity(π − θ_j, d, T).)
     Non-positive disparities give NaN.
     """
-    theta_i = np.asarray(theta_i, dtype=np.float64)
-    d = np.asarray(disparity_angle, dtype=np.float64)
+    theta_i, d = np.broadcast_arrays(np.asarray(theta_i, dtype=np.float64), np.asarray(disparity_angle, np.float64))
+    out = np.full(d.shape, np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
-        r = baseline * np.sin(theta_i + d) / np.sin(d)
-        return np.where((d > 0) & (r > 0), r, np.nan)
+        matched = d > 0  # the law of sines only where there is a disparity (elementwise: the same numbers)
+        r = baseline * np.sin(theta_i[matched] + d[matched]) / np.sin(d[matched])
+        out[matched] = np.where(r > 0, r, np.nan)
+    return out
 
 
 def rectified_range_maps(disparity: DisparityResult, baseline: float) -> tuple[np.ndarray, np.ndarray]:
@@ -107,16 +113,21 @@ def range_map_to_panorama(
         raise ValueError(f"interpolation must be 'nearest' or 'edge_aware', got {interpolation!r}")
     height = int(height or width // 2)
     n_phi, n_theta = range_rect.shape
-    b_rect = pixel_grid_bearings(width, height, np.float32) @ np.asarray(R_rect_from_cam, np.float32).T
-    # the rectified frame is an equirectangular camera (n_phi x n_theta) whose top pole is the epipole: θ from the pole
-    v, u = bearings_to_pixels_f32(b_rect, n_phi, n_theta, from_pole=True)
+    grid = pixel_grid_bearings(width, height, np.float32)
+    R_t = np.asarray(R_rect_from_cam, np.float32).T
     values = np.asarray(range_rect, dtype=np.float32)
-    if interpolation == "nearest":
-        col = np.clip(np.floor(u), 0, n_theta - 1).astype(np.intp)
-        row = np.mod(np.floor(v), n_phi).astype(np.intp)
-        out = values[row, col]
-    else:
-        out = sample_edge_aware(values, u, v, edge_tol, wrap_rows=True)
+    out = np.empty((height, width), np.float32)
+    for top in range(0, height, BACKMAP_ROWS):  # elementwise per pixel: the same numbers as in one piece
+        rows = slice(top, top + BACKMAP_ROWS)
+        # the rectified frame is an equirectangular camera (n_phi x n_theta) whose top pole is the epipole: θ from
+        # the pole
+        v, u = bearings_to_pixels_f32(grid[rows] @ R_t, n_phi, n_theta, from_pole=True)
+        if interpolation == "nearest":
+            col = np.clip(np.floor(u), 0, n_theta - 1).astype(np.intp)
+            row = np.mod(np.floor(v), n_phi).astype(np.intp)
+            out[rows] = values[row, col]
+        else:
+            out[rows] = sample_edge_aware(values, u, v, edge_tol, wrap_rows=True)
     valid = np.isfinite(out) & (out > 0)
     return np.where(valid, out, np.nan).astype(np.float32), valid
 
@@ -205,8 +216,20 @@ def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float,
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(rng) & (rng > 0)
         return np.where(valid, rng, np.nan).astype(np.float32), valid
+    shape = np.shape(estimates[0])
+    out, valid = np.empty(shape, np.float32), np.empty(shape, bool)
+    for top in range(0, shape[0], COMBINE_ROWS):  # per pixel: the same numbers as in one piece, in cache
+        rows = slice(top, top + COMBINE_ROWS)
+        out[rows], valid[rows] = _combine_rows([e[rows] for e in estimates], rel_tol,
+                                               None if errors is None else [e[rows] for e in errors])
+    return out, valid
+
+
+def _combine_rows(estimates: list[np.ndarray], rel_tol: float, errors: list[np.ndarray] | None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``combine_range_estimates`` of a block of rows of two or more estimates."""
     raw = np.stack(estimates).astype(np.float32)
-    stack = np.sort(raw, axis=0)  # NaN sorts last
+    stack = _sorted_finite_first(raw)
     count = np.isfinite(stack).sum(0)
     lo = np.take_along_axis(stack, np.maximum((count - 1) // 2, 0)[None], 0)[0]
     hi = np.take_along_axis(stack, np.maximum(count // 2, 0)[None], 0)[0]
@@ -226,6 +249,18 @@ def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float,
     out = np.where(count == 1, stack[0], mean)
     valid &= np.isfinite(out) & (out > 0)
     return np.where(valid, out, np.nan).astype(np.float32), valid
+
+
+def _sorted_finite_first(raw: np.ndarray) -> np.ndarray:
+    """(n, ...) the estimates sorted along axis 0 with the finite ones first: at each pixel, positions below its
+    count of finite values hold exactly what ``np.sort`` gives there (a sorting network of minima and maxima for a
+    few estimates, the invalid ones as +inf; the positions beyond the count are not NaN then, and not used)."""
+    if len(raw) not in SORTING_NETWORKS:
+        return np.sort(raw, axis=0)  # NaN sorts last
+    s = list(np.where(np.isfinite(raw), raw, np.float32(np.inf)))
+    for a, b in SORTING_NETWORKS[len(s)]:
+        s[a], s[b] = np.minimum(s[a], s[b]), np.maximum(s[a], s[b])
+    return np.stack(s)
 
 
 def mask_below_latitude(rng: np.ndarray, valid: np.ndarray, min_latitude_deg: float,

@@ -240,6 +240,14 @@ def exposure_gain(a: View, b: View, tolerance: float = 0.03) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ planes
 def _region_evidence(labels: np.ndarray, range_map: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(region, row, col) of every valid pixel inside or within ``RING_OFFSETS`` of each region, sorted by region."""
+    region, pixel, rows, cols = region_evidence_pixels(labels, range_map)
+    return region, rows[pixel], cols[pixel]
+
+
+def region_evidence_pixels(labels: np.ndarray, range_map: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``_region_evidence`` as (region, pixel) pairs, sorted by region, with pixel an index into the (rows, cols) of
+    the valid pixels (also returned): what depends on the pixel alone is then computed once per pixel."""
     rows, cols = np.nonzero(np.isfinite(range_map))
     height, width = labels.shape
     near = [labels[rows, cols]] + [labels[np.clip(rows + dy, 0, height - 1), (cols + dx) % width]
@@ -248,8 +256,7 @@ def _region_evidence(labels: np.ndarray, range_map: np.ndarray) -> tuple[np.ndar
     region = np.concatenate(near)
     keep = region > 0
     pair = np.unique(region[keep].astype(np.int64) * max(len(rows), 1) + pixel[keep])  # sorted, each once
-    region, pixel = pair // max(len(rows), 1), pair % max(len(rows), 1)
-    return region, rows[pixel], cols[pixel]
+    return pair // max(len(rows), 1), pair % max(len(rows), 1), rows, cols
 
 
 def fit_region_planes(points: np.ndarray, bearings: np.ndarray, center: np.ndarray, ranges: np.ndarray,

@@ -29,11 +29,11 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
 
 from fullview.sfm.camera import camera_up
 from fullview.sfm.dense.planes import (PlaneOptions, View, check_against_views, exposure_gain, image_regions,
-                                       pixel_points, project_into, reduced_bearings_world)
+                                       pixel_points, project_into, reduced_bearings_world, region_evidence_pixels)
 
 RANSAC_HYPOTHESES = 256  # plane hypotheses per accepted plane
 REFINE_SHRINK = (1.0, 0.5, 0.25, 0.25)  # inlier bands of the successive least-squares refinements (x distance)
@@ -43,6 +43,7 @@ LEVEL_TRIM_PERCENTILE = 1.0  # a level plane's gravity rectangle spans these per
 SNAP_SHRINK = (1.0, 0.5)  # bands of the offset refinement of a snapped plane (x distance)
 LEVEL_MERGE_BANDS = 3  # _one_level_plane_per_band: level planes of one side within this many median tolerances
 SWEEP_SUPPORT_FACTOR = 2  # a swept wall needs this many times min_support points (its lines, seen from its side)
+EVIDENCE_BLOCK = 16_384  # region_candidates judges this many stereo pixels against all planes at a time
 
 
 @dataclass(kw_only=True)
@@ -464,10 +465,8 @@ def region_candidates(ref: View, planes: list[WorldPlane], regions: np.ndarray, 
     """(regions, planes) bool: the world planes a panorama's image region may take, those that explain at least
     ``min_region_support`` of the stereo depths inside or around it (``planes._region_evidence``). A plane crossing
     the room without being a surface there has no such support in the region's own view."""
-    from fullview.sfm.dense.planes import _region_evidence
-
     allowed = np.zeros((int(regions.max()) + 1, len(planes)), bool)
-    region, rows, cols = _region_evidence(regions, ref.range_map)
+    region, pixel, rows, cols = region_evidence_pixels(regions, ref.range_map)
     if not len(region) or not planes:
         return allowed
     h, w = ref.range_map.shape
@@ -476,11 +475,20 @@ def region_candidates(ref: View, planes: list[WorldPlane], regions: np.ndarray, 
     observed = ref.range_map[rows, cols].astype(np.float64)
     normals = np.array([p.normal for p in planes])
     offsets = np.array([p.offset for p in planes])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r = (offsets - normals @ center)[None] / (bearings @ normals.T)
-        on = np.abs(r - observed[:, None]) <= options.view_tolerance * observed[:, None]
+    # whether a plane explains a pixel's depth depends on the pixel alone: computed once per pixel (not once per
+    # region around it), a block of pixels at a time, and summed per region through the (region, pixel) incidence
+    by_pixel = np.argsort(pixel, kind="stable")
     counts = np.zeros(allowed.shape, np.int64)
-    np.add.at(counts, region, on.astype(np.int64))
+    for start in range(0, len(rows), EVIDENCE_BLOCK):
+        block = slice(start, start + EVIDENCE_BLOCK)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = (offsets - normals @ center)[None] / _rows_times(bearings[block], normals.T)
+            on = np.abs(r - observed[block, None]) <= options.view_tolerance * observed[block, None]
+        first, last = np.searchsorted(pixel[by_pixel], [start, start + len(on)])
+        pairs = by_pixel[first:last]
+        incidence = sparse.csr_matrix((np.ones(len(pairs), np.int32), (region[pairs], pixel[pairs] - start)),
+                                      shape=(len(allowed), len(on)))
+        counts += incidence @ on.astype(np.int32)
     total = np.bincount(region, minlength=len(allowed))[:, None]
     allowed = (counts >= options.min_region_support) & (counts >= options.min_region_share * total)
     if options.free_ceiling:
@@ -491,6 +499,13 @@ def region_candidates(ref: View, planes: list[WorldPlane], regions: np.ndarray, 
     return allowed
 
 
+def _rows_times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` for a block of rows of a larger (N, 3) array, bit for bit what the whole product gives those rows:
+    numpy takes a one-row product as a vector product (another BLAS routine, other roundings), so a lone row is
+    computed with a copy of itself."""
+    return a @ b if len(a) != 1 else (np.repeat(a, 2, axis=0) @ b)[:1]
+
+
 def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, options: WorldPlaneOptions,
                  regions: np.ndarray | None = None, allowed: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -498,11 +513,13 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
     the nearest plane each ray meets inside its extent (in front, not grazing), among the planes ``allowed``
     (regions, planes) in the pixel's image region (``regions``), if given."""
     h, w = ref.range_map.shape
-    best = np.full(h * w, np.inf, np.float32)
     label = np.zeros(h * w, np.int32)
     pix = np.flatnonzero(fillable.ravel())
     if not len(pix) or not planes:
         return np.full((h, w), np.nan, np.float32), label.reshape(h, w)
+    best = np.full(h * w, np.inf, np.float32)
+    nearest = np.full(len(pix), np.inf, np.float32)  # per fillable pixel: best range so far, and its label
+    taken = np.zeros(len(pix), np.int32)
     bearings = reduced_bearings_world(ref.R_cam_from_world, w, h).reshape(-1, 3)[pix].astype(np.float64)
     center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
     min_cos = np.sin(np.radians(options.min_incidence_deg))
@@ -512,35 +529,39 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
             continue  # this camera is behind the surface (it would see the back of a wall's other face)
         if regions is not None and not allowed[:, k].any():
             continue  # no region of this view may take it
-        cos = bearings @ plane.normal
+        # only the pixels whose region may take the plane are looked at (per pixel: the same numbers; BLAS gives a
+        # row of bearings the same product in any subset)
+        sel = np.flatnonzero(allowed[:, k][pix_regions]) if regions is not None else np.arange(len(pix))
+        cos = bearings[sel] @ plane.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             r = (plane.offset - plane.normal @ center) / cos
-        hit = (r > 0) & (np.abs(cos) >= min_cos) & (r < best[pix])
-        if regions is not None:
-            hit &= allowed[pix_regions, k]
+        hit = (r > 0) & (np.abs(cos) >= min_cos) & (r < nearest[sel])
         if not hit.any():
             continue
-        sel = np.flatnonzero(hit)
-        inside = plane.contains(center + bearings[sel] * r[sel, None])
-        sel = sel[inside]
-        best[pix[sel]] = r[sel]
-        label[pix[sel]] = k + 1
+        sel, r = sel[hit], r[hit]
+        inside = plane.contains(center + bearings[sel] * r[:, None])
+        nearest[sel[inside]] = r[inside]
+        taken[sel[inside]] = k + 1
+    best[pix], label[pix] = nearest, taken
     label = _drop_islands(label.reshape(h, w), options.min_island_pixels)
     out = np.where(label > 0, best.reshape(h, w), np.nan).astype(np.float32)
     return out, label
 
 
 def _drop_islands(label: np.ndarray, min_pixels: int) -> np.ndarray:
-    """Labels with the connected pieces (per label, 4-connected) smaller than ``min_pixels`` set to 0."""
+    """Labels with the connected pieces (per label, 4-connected) smaller than ``min_pixels`` set to 0. Each label
+    is looked at inside its bounding box only (its pieces lie there)."""
     if min_pixels <= 1 or not label.any():
         return label
     out = label.copy()
-    for k in np.unique(label[label > 0]):
-        n, comp, stats, _ = cv2.connectedComponentsWithStats((label == k).astype(np.uint8), connectivity=4)
+    for k, box in enumerate(ndimage.find_objects(label), start=1):
+        if box is None:
+            continue
+        n, comp, stats, _ = cv2.connectedComponentsWithStats((label[box] == k).astype(np.uint8), connectivity=4)
         small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < min_pixels)
         small = small[small > 0]
         if len(small):
-            out[np.isin(comp, small)] = 0
+            out[box][np.isin(comp, small)] = 0
     return out
 
 
