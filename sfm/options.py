@@ -71,8 +71,12 @@ class MatchesOptions:
     mutual: bool = setting(True, "keep only mutual nearest neighbours")
     descriptor_dims: int = setting(32, "nearest neighbours are searched on the descriptors' first principal "
                                    "components (per dataset; a quarter of the matrix product), the 3 nearest "
-                                   "re-ranked by full distances, the mutual check searched back the same way",
+                                   "(4 with int8_search) re-ranked by full distances, the mutual check searched "
+                                   "back the same way",
                                    ge=8, le=128, zero_means="all 128 dimensions")
+    int8_search: bool = setting(True, "descriptor_dims > 0: the search multiplies the projections rounded to 8 "
+                                "bits (integer kernels, a third of float32's time), its 4 nearest re-ranked by full "
+                                "distances (4: rounding adds near-ties)")
     RULES: ClassVar[list[Rule]] = [
         ("retrieval_neighbours > 0 when pairs is retrieval", lambda o: o.pairs != "retrieval" or o.retrieval_neighbours > 0)]
 

@@ -153,6 +153,66 @@ def test_projected_search_keeps_the_mutual_matches_the_projected_column_maxima_r
     exact = {tuple(m) for m in match_descriptors(a, b, MatchesOptions(descriptor_dims=0)).tolist()}
     basis = descriptor_basis([a, b], 16)
     found = {tuple(m) for m in match_descriptors(project_descriptors(a, basis), project_descriptors(b, basis),
-                                                 MatchesOptions(), full=(a, b)).tolist()}
+                                                 MatchesOptions(int8_search=False), full=(a, b)).tolist()}
     assert len(exact) > 1400
     assert len(found & exact) >= 0.99 * len(exact) and not found - exact
+
+
+def _rootsift_pair(seed: int, n: int = 1500):
+    """RootSIFT-like unit rows a and b: b holds noisy copies of a's rows (shuffled) and 500 unrelated rows."""
+    rng = np.random.default_rng(seed)
+    base = rng.gamma(0.5, 1.0, (n, 128))
+    root = lambda x: np.sqrt(x / x.sum(axis=1, keepdims=True)).astype(np.float32)  # noqa: E731
+    return root(base), np.concatenate([root(np.abs(base + rng.normal(0, 0.15, base.shape)))[rng.permutation(n)],
+                                       root(rng.gamma(0.5, 1.0, (500, 128)))])
+
+
+def test_int8_products_are_the_exact_integer_products_with_and_without_onnxruntime(monkeypatch):
+    """onnxruntime's MatMulInteger and the float32 fallback give the exact integer products, so the same
+    neighbours (ties to the lower index); 127-valued rows reach the largest sums."""
+    from fullview.sfm import matching
+
+    rng = np.random.default_rng(1)
+    a = rng.integers(-127, 128, (300, 32)).astype(np.int8)
+    b = rng.integers(-127, 128, (500, 32)).astype(np.int8)
+    a[0], b[0] = 127, 127
+    b[7] = b[3]  # a tie: the lower index comes first
+    exact = a.astype(np.int64) @ b.astype(np.int64).T
+    best = np.argsort(-exact, axis=1, kind="stable")[:, :4]
+    assert matching._int8_session() is not None  # onnxruntime is a dependency: the fast path is what runs
+    assert np.array_equal(matching._nearest_on_int8(a, b, 64, 4), best)
+    monkeypatch.setattr(matching, "_int8_session", lambda: None)
+    assert np.array_equal(matching._nearest_on_int8(a, b, 64, 4), best)
+
+
+def test_int8_search_matches_the_same_without_onnxruntime_and_keeps_the_full_search_matches(monkeypatch):
+    """At 32 dimensions the int8 search keeps the full 128-dimensional search's matches on RootSIFT-like rows, and
+    finds the same ones on the float32 fallback."""
+    from fullview.sfm import matching
+
+    a, b = _rootsift_pair(0)
+    exact = {tuple(m) for m in match_descriptors(a, b, MatchesOptions(descriptor_dims=0)).tolist()}
+    basis = descriptor_basis([a, b], 32)
+    pa, pb = project_descriptors(a, basis), project_descriptors(b, basis)
+    fast = match_descriptors(pa, pb, MatchesOptions(), full=(a, b))
+    found = {tuple(m) for m in fast.tolist()}
+    assert len(exact) > 1400 and len(found & exact) >= 0.999 * len(exact) and not found - exact
+    monkeypatch.setattr(matching, "_int8_session", lambda: None)
+    assert np.array_equal(match_descriptors(pa, pb, MatchesOptions(), full=(a, b)), fast)
+
+
+def test_the_stored_int8_graph_is_the_one_onnx_builds():
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper
+
+    from fullview.sfm.matching import _MATMUL_INTEGER_ONNX
+
+    info = helper.make_tensor_value_info
+    graph = helper.make_graph([helper.make_node("MatMulInteger", ["A", "B", "azp"], ["Y"])], "mm",
+                              [info("A", TensorProto.UINT8, ["n", "k"]), info("B", TensorProto.INT8, ["k", "m"])],
+                              [info("Y", TensorProto.INT32, ["n", "m"])],
+                              initializer=[helper.make_tensor("azp", TensorProto.UINT8, [], [128])])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    onnx.checker.check_model(model)
+    assert model.SerializeToString() == _MATMUL_INTEGER_ONNX

@@ -199,3 +199,19 @@ def test_partial_feature_loads_equal_the_full_load(tiny_dataset, make_pipeline):
     assert sorted(part) == ["image_size", "pixels"]
     assert all(np.array_equal(part[k], full[k]) for k in part)
     assert np.array_equal(pipe.ws.load_descriptors(name), full["descriptors"])
+
+
+def test_rescoring_in_chunks_of_rows_equals_all_rows_at_once():
+    """`_rescore` works RESCORE_ROWS rows at a time (the temporary stays in cache): the same neighbours and the
+    same distance bits as one pass over every row, also with a last partial chunk."""
+    from fullview.sfm.matching import _rescore
+
+    rng = np.random.default_rng(4)
+    unit = lambda n: normalize(np.abs(rng.normal(size=(n, 128)))).astype(np.float32)  # noqa: E731
+    full_i, full_j = unit(1000), unit(700)
+    nn = rng.integers(0, 700, (1000, 4))
+    nn[::7, 1] = nn[::7, 0]  # tied candidates: the stable order must be kept
+    one = _rescore(nn, full_i, full_j, rows=1000)
+    for rows in (1, 256, 333):
+        chunked = _rescore(nn, full_i, full_j, rows=rows)
+        assert np.array_equal(one[0], chunked[0]) and np.array_equal(one[1], chunked[1])
