@@ -7,11 +7,6 @@ from functools import cache
 
 import numpy as np
 
-try:  # int8 products on the CPU's integer dot-product instructions (AVX-512 VNNI / AVX2), see `int8_scores`
-    import onnxruntime
-except ImportError:  # the same scores from float32 products, slower
-    onnxruntime = None
-
 from fullview.sfm.options import MatchesOptions
 
 
@@ -160,7 +155,9 @@ def quantize(desc: np.ndarray) -> np.ndarray:
 @cache
 def _int8_session():
     """An onnxruntime session of one MatMulInteger, run on the calling thread (None without onnxruntime)."""
-    if onnxruntime is None:
+    try:  # int8 products on the CPU's integer dot-product kernels; imported here, not at start-up (0.25 s)
+        import onnxruntime
+    except ImportError:  # the same scores from float32 products, slower
         return None
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads = options.inter_op_num_threads = 1  # the stages parallelise over pairs themselves
