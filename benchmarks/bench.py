@@ -86,6 +86,9 @@ def ours(dataset: Path, work: Path, label: str, extra: list[str], dense: bool = 
         manifest = workspace.read_manifest("densify")
         out["densify"] = {k: manifest["summary"].get(k) for k in ("pairs", "points", "median_pair_time_s", "valid_share")}
         out["densify"]["stage_time_s"] = manifest["wall_time_s"]
+        out["densify"]["cpu_time_s"] = manifest.get("cpu_time_s")
+        out["densify"]["peak_rss_mb"] = manifest.get("peak_rss_mb")
+        out["densify"]["width"] = manifest["summary"].get("width")
     if (dataset / "ground_truth" / "poses.yaml").exists():
         proc = run([sys.executable, "-m", "fullview", "eval", str(dataset), "-w", str(ws), *settings])
         out["metrics"] = json.loads(proc.stdout) if proc.returncode == 0 else {"error": proc.stderr[-2000:]}
@@ -353,8 +356,8 @@ def table(rows: list[dict]) -> str:
 
 
 def dense_table(rows: list[dict]) -> str:
-    head = ("scene", "pairs", "median s/pair", "stage s", "points", "max median rel. depth err", "min valid share",
-            "accuracy", "completeness")
+    head = ("scene", "width", "pairs", "median s/pair", "stage s", "s/panorama", "CPU s", "peak MB", "points",
+            "max median rel. depth err", "min valid share", "accuracy", "completeness")
     lines = [" | ".join(head), " | ".join("---" for _ in head)]
     for r in rows:
         d = r["ours"].get("densify")
@@ -362,8 +365,10 @@ def dense_table(rows: list[dict]) -> str:
             continue
         m = r["ours"].get("metrics", {}).get("dense", {})
         cloud = m.get("cloud", {})
-        lines.append(" | ".join([r["scene"], str(d["pairs"]), fmt(d["median_pair_time_s"]), fmt(d["stage_time_s"], ".1f"),
-                                 str(d["points"]), fmt(m.get("max_median_rel_error"), ".4f"),
+        per_panorama = d["stage_time_s"] / len(d["valid_share"]) if d.get("valid_share") else None
+        lines.append(" | ".join([r["scene"], str(d.get("width")), str(d["pairs"]), fmt(d["median_pair_time_s"]),
+                                 fmt(d["stage_time_s"], ".1f"), fmt(per_panorama, ".2f"), fmt(d.get("cpu_time_s"), ".1f"),
+                                 fmt(d.get("peak_rss_mb"), ".0f"), str(d["points"]), fmt(m.get("max_median_rel_error"), ".4f"),
                                  fmt(m.get("min_valid_share"), ".3f"), fmt(cloud.get("accuracy"), ".3f"),
                                  fmt(cloud.get("completeness"), ".3f")]))
     return "\n".join(lines)
