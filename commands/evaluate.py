@@ -62,7 +62,7 @@ def _against_ground_truth(pipeline: Pipeline, est: dict, source: str) -> dict:
 def dense_agreement(dataset: Dataset, ws: Workspace, est: dict) -> dict:
     """Leave-one-out agreement of the densify range maps (no ground truth needed): per panorama of model 0 its valid
     share and the share of its ranged pixels within 2% of what the other panoramas predict, splatted
-    (``agreement``) and with visibility (``visible_agreement``: ``sfm.dense_metrics.visible_agreement``); with the
+    (``agreement``) and with visibility (``visible_agreement``: ``sfm.dense_agreement.visible_agreement``); with the
     medians."""
     names = [n for n, ok in zip(dataset.image_names, est["registered"]) if ok]
     keep = np.asarray(est["registered"], bool)

@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from fullview.sfm.camera import bearings_to_pixels, pixels_to_bearings
-
+from fullview.sfm.dense_metrics import splat_nearest
 
 
 def _facing_points(range_map: np.ndarray, R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, stride: int
@@ -48,7 +48,7 @@ def visible_agreement(range_maps: Sequence[np.ndarray | None], R_cam_from_world:
     point's projection. Against it: it sees clearly beyond the point there (the point is too near, or that map too
     far), or one of its surfaces that face this panorama lies clearly in front of the point along this panorama's
     ray (the point is too far, or that map too near: its points splatted as in
-    ``dense_metrics.predicted_range_map``, back faces left out). A map that sees a nearer surface at the point's
+    ``dense_metrics.splat_nearest``, back faces left out). A map that sees a nearer surface at the point's
     projection says nothing (the point is hidden from it). The point agrees when more maps vote for it than
     against; it is judged when any map votes.
 
@@ -90,11 +90,7 @@ def visible_agreement(range_maps: Sequence[np.ndarray | None], R_cam_from_world:
                 seen_through += r_obs > (1 + tolerance) * r_pred
             x, n = facing[j]
             x = x[np.sum(n * (centers[k] - x), axis=1) >= 0]  # back faces are hidden from panorama k
-            x_k = x @ R_all[k].T + t_all[k]
-            pix = bearings_to_pixels(x_k, width, height)
-            in_front = np.full(height * width, np.inf)
-            np.minimum.at(in_front, np.clip(pix[:, 1].astype(np.int64), 0, height - 1) * width
-                          + np.clip(pix[:, 0].astype(np.int64), 0, width - 1), np.linalg.norm(x_k, axis=1))
+            in_front = splat_nearest(x, R_all[k], t_all[k], (height, width))
             behind += in_front[rows * width + cols] < (1 - tolerance) * r_own
         against = seen_through + behind
         checked = confirmed + against > 0

@@ -203,15 +203,25 @@ def predicted_range_map(k: int, range_maps: Sequence[np.ndarray], R_cam_from_wor
         if j == k or rng is None:
             continue
         x = backproject_range_map(rng, R_cam_from_world[j], t_cam_from_world[j], stride=stride)
-        x_k = x @ np.asarray(R_cam_from_world[k]).T + t_cam_from_world[k]
-        dist = np.linalg.norm(x_k, axis=1)
-        ok = dist > 0
-        pix = bearings_to_pixels(x_k[ok], width, height)
-        cols = np.clip(pix[:, 0].astype(np.int64), 0, width - 1)
-        rows = np.clip(pix[:, 1].astype(np.int64), 0, height - 1)
-        np.minimum.at(best, rows * width + cols, dist[ok])
+        splat_nearest(x, R_cam_from_world[k], t_cam_from_world[k], (height, width), into=best)
     best[~np.isfinite(best)] = np.nan
     return best.reshape(height, width)
+
+
+def splat_nearest(points: np.ndarray, R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray,
+                  shape: tuple[int, int], *, into: np.ndarray | None = None) -> np.ndarray:
+    """(H·W,) per pixel of a camera's equirectangular grid of ``shape`` the nearest range of the world ``points``
+    projecting into it, kept in ``into`` if given (+inf where none)."""
+    height, width = shape
+    best = np.full(height * width, np.inf) if into is None else into
+    x_cam = points @ np.asarray(R_cam_from_world).T + t_cam_from_world
+    dist = np.linalg.norm(x_cam, axis=1)
+    ok = dist > 0
+    pix = bearings_to_pixels(x_cam[ok], width, height)
+    cols = np.clip(pix[:, 0].astype(np.int64), 0, width - 1)
+    rows = np.clip(pix[:, 1].astype(np.int64), 0, height - 1)
+    np.minimum.at(best, rows * width + cols, dist[ok])
+    return best
 
 
 def leave_one_out_agreement(range_maps: Sequence[np.ndarray | None], R_cam_from_world: np.ndarray,

@@ -266,7 +266,8 @@ def _one_level_plane_per_band(planes: list[WorldPlane], band: float) -> list[Wor
                                and abs(q.offset - plane.offset) < LEVEL_MERGE_BANDS * band for q in out):
             continue
         out.append(plane)
-    return [p for p in planes if any(p is q for q in out)]
+    kept = {id(p) for p in out}
+    return [p for p in planes if id(p) in kept]
 
 
 def _horizontal_basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
