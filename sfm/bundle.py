@@ -84,7 +84,7 @@ _MIN_DIAGONAL = 1e-12
 _DENSE_CAMERA_UNKNOWNS = 3000
 # Dense Schur products: entries of one chunk of the (6N, 3·points) matrix, and how many multiply-adds of a BLAS
 # product cost what one observation pair costs in numpy (measured ~0.8 µs a pair against ~10 G multiply-adds/s).
-_DENSE_SCHUR_ENTRIES = 4_000_000
+_DENSE_SCHUR_ENTRIES = 2_000_000  # 16 MB a chunk: at 4 M its 32 MB set the 24-view triangulation's memory peak
 _PAIR_FLOPS = 8000.0
 # Listed observation pairs hold ~0.8 kB each (the 96-view room's 3.4 M took 2 GB); above this many the dense products,
 # whose chunks are bounded, are used whatever they cost, so memory stays bounded.
@@ -280,13 +280,16 @@ def _residuals(x: np.ndarray, problem: _Problem, with_jacobian: bool) -> tuple[n
     if k < PARALLEL_MIN_OBSERVATIONS:
         return _residuals_of(x, problem, with_jacobian, slice(None))
     halves = (slice(0, k // 2), slice(k // 2, k))
+    # Each half writes its Jacobian blocks into its rows of one array (no concatenated copy of the largest array).
+    J = np.empty((k, 2, 9)) if with_jacobian else None
     with ThreadPoolExecutor(max_workers=2) as pool:
-        (r0, J0), (r1, J1) = pool.map(lambda obs: _residuals_of(x, problem, with_jacobian, obs), halves)
-    return np.concatenate([r0, r1]), (np.concatenate([J0, J1]) if with_jacobian else None)
+        (r0, _), (r1, _) = pool.map(lambda obs: _residuals_of(x, problem, with_jacobian, obs,
+                                                              None if J is None else J[obs]), halves)
+    return np.concatenate([r0, r1]), J
 
 
-def _residuals_of(x: np.ndarray, problem: _Problem, with_jacobian: bool, obs: slice):
-    """`_residuals` of the observations in `obs`."""
+def _residuals_of(x: np.ndarray, problem: _Problem, with_jacobian: bool, obs: slice, J_out: np.ndarray | None = None):
+    """`_residuals` of the observations in `obs` (their Jacobian blocks written into `J_out` when given)."""
     omega, centers, points, dC = _unpack(x, problem)
     dR, J_l = rotation_exp(omega)
     R = dR @ problem.R_init
@@ -309,7 +312,7 @@ def _residuals_of(x: np.ndarray, problem: _Problem, with_jacobian: bool, obs: sl
     proj = (np.eye(3) - p[:, :, None] * p[:, None, :]) / norm[:, None, None]
     D = dr_dp @ proj  # (K, 2, 3) dr/dy
     J_X = D @ R_obs
-    J = np.empty((len(cam), 2, 9))
+    J = np.empty((len(cam), 2, 9)) if J_out is None else J_out
     J[:, :, 0:3] = -(D @ skew(y)) @ J_l[cam]
     J[:, :, 3:6] = -J_X
     J[:, :, 6:9] = J_X
@@ -389,7 +392,6 @@ class _WeightedResiduals:
 
     def __init__(self, problem: _Problem):
         self.problem = problem
-        self.mask, self.indices, self.indptr = _jacobian_structure(problem)
         self.shape = (2 * len(problem.obs_camera), problem.layout.num_params)
         self.sqrt_w = np.ones(len(problem.obs_camera))
         self.evaluations = 0
@@ -423,7 +425,8 @@ class _WeightedResiduals:
 
     def jac(self, x: np.ndarray) -> csr_matrix:
         """(2K + 2M, n) weighted Jacobian, sparse: the observations', then the gravity prior's rows."""
-        obs = csr_matrix((self.jac_blocks(x)[self.mask], self.indices, self.indptr), shape=self.shape)
+        mask, indices, indptr = _jacobian_structure(self.problem)  # built on demand: (K, 18) indices
+        obs = csr_matrix((self.jac_blocks(x)[mask], indices, indptr), shape=self.shape)
         cams = self.problem.prior_camera
         if not len(cams):
             return obs
@@ -505,10 +508,10 @@ class _SchurSystem:
         U = (self.by_camera @ (J_t[:, :6] @ J[:, :, :6]).reshape(k, 36)).reshape(n, 6, 6)
         V = (self.by_point @ (J_t[:, 6:] @ J[:, :, 6:]).reshape(k, 9)).reshape(p, 3, 3)
         W = J_t[:, :6] @ J[:, :, 6:]  # (K, 6, 3) camera-point coupling of each observation
-        W_t = J_t[:, 6:] @ J[:, :, :6]  # (K, 3, 6) its transpose (the same products)
         g = (J_t @ r[:, :, None])[:, :, 0]  # (K, 9)
         g_c = self.by_camera @ g[:, :6]  # (N, 6)
         g_p = self.by_point @ g[:, 6:]  # (P, 3)
+        del J_t, g  # per-observation arrays not held through the reduced system (the stage's memory peak)
         if J_prior is not None and len(J_prior):
             J_prior_t = J_prior.transpose(0, 2, 1)
             np.add.at(U, (prior_camera, slice(0, 3), slice(0, 3)), J_prior_t @ J_prior)
@@ -529,7 +532,7 @@ class _SchurSystem:
         if not np.isfinite(delta_c).all():
             return None
         # Back-substitution: δp = V⁻¹ (−g_p − Wᵀ δc).
-        W_t_delta = self.by_point @ (W_t @ delta_c.reshape(n, 6)[self.cam][:, :, None])[:, :, 0]
+        W_t_delta = self.by_point @ (delta_c.reshape(n, 6)[self.cam][:, None, :] @ W)[:, 0, :]  # Σ Wᵀ δc, as δcᵀ W
         delta_p = (V_inv @ (-g_p - W_t_delta)[:, :, None])[:, :, 0]
         d_c = delta_c[self.active]
         step = np.zeros(self.point_col + 3 * p)
@@ -592,11 +595,12 @@ class _SchurSystem:
         """−W V⁻¹ Wᵀ as a dense (6N, 6N) matrix: with V⁻¹ = L Lᵀ per point and Z = W L, it is −Z Zᵀ, Z scattered into
         a dense (6·cameras, 3·points) matrix per chunk of points (only the chunk's cameras): one BLAS product each."""
         n = self.num_cameras
-        Z = W @ _cholesky3(V_inv)[self.pt]  # (K, 6, 3)
+        L = _cholesky3(V_inv)
         S = np.zeros((6 * n, 6 * n))
         for obs, start, width, rows in self.chunks:
+            Z = W[obs] @ L[self.pt[obs]]  # (observations of the chunk, 6, 3)
             index = start[:, None, None] + (width * np.arange(6)[:, None] + np.arange(3))
-            Z_dense = np.bincount(index.ravel(), weights=Z[obs].ravel(), minlength=len(rows) * width)
+            Z_dense = np.bincount(index.ravel(), weights=Z.ravel(), minlength=len(rows) * width)
             Z_dense = Z_dense.reshape(len(rows), width)
             S[np.ix_(rows, rows)] -= Z_dense @ Z_dense.T
         return S
