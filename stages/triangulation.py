@@ -68,7 +68,6 @@ def run(ctx: StageContext) -> dict:
                              gravity, pose_tolerance_rad=POSE_ROUND_TOLERANCE * max_err)
     mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
     final = tracks.subset(mask)
-    errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     if config.bundle_adjust and final.num_tracks:
         R, t, points, errors = _bundle(final, bearings, R, t, points, model_id, config, gravity)
         # The last adjustment moved the points: drop the few tracks it left beyond the bound, so the stored
@@ -77,6 +76,8 @@ def run(ctx: StageContext) -> dict:
         np.maximum.at(worst, final.track_ids, errors)
         good = worst <= max_err
         final, points, errors = final.subset(good), points[good], errors[good[final.track_ids]]
+    else:  # the errors of the points just triangulated (with an adjustment, its own errors replace them)
+        errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     return _write(ctx, obs, model_id, R, t, final, points, errors, geometry_pairs=len(extra))
 
 
