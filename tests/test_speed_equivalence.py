@@ -309,3 +309,30 @@ def test_pose_tolerance_stops_once_the_cameras_settle_and_changes_nothing_when_o
     angles = np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1))
     assert angles.max() < 3 * tolerance
     assert early.final_cost == pytest.approx(full.final_cost, rel=1e-3)
+
+
+def test_stages_run_with_single_threaded_blas_from_the_cached_controller(tiny_dataset, make_pipeline, monkeypatch):
+    """The runner limits BLAS to one thread per stage through one cached threadpoolctl controller (rescanned only
+    after imports): inside every stage each BLAS library reports one thread, afterwards its own count again; a
+    module imported since forces a new scan."""
+    import sys
+
+    from threadpoolctl import threadpool_info
+
+    from fullview.stages import features as features_stage
+    from fullview.stages import runner
+
+    before = {info["filepath"]: info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"}
+    seen = []
+    run = features_stage.run
+    monkeypatch.setattr(features_stage, "run", lambda ctx: seen.append(
+        [info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"]) or run(ctx))
+    pipe = make_pipeline(tiny_dataset)
+    pipe.run(until="features")
+    controller = runner._blas_controller()
+    assert runner._blas_controller() is controller  # no import since: the same scan
+    assert seen and seen[0] and set(seen[0]) == {1}
+    after = {info["filepath"]: info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"}
+    assert after == before
+    monkeypatch.setitem(sys.modules, "fullview_test_new_module", SimpleNamespace())
+    assert runner._blas_controller() is not controller
