@@ -336,3 +336,30 @@ def test_stages_run_with_single_threaded_blas_from_the_cached_controller(tiny_da
     assert after == before
     monkeypatch.setitem(sys.modules, "fullview_test_new_module", SimpleNamespace())
     assert runner._blas_controller() is not controller
+
+
+def test_registration_reads_descriptors_only_when_matching_needs_them(tiny_dataset, make_pipeline, monkeypatch,
+                                                                     tmp_path):
+    """Registration's descriptors are read lazily (`NormalisedDescriptors`): where the view graph places every image
+    none is read, and the stored registration is byte for byte the one with every image's descriptors read first."""
+    from fullview.io.workspace import Workspace
+    from fullview.stages import registration as registration_stage
+
+    lazy, eager = (make_pipeline(tiny_dataset, workspace=tmp_path / name) for name in ("lazy", "eager"))
+    for pipe in (lazy, eager):
+        pipe.run(until="epipoles")
+    reads = []
+    load = Workspace.load_descriptors
+    monkeypatch.setattr(Workspace, "load_descriptors", lambda self, name: reads.append(name) or load(self, name))
+    lazy.run(until="registration")
+    assert lazy.ws.load_registration()["registered"].all() and reads == []
+    read_all = registration_stage._descriptors
+    monkeypatch.setattr(registration_stage, "_descriptors",
+                        lambda ctx, obs: [read_all(ctx, obs)[k] for k in range(len(obs))])
+    eager.run(until="registration")
+    assert len(reads) == len(lazy.dataset.image_names)  # the list read every image's descriptors
+    files = [p for p in (lazy.ws.root / "registration").rglob("*") if p.is_file() and p.name != "manifest.json"]
+    assert files
+    for path in files:
+        assert path.read_bytes() == (eager.ws.root / "registration" / path.relative_to(lazy.ws.root / "registration")
+                                     ).read_bytes()
