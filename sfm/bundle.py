@@ -521,6 +521,8 @@ class _SchurSystem:
         U[:, np.arange(6), np.arange(6)] += damping * D_c
         V[:, np.arange(3), np.arange(3)] += damping * D_p
         V_inv = _inverse_spd3(V)  # positive definite: PSD plus a positive diagonal
+        if not np.isfinite(V_inv).all():  # a determinant out of range: treated as a failed factorisation
+            return None
         # Reduced camera system S δc = b with S = U − W V⁻¹ Wᵀ, b = −g_c + W V⁻¹ g_p.
         V_inv_g = (V_inv @ g_p[:, :, None])[:, :, 0]
         rhs = (-g_c + self.by_camera @ (W @ V_inv_g[self.pt][:, :, None])[:, :, 0]).ravel()[self.active]
@@ -596,6 +598,8 @@ class _SchurSystem:
         a dense (6·cameras, 3·points) matrix per chunk of points (only the chunk's cameras): one BLAS product each."""
         n = self.num_cameras
         L = _cholesky3(V_inv)
+        if not np.isfinite(L).all():  # not numerically positive definite (numpy's cholesky would raise)
+            raise np.linalg.LinAlgError("a point block is not positive definite")
         S = np.zeros((6 * n, 6 * n))
         for obs, start, width, rows in self.chunks:
             Z = W[obs] @ L[self.pt[obs]]  # (observations of the chunk, 6, 3)
@@ -613,19 +617,21 @@ def _inverse_spd3(A: np.ndarray) -> np.ndarray:
     m00, m01, m02 = d * f - e * e, c * e - b * f, b * e - c * d
     m11, m12, m22 = a * f - c * c, b * c - a * e, a * d - b * b
     adjugate = np.stack([m00, m01, m02, m01, m11, m12, m02, m12, m22], axis=-1).reshape(A.shape)
-    return adjugate / (a * m00 + b * m01 + c * m02)[..., None, None]
+    with np.errstate(invalid="ignore", divide="ignore"):  # a singular block gives inf / NaN (callers check)
+        return adjugate / (a * m00 + b * m01 + c * m02)[..., None, None]
 
 
 def _cholesky3(A: np.ndarray) -> np.ndarray:
     """Lower Cholesky factors of symmetric positive definite 3×3 matrices (..., 3, 3), in closed form (numpy's
     batched LAPACK call costs more per matrix than the arithmetic)."""
     L = np.zeros_like(A)
-    L[..., 0, 0] = l00 = np.sqrt(A[..., 0, 0])
-    L[..., 1, 0] = l10 = A[..., 1, 0] / l00
-    L[..., 2, 0] = l20 = A[..., 2, 0] / l00
-    L[..., 1, 1] = l11 = np.sqrt(A[..., 1, 1] - l10 * l10)
-    L[..., 2, 1] = l21 = (A[..., 2, 1] - l20 * l10) / l11
-    L[..., 2, 2] = np.sqrt(A[..., 2, 2] - l20 * l20 - l21 * l21)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a block that is not positive definite gives NaN
+        L[..., 0, 0] = l00 = np.sqrt(A[..., 0, 0])
+        L[..., 1, 0] = l10 = A[..., 1, 0] / l00
+        L[..., 2, 0] = l20 = A[..., 2, 0] / l00
+        L[..., 1, 1] = l11 = np.sqrt(A[..., 1, 1] - l10 * l10)
+        L[..., 2, 1] = l21 = (A[..., 2, 1] - l20 * l10) / l11
+        L[..., 2, 2] = np.sqrt(A[..., 2, 2] - l20 * l20 - l21 * l21)
     return L
 
 

@@ -259,6 +259,10 @@ def test_closed_form_3x3_inverse_and_cholesky_equal_lapacks():
         np.testing.assert_allclose(_inverse_spd3(A), inverse, rtol=0, atol=1e-13 * condition * np.abs(inverse).max())
         np.testing.assert_allclose(_cholesky3(A), np.linalg.cholesky(A), rtol=0,
                                    atol=1e-13 * condition * np.abs(np.linalg.cholesky(A)).max())
+    # Where LAPACK raises (not positive definite, singular), the closed forms give NaN / inf, which the solve treats
+    # as a failed factorisation.
+    assert np.isnan(_cholesky3(np.diag([1.0, 1.0, -1.0])[None])).any()
+    assert not np.isfinite(_inverse_spd3(np.zeros((1, 3, 3)))).all()
 
 
 def test_schur_products_from_a_contiguous_transpose_and_closed_forms_keep_the_adjustment(monkeypatch):
