@@ -367,3 +367,26 @@ def test_registration_reads_descriptors_only_when_matching_needs_them(tiny_datas
     for path in files:
         assert path.read_bytes() == (eager.ws.root / "registration" / path.relative_to(lazy.ws.root / "registration")
                                      ).read_bytes()
+
+
+def test_feature_files_are_hashed_by_their_writing_task_and_rehashed_when_changed(tmp_path, monkeypatch):
+    """`StageWriter.save_features` takes the file's sha256 on the writing task; the manifest reuses it (no second
+    read of the file) while size and mtime match, and hashes the file again once it was rewritten."""
+    from fullview.io import workspace as workspace_module
+    from fullview.io.workspace import FEATURE_KEYS, StageWriter
+
+    rng = np.random.default_rng(0)
+    arrays = {k: rng.normal(size=(5, 3)) for k in FEATURE_KEYS}
+    writer = StageWriter("features", tmp_path)
+    first = writer.save_features("a.png", **arrays)
+    second = writer.save_features("b.png", **arrays)
+    hashed = []
+    sha256 = workspace_module.file_sha256
+    monkeypatch.setattr(workspace_module, "file_sha256", lambda p: hashed.append(p) or sha256(p))
+    manifest = writer.commit_manifest({})
+    assert hashed == []
+    for path in (first, second):
+        assert manifest["outputs"][path.name]["sha256"] == sha256(path)
+    second.write_bytes(second.read_bytes() + b"changed")
+    manifest = writer.commit_manifest({})
+    assert hashed == [second] and manifest["outputs"][second.name]["sha256"] == sha256(second)

@@ -540,13 +540,13 @@ def _grow_by_points(state: ModelSet, m: int, links: PairLinks, bearings, options
 
 def _resect_round(state: ModelSet, m: int, tracks: Tracks, bearings, options: RegistrationOptions) -> list[int]:
     """Every free image seeing >= min_resection_points of model m's points, placed if its resection holds."""
+    resect_options = ResectionOptions(threshold_rad=np.radians(options.resection_threshold_deg),
+                                      min_inliers=options.min_resection_points, seed=options.seed)
     if not (state.model_id < 0).any():  # nothing to place: the model's points are not needed
         return []
     X, point_of_track = _points_of(state, m, tracks, bearings)
     seen = (state.model_id[tracks.image_ids] < 0) & (point_of_track[tracks.track_ids] >= 0)
     counts = np.bincount(tracks.image_ids[seen], minlength=len(state.model_id))
-    resect_options = ResectionOptions(threshold_rad=np.radians(options.resection_threshold_deg),
-                                      min_inliers=options.min_resection_points, seed=options.seed)
     added = []
     for b in np.argsort(-counts, kind="stable"):
         if counts[b] < options.min_resection_points:
