@@ -367,6 +367,18 @@ class StageWriter:
 
     def __init__(self, folder: str, directory: Path):
         self.folder, self.dir, self.committed = folder, Path(directory), False
+        self._hashes: dict[Path, tuple[int, int, str]] = {}  # (size, mtime_ns, sha256) taken by writing tasks
+
+    def _hashed(self, path: Path) -> Path:
+        """Take `path`'s sha256 now, on the task that wrote it (in the page cache, and the tasks run in parallel):
+        `commit_manifest` uses it instead of reading the file again while its size and mtime are unchanged."""
+        stat = path.stat()
+        self._hashes[path] = (stat.st_size, stat.st_mtime_ns, file_sha256(path))
+        return path
+
+    def _sha256(self, path: Path) -> str:
+        stat, known = path.stat(), self._hashes.get(path)
+        return known[2] if known is not None and known[:2] == (stat.st_size, stat.st_mtime_ns) else file_sha256(path)
 
     def path(self, artifact: str, **fields) -> Path:
         """Where `artifact` goes in this transaction; an artifact of another folder is refused."""
@@ -379,7 +391,7 @@ class StageWriter:
         missing = [k for k in FEATURE_KEYS if k not in arrays]
         if missing:
             raise ValueError(f"features of {image_name} lack {missing}")
-        return save_npz(self.path("features", stem=image_stem(image_name)), FEATURES_VERSION, **arrays)
+        return self._hashed(save_npz(self.path("features", stem=image_stem(image_name)), FEATURES_VERSION, **arrays))
 
     def save_matches(self, pairs, matches) -> Path:
         return _save_pair_data(self.path("matches"), pairs, matches)
@@ -430,7 +442,7 @@ class StageWriter:
         outputs = {}
         for p in sorted(self.dir.rglob("*")):
             if p.is_file() and not p.is_symlink() and p.name != MANIFEST_NAME:
-                outputs[str(p.relative_to(self.dir))] = {"size": p.stat().st_size, "sha256": file_sha256(p)}
+                outputs[str(p.relative_to(self.dir))] = {"size": p.stat().st_size, "sha256": self._sha256(p)}
         manifest = {**record, "outputs": outputs}
         save_json(self.dir / MANIFEST_NAME, manifest)
         self.committed = True

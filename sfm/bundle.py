@@ -84,7 +84,7 @@ _MIN_DIAGONAL = 1e-12
 _DENSE_CAMERA_UNKNOWNS = 3000
 # Dense Schur products: entries of one chunk of the (6N, 3·points) matrix, and how many multiply-adds of a BLAS
 # product cost what one observation pair costs in numpy (measured ~0.8 µs a pair against ~10 G multiply-adds/s).
-_DENSE_SCHUR_ENTRIES = 4_000_000
+_DENSE_SCHUR_ENTRIES = 2_000_000  # 16 MB a chunk: at 4 M its 32 MB set the 24-view triangulation's memory peak
 _PAIR_FLOPS = 8000.0
 # Listed observation pairs hold ~0.8 kB each (the 96-view room's 3.4 M took 2 GB); above this many the dense products,
 # whose chunks are bounded, are used whatever they cost, so memory stays bounded.
@@ -280,13 +280,16 @@ def _residuals(x: np.ndarray, problem: _Problem, with_jacobian: bool) -> tuple[n
     if k < PARALLEL_MIN_OBSERVATIONS:
         return _residuals_of(x, problem, with_jacobian, slice(None))
     halves = (slice(0, k // 2), slice(k // 2, k))
+    # Each half writes its Jacobian blocks into its rows of one array (no concatenated copy of the largest array).
+    J = np.empty((k, 2, 9)) if with_jacobian else None
     with ThreadPoolExecutor(max_workers=2) as pool:
-        (r0, J0), (r1, J1) = pool.map(lambda obs: _residuals_of(x, problem, with_jacobian, obs), halves)
-    return np.concatenate([r0, r1]), (np.concatenate([J0, J1]) if with_jacobian else None)
+        (r0, _), (r1, _) = pool.map(lambda obs: _residuals_of(x, problem, with_jacobian, obs,
+                                                              None if J is None else J[obs]), halves)
+    return np.concatenate([r0, r1]), J
 
 
-def _residuals_of(x: np.ndarray, problem: _Problem, with_jacobian: bool, obs: slice):
-    """`_residuals` of the observations in `obs`."""
+def _residuals_of(x: np.ndarray, problem: _Problem, with_jacobian: bool, obs: slice, J_out: np.ndarray | None = None):
+    """`_residuals` of the observations in `obs` (their Jacobian blocks written into `J_out` when given)."""
     omega, centers, points, dC = _unpack(x, problem)
     dR, J_l = rotation_exp(omega)
     R = dR @ problem.R_init
@@ -309,7 +312,7 @@ def _residuals_of(x: np.ndarray, problem: _Problem, with_jacobian: bool, obs: sl
     proj = (np.eye(3) - p[:, :, None] * p[:, None, :]) / norm[:, None, None]
     D = dr_dp @ proj  # (K, 2, 3) dr/dy
     J_X = D @ R_obs
-    J = np.empty((len(cam), 2, 9))
+    J = np.empty((len(cam), 2, 9)) if J_out is None else J_out
     J[:, :, 0:3] = -(D @ skew(y)) @ J_l[cam]
     J[:, :, 3:6] = -J_X
     J[:, :, 6:9] = J_X
@@ -389,7 +392,6 @@ class _WeightedResiduals:
 
     def __init__(self, problem: _Problem):
         self.problem = problem
-        self.mask, self.indices, self.indptr = _jacobian_structure(problem)
         self.shape = (2 * len(problem.obs_camera), problem.layout.num_params)
         self.sqrt_w = np.ones(len(problem.obs_camera))
         self.evaluations = 0
@@ -423,7 +425,8 @@ class _WeightedResiduals:
 
     def jac(self, x: np.ndarray) -> csr_matrix:
         """(2K + 2M, n) weighted Jacobian, sparse: the observations', then the gravity prior's rows."""
-        obs = csr_matrix((self.jac_blocks(x)[self.mask], self.indices, self.indptr), shape=self.shape)
+        mask, indices, indptr = _jacobian_structure(self.problem)  # built on demand: (K, 18) indices
+        obs = csr_matrix((self.jac_blocks(x)[mask], indices, indptr), shape=self.shape)
         cams = self.problem.prior_camera
         if not len(cams):
             return obs
@@ -466,7 +469,7 @@ class _SchurSystem:
         # The Schur complement by dense matrix products costs 108·(cameras of a chunk)²·(its points) multiply-adds
         # at BLAS speed, by observation pairs 108 each at numpy's gather speed: dense wins unless tracks are short
         # among many cameras. The pairs themselves are listed only when used (they grow with the tracks' squares).
-        dense_flops = sum(108.0 * len(cameras) ** 2 * len(np.unique(pt[obs])) for obs, _, cameras in self.chunks)
+        dense_flops = sum(108.0 * (len(rows) // 6) ** 2 * len(np.unique(pt[obs])) for obs, _, _, rows in self.chunks)
         m = np.bincount(pt[self.moving], minlength=p).astype(np.float64)  # moving observations per point
         num_pairs = float((m * (m + 1) / 2).sum())
         self.dense_products = dense_flops < _PAIR_FLOPS * num_pairs or num_pairs > _MAX_OBSERVATION_PAIRS
@@ -499,13 +502,16 @@ class _SchurSystem:
         observation residuals, then those of the gravity prior (blocks J_prior on the ω of prior_camera)."""
         n, p, k = self.num_cameras, self.num_points, len(J)
         r, r_prior = r[:k], r[k:]
-        Jc, Jp = J[:, :, :6], J[:, :, 6:]
-        Jc_t, Jp_t = Jc.transpose(0, 2, 1), Jp.transpose(0, 2, 1)
-        U = (self.by_camera @ (Jc_t @ Jc).reshape(k, 36)).reshape(n, 6, 6)
-        V = (self.by_point @ (Jp_t @ Jp).reshape(k, 9)).reshape(p, 3, 3)
-        W = Jc_t @ Jp  # (K, 6, 3) camera-point coupling of each observation
-        g_c = self.by_camera @ (Jc_t @ r[:, :, None])[:, :, 0]  # (N, 6)
-        g_p = self.by_point @ (Jp_t @ r[:, :, None])[:, :, 0]  # (P, 3)
+        # Per-observation products from a contiguous Jᵀ: numpy's batched product of small matrices takes a slow
+        # path on a transposed view (3× the time). Slices of J and J_t keep each small matrix contiguous.
+        J_t = np.ascontiguousarray(J.transpose(0, 2, 1))  # (K, 9, 2)
+        U = (self.by_camera @ (J_t[:, :6] @ J[:, :, :6]).reshape(k, 36)).reshape(n, 6, 6)
+        V = (self.by_point @ (J_t[:, 6:] @ J[:, :, 6:]).reshape(k, 9)).reshape(p, 3, 3)
+        W = J_t[:, :6] @ J[:, :, 6:]  # (K, 6, 3) camera-point coupling of each observation
+        g = (J_t @ r[:, :, None])[:, :, 0]  # (K, 9)
+        g_c = self.by_camera @ g[:, :6]  # (N, 6)
+        g_p = self.by_point @ g[:, 6:]  # (P, 3)
+        del J_t, g  # per-observation arrays not held through the reduced system (the stage's memory peak)
         if J_prior is not None and len(J_prior):
             J_prior_t = J_prior.transpose(0, 2, 1)
             np.add.at(U, (prior_camera, slice(0, 3), slice(0, 3)), J_prior_t @ J_prior)
@@ -514,7 +520,9 @@ class _SchurSystem:
         D_p = np.maximum(np.einsum("pii->pi", V), _MIN_DIAGONAL)
         U[:, np.arange(6), np.arange(6)] += damping * D_c
         V[:, np.arange(3), np.arange(3)] += damping * D_p
-        V_inv = np.linalg.inv(V)  # positive definite: PSD plus a positive diagonal
+        V_inv = _inverse_spd3(V)  # positive definite: PSD plus a positive diagonal
+        if not np.isfinite(V_inv).all():  # a determinant out of range: treated as a failed factorisation
+            return None
         # Reduced camera system S δc = b with S = U − W V⁻¹ Wᵀ, b = −g_c + W V⁻¹ g_p.
         V_inv_g = (V_inv @ g_p[:, :, None])[:, :, 0]
         rhs = (-g_c + self.by_camera @ (W @ V_inv_g[self.pt][:, :, None])[:, :, 0]).ravel()[self.active]
@@ -526,7 +534,7 @@ class _SchurSystem:
         if not np.isfinite(delta_c).all():
             return None
         # Back-substitution: δp = V⁻¹ (−g_p − Wᵀ δc).
-        W_t_delta = self.by_point @ (W.transpose(0, 2, 1) @ delta_c.reshape(n, 6)[self.cam][:, :, None])[:, :, 0]
+        W_t_delta = self.by_point @ (delta_c.reshape(n, 6)[self.cam][:, None, :] @ W)[:, 0, :]  # Σ Wᵀ δc, as δcᵀ W
         delta_p = (V_inv @ (-g_p - W_t_delta)[:, :, None])[:, :, 0]
         d_c = delta_c[self.active]
         step = np.zeros(self.point_col + 3 * p)
@@ -569,31 +577,62 @@ class _SchurSystem:
         S = csr_matrix(coo_matrix((b.ravel(), (r6, c6)), shape=(6 * n, 6 * n)))[self.active][:, self.active]
         return spsolve(S.tocsc(), rhs)
 
-    def _dense_chunks(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Chunks of consecutive points for `_dense_correction`: (observations, their local row of a chunk camera,
-        the chunk's cameras). At most `_DENSE_SCHUR_ENTRIES` entries of the dense (6·cameras, 3·points) matrix."""
+    def _dense_chunks(self) -> list[tuple[np.ndarray | slice, np.ndarray, int, np.ndarray]]:
+        """Chunks of consecutive points for `_dense_correction`, each with at most `_DENSE_SCHUR_ENTRIES` entries of
+        the dense (6·cameras, 3·points) matrix (only the chunk's cameras): its observations (a slice when one chunk
+        holds them all), where each observation's 6×3 block starts in that matrix (its top-left entry), the
+        matrix's width and the rows of S its rows add to. Fixed per problem, so every solve scatters at once."""
         chunks, size = [], max(1, _DENSE_SCHUR_ENTRIES // (18 * self.num_cameras))
         for lo in range(0, self.num_points, size):
             obs = self.pt_order[slice(*np.searchsorted(self.pt_sorted, [lo, lo + size]))]
+            if len(obs) == len(self.pt):
+                obs = slice(None)  # every observation, in its own order (the scatter sums them whatever the order)
+            pt = self.pt[obs]
             cameras, local = np.unique(self.cam[obs], return_inverse=True)
-            chunks.append((obs, local, cameras))
+            first, width = pt.min(), 3 * (pt.max() - pt.min() + 1)
+            chunks.append((obs, 6 * width * local + 3 * (pt - first), width, (6 * cameras[:, None] + np.arange(6)).ravel()))
         return chunks
 
     def _dense_correction(self, V_inv: np.ndarray, W: np.ndarray) -> np.ndarray:
         """−W V⁻¹ Wᵀ as a dense (6N, 6N) matrix: with V⁻¹ = L Lᵀ per point and Z = W L, it is −Z Zᵀ, Z scattered into
         a dense (6·cameras, 3·points) matrix per chunk of points (only the chunk's cameras): one BLAS product each."""
         n = self.num_cameras
-        Z = W @ np.linalg.cholesky(V_inv)[self.pt]  # (K, 6, 3)
+        L = _cholesky3(V_inv)
+        if not np.isfinite(L).all():  # not numerically positive definite (numpy's cholesky would raise)
+            raise np.linalg.LinAlgError("a point block is not positive definite")
         S = np.zeros((6 * n, 6 * n))
-        for obs, local, cameras in self.chunks:
-            lo, width = self.pt[obs].min(), 3 * (self.pt[obs].max() - self.pt[obs].min() + 1)
-            index = ((6 * local[:, None, None] + np.arange(6)[:, None]) * width
-                     + 3 * (self.pt[obs, None, None] - lo) + np.arange(3))
-            Z_dense = np.bincount(index.ravel(), weights=Z[obs].ravel(), minlength=6 * len(cameras) * width)
-            Z_dense = Z_dense.reshape(6 * len(cameras), width)
-            rows = (6 * cameras[:, None] + np.arange(6)).ravel()
+        for obs, start, width, rows in self.chunks:
+            Z = W[obs] @ L[self.pt[obs]]  # (observations of the chunk, 6, 3)
+            index = start[:, None, None] + (width * np.arange(6)[:, None] + np.arange(3))
+            Z_dense = np.bincount(index.ravel(), weights=Z.ravel(), minlength=len(rows) * width)
+            Z_dense = Z_dense.reshape(len(rows), width)
             S[np.ix_(rows, rows)] -= Z_dense @ Z_dense.T
         return S
+
+
+def _inverse_spd3(A: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric positive definite 3×3 matrices (..., 3, 3) by their adjugates (a batched LAPACK
+    inverse costs ~10× more per matrix at this size; the same values to rounding)."""
+    a, b, c, d, e, f = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2], A[..., 1, 1], A[..., 1, 2], A[..., 2, 2]
+    m00, m01, m02 = d * f - e * e, c * e - b * f, b * e - c * d
+    m11, m12, m22 = a * f - c * c, b * c - a * e, a * d - b * b
+    adjugate = np.stack([m00, m01, m02, m01, m11, m12, m02, m12, m22], axis=-1).reshape(A.shape)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a singular block gives inf / NaN (callers check)
+        return adjugate / (a * m00 + b * m01 + c * m02)[..., None, None]
+
+
+def _cholesky3(A: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factors of symmetric positive definite 3×3 matrices (..., 3, 3), in closed form (numpy's
+    batched LAPACK call costs more per matrix than the arithmetic)."""
+    L = np.zeros_like(A)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a block that is not positive definite gives NaN
+        L[..., 0, 0] = l00 = np.sqrt(A[..., 0, 0])
+        L[..., 1, 0] = l10 = A[..., 1, 0] / l00
+        L[..., 2, 0] = l20 = A[..., 2, 0] / l00
+        L[..., 1, 1] = l11 = np.sqrt(A[..., 1, 1] - l10 * l10)
+        L[..., 2, 1] = l21 = (A[..., 2, 1] - l20 * l10) / l11
+        L[..., 2, 2] = np.sqrt(A[..., 2, 2] - l20 * l20 - l21 * l21)
+    return L
 
 
 def _validate(R, t, points, obs_camera, obs_point, obs_bearings, fixed, loss, loss_scale_rad, max_nfev):
@@ -641,6 +680,7 @@ def bundle_adjust(
     max_nfev: int = 100,
     ftol: float = 1e-4,
     gravity_prior: GravityPrior | None = None,
+    pose_tolerance_rad: float = 0.0,
 ) -> BundleResult:
     """Refine camera poses and points by minimising robust angular errors of observed bearings.
 
@@ -649,7 +689,10 @@ def bundle_adjust(
     k, ρ the ``loss`` (scipy's names) and f = ``loss_scale_rad``. ``max_nfev`` bounds the residual
     evaluations in all (the last round may overrun it by one); it stops when a reweighting round
     lowers the cost by less than ``ftol`` (relative). ``gravity_prior`` adds the tilt terms of the module docstring
-    (their weight σ_obs / σ_g takes σ_obs from the initial errors' median).
+    (their weight σ_obs / σ_g takes σ_obs from the initial errors' median). With ``pose_tolerance_rad`` > 0 it also
+    stops once a reweighting round (at the final loss scale) moved no camera's bearings by more than that: no
+    rotation by more, no centre by more than that angle seen from its median point depth (for callers that keep
+    only the poses).
     See the module docstring for the residuals and the gauge.
     """
     R0, t0, X0, cam, pt, z, fixed = _validate(
@@ -666,7 +709,8 @@ def bundle_adjust(
     objective = _WeightedResiduals(problem)
     x0 = _pack(layout, C0, X0)
     initial_cost = _robust_cost(objective.errors(x0), loss, loss_scale_rad) + objective.prior_cost(x0)
-    x, converged = _irls(objective, x0, loss=loss, f_target=loss_scale_rad, max_nfev=max_nfev, ftol=ftol)
+    x, converged = _irls(objective, x0, loss=loss, f_target=loss_scale_rad, max_nfev=max_nfev, ftol=ftol,
+                         pose_tolerance_rad=pose_tolerance_rad)
     return _result(x, objective.evaluations, converged, problem, initial_cost, loss, loss_scale_rad)
 
 
@@ -751,7 +795,8 @@ def _prior_terms(prior: GravityPrior | None, layout: _Layout, R, C, X, cam, pt, 
 
 
 def _irls(
-    objective: _WeightedResiduals, x: np.ndarray, *, loss: str, f_target: float, max_nfev: int, ftol: float
+    objective: _WeightedResiduals, x: np.ndarray, *, loss: str, f_target: float, max_nfev: int, ftol: float,
+    pose_tolerance_rad: float = 0.0,
 ) -> tuple[np.ndarray, bool]:
     """Iteratively reweighted least squares from x; returns (x, converged).
 
@@ -760,9 +805,12 @@ def _irls(
     so lowering the weighted cost lowers the robust cost (majorise-minimise). Unlike scipy's own
     robust losses, whose second-order correction leaves residuals far in the linear part with
     almost no curvature (tens of tiny steps), each round is a well-scaled Gauss-Newton problem.
-    The scale f follows ``_scale_schedule`` down to ``f_target``, then stays there.
+    The scale f follows ``_scale_schedule`` down to ``f_target``, then stays there. It stops when a round at
+    ``f_target`` lowers the cost by less than ``ftol`` (relative) or, with ``pose_tolerance_rad``, moves the cameras
+    by less than that (`_pose_change_rad`).
     """
     system = _SchurSystem(objective.problem)
+    depth = _median_depths(x, objective.problem) if pose_tolerance_rad > 0 else None
     theta = objective.errors(x)
     scales = _scale_schedule(theta, loss, f_target)
     cost, rounds = _robust_cost(theta, loss, f_target) + objective.prior_cost(x), 0
@@ -770,6 +818,7 @@ def _irls(
         f_scale = scales[min(rounds, len(scales) - 1)]
         objective.sqrt_w = np.sqrt(_LOSSES[loss][1]((theta / f_scale) ** 2))
         _update_world_up(x, objective.problem)
+        x_before = x
         x, rounds = _levenberg_marquardt(objective, system, x, min(_ROUND_NFEV, budget), ftol), rounds + 1
         theta = objective.errors(x)
         new_cost, old_cost = _robust_cost(theta, loss, f_target) + objective.prior_cost(x), cost
@@ -778,7 +827,30 @@ def _irls(
                   rounds, f_scale, cost, objective.evaluations)
         if rounds >= len(scales) and old_cost - new_cost <= ftol * old_cost:
             return x, True
+        if (rounds >= len(scales) and depth is not None
+                and _pose_change_rad(x_before, x, objective.problem, depth) <= pose_tolerance_rad):
+            return x, True
     return x, False
+
+
+def _median_depths(x: np.ndarray, problem: _Problem) -> np.ndarray:
+    """(N,) median distance from each camera to the points it observes (inf for a camera without observations)."""
+    _, centers, points, _ = _unpack(x, problem)
+    dist = np.linalg.norm(points[problem.obs_point] - centers[problem.obs_camera], axis=1)
+    order = np.lexsort((dist, problem.obs_camera))
+    counts = np.bincount(problem.obs_camera, minlength=len(centers))
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    return np.where(counts > 0, dist[order][starts + counts // 2], np.inf)
+
+
+def _pose_change_rad(x_old: np.ndarray, x_new: np.ndarray, problem: _Problem, depth: np.ndarray) -> float:
+    """The largest change of a camera's bearings between x_old and x_new: its rotation's angle, or its centre's
+    displacement seen from its median point depth, whichever is larger."""
+    omega_old, c_old, _, _ = _unpack(x_old, problem)
+    omega_new, c_new, _, _ = _unpack(x_new, problem)
+    relative = rotation_exp(omega_new)[0] @ rotation_exp(omega_old)[0].transpose(0, 2, 1)
+    angle = np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    return float(max(angle.max(), (np.linalg.norm(c_new - c_old, axis=1) / depth).max()))
 
 
 def _levenberg_marquardt(objective: _WeightedResiduals, system: _SchurSystem, x: np.ndarray, max_evaluations: int,

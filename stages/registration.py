@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -42,7 +43,7 @@ def run(ctx: StageContext) -> dict:
     links = PairLinks(pairs=epi["pairs"], R_j_from_i=epi["R_j_from_i"], t_j_from_i=epi["t_j_from_i"],
                       weights=weights, e_i=epi["e_i"], e_j=epi["e_j"])
     models = build_models(links=links, tracks=tracks, bearings=[o["bearings"] for o in obs], options=options,
-                          descriptors=_descriptors(ctx) if options.resection else None,
+                          descriptors=_descriptors(ctx, obs) if options.resection else None,
                           pair_matches=_raw_matches(ctx) if options.min_weak_pair_inliers else None)
     R, C, model_id = models.R_cam_from_world, models.centers, models.model_id
     t = -np.einsum("nab,nb->na", R, C)
@@ -82,13 +83,29 @@ def run(ctx: StageContext) -> dict:
     return summary
 
 
-def _descriptors(ctx: StageContext) -> list[np.ndarray]:
-    """Per image, its SIFT descriptors L2-normalised (2D-3D matching compares them by Euclidean distance)."""
-    out = []
-    for name in ctx.dataset.image_names:
-        d = np.asarray(ctx.ws.load_descriptors(name), np.float32)
-        out.append(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12))
-    return out
+class NormalisedDescriptors(Sequence):
+    """Per image, its SIFT descriptors L2-normalised (2D-3D matching compares them by Euclidean distance), read from
+    the workspace when first indexed: registration matches descriptors only for images (or models) that the
+    view graph left out, so usually none is read (at 24 views all of them held 85 MB). `counts` gives each image's
+    number without reading it."""
+
+    def __init__(self, ws, names: list[str], counts: list[int]):
+        self.ws, self.names, self.counts = ws, names, counts
+        self._loaded: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        k = int(k)
+        if k not in self._loaded:
+            d = np.asarray(self.ws.load_descriptors(self.names[k]), np.float32)
+            self._loaded[k] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        return self._loaded[k]
+
+
+def _descriptors(ctx: StageContext, obs) -> NormalisedDescriptors:
+    return NormalisedDescriptors(ctx.ws, list(ctx.dataset.image_names), [int(o["num_sift"]) for o in obs])
 
 
 def _raw_matches(ctx: StageContext) -> dict[tuple[int, int], np.ndarray]:

@@ -17,13 +17,14 @@ import inspect
 import json
 import logging
 import resource
+import sys
 import time
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Callable
 
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from fullview.io.config import Config, params_of
 from fullview.io.dataset import Dataset
@@ -270,7 +271,7 @@ class Pipeline:
         # Single-threaded BLAS: our solvers make many small calls, which OpenBLAS threads only slow down (4-10x on
         # a loaded 2-core machine); stages parallelise over pairs or images themselves where it pays.
         with self.ws.locked(command=f"fullview run ({stage})"), self.ws.transaction(stage) as out, \
-                threadpool_limits(limits=1, user_api="blas"):
+                _blas_controller().limit(limits=1, user_api="blas"):
             summary = module.run(StageContext(options=self.config[stage], dataset=self.dataset, ws=self.ws, out=out,
                                               map=self.map))
             manifest = out.commit_manifest({
@@ -284,6 +285,19 @@ class Pipeline:
             })
         log.info("%-13s done in %.1f s %s", stage, manifest["wall_time_s"], _short(summary))
         return manifest
+
+
+_BLAS_CONTROLLER: tuple[int, ThreadpoolController] | None = None
+
+
+def _blas_controller() -> ThreadpoolController:
+    """threadpoolctl's view of the loaded BLAS libraries, found again only when modules were imported since (only
+    an import loads a BLAS library): its scan resolves the path of every loaded shared library (~150 here, 2-15 ms),
+    which `threadpool_limits` repeated for every stage."""
+    global _BLAS_CONTROLLER
+    if _BLAS_CONTROLLER is None or _BLAS_CONTROLLER[0] != len(sys.modules):
+        _BLAS_CONTROLLER = (len(sys.modules), ThreadpoolController())
+    return _BLAS_CONTROLLER[1]
 
 
 def _short(summary: dict) -> str:

@@ -32,6 +32,10 @@ LOOSE_FACTOR = 4.0  # first round keeps tracks up to this multiple of the final 
 # suffice. On the 24-view room 1,500 per image (17% of the points) give the rotations of the full adjustment within
 # 0.002° (median) for a third of its time.
 POSE_ROUND_TRACKS_PER_IMAGE = 1500
+# The first round's poses only decide which tracks pass the final error bound (and start the final adjustment, which
+# refines them again): it stops once a reweighting round moves no camera's bearings by more than this share of the
+# bound, instead of running to the cost tolerance.
+POSE_ROUND_TOLERANCE = 0.01
 
 
 def run(ctx: StageContext) -> dict:
@@ -61,10 +65,9 @@ def run(ctx: StageContext) -> dict:
     if config.bundle_adjust and tracks_kept.num_tracks:
         pose_tracks = longest_tracks_per_image(tracks_kept, POSE_ROUND_TRACKS_PER_IMAGE)
         R, t, _, _ = _bundle(tracks_kept.subset(pose_tracks), bearings, R, t, points[pose_tracks], model_id, config,
-                             gravity)
+                             gravity, pose_tolerance_rad=POSE_ROUND_TOLERANCE * max_err)
     mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
     final = tracks.subset(mask)
-    errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     if config.bundle_adjust and final.num_tracks:
         R, t, points, errors = _bundle(final, bearings, R, t, points, model_id, config, gravity)
         # The last adjustment moved the points: drop the few tracks it left beyond the bound, so the stored
@@ -73,6 +76,8 @@ def run(ctx: StageContext) -> dict:
         np.maximum.at(worst, final.track_ids, errors)
         good = worst <= max_err
         final, points, errors = final.subset(good), points[good], errors[good[final.track_ids]]
+    else:  # the errors of the points just triangulated (with an adjustment, its own errors replace them)
+        errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     return _write(ctx, obs, model_id, R, t, final, points, errors, geometry_pairs=len(extra))
 
 
@@ -82,7 +87,7 @@ def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
     return mask, tri.points[mask]
 
 
-def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=None):
+def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=None, pose_tolerance_rad=0.0):
     """Bundle adjustment over the cameras of every model (reindexed), the first camera of each model fixed; with
     `gravity` ((N, 3) gravity per image in its frame, (N,) its standard error), each image's tilt is held to it.
 
@@ -102,7 +107,7 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
         obs_camera=local[tracks.image_ids], obs_point=tracks.track_ids,
         obs_bearings=gather_bearings(bearings, tracks.image_ids, tracks.feature_ids),
         fixed_cameras=tuple(first.tolist()), loss="soft_l1", loss_scale_rad=np.radians(config.ba_loss_scale_deg),
-        max_nfev=config.ba_max_iterations, gravity_prior=prior)
+        max_nfev=config.ba_max_iterations, gravity_prior=prior, pose_tolerance_rad=pose_tolerance_rad)
     log.info("bundle adjustment: %d cameras (%d with a gravity prior), %d points, cost %.4g -> %.4g, median error "
              "%.4f deg", len(cams), 0 if prior is None else len(prior.camera), len(points), result.initial_cost,
              result.final_cost, np.degrees(np.median(result.obs_error_rad)))

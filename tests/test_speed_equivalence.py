@@ -5,6 +5,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from fullview.io.dataset import Dataset
@@ -215,3 +216,177 @@ def test_rescoring_in_chunks_of_rows_equals_all_rows_at_once():
     for rows in (1, 256, 333):
         chunked = _rescore(nn, full_i, full_j, rows=rows)
         assert np.array_equal(one[0], chunked[0]) and np.array_equal(one[1], chunked[1])
+
+
+def _noisy_ring_adjustment(rng, n=6, num_points=500, gravity=False):
+    """bundle_adjust arguments of a ring of n cameras seeing noisy bearings of points around them (tracks of 3),
+    from perturbed poses and points; with `gravity`, a gravity prior on every camera."""
+    from fullview.sfm.bundle import GravityPrior
+
+    centers = rng.normal(0, 1, (n, 3))
+    R = Rotation.from_rotvec(rng.normal(0, 0.2, (n, 3))).as_matrix()
+    X = rng.normal(0, 3, (num_points, 3))
+    cam = np.concatenate([rng.choice(n, 3, replace=False) for _ in range(num_points)])
+    pt = np.repeat(np.arange(num_points), 3)
+    bearings = normalize(np.einsum("kij,kj->ki", R[cam], X[pt] - centers[cam]) + rng.normal(0, 1e-3, (len(cam), 3)))
+    R0 = Rotation.from_rotvec(rng.normal(0, 0.01, (n, 3))).as_matrix() @ R
+    R0[0] = R[0]
+    C0 = centers + rng.normal(0, 0.02, centers.shape)
+    C0[0] = centers[0]
+    prior = None
+    if gravity:
+        down = normalize(np.einsum("nij,j->ni", R, [0.0, -1.0, 0.0]) + rng.normal(0, 1e-3, (n, 3)))
+        prior = GravityPrior(camera=np.arange(n), gravity_cam=down, up_world=np.tile([0.0, -1.0, 0.0], (n, 1)),
+                             group=np.zeros(n, np.int64), sigma_rad=np.full(n, 1e-3))
+    return dict(R_cam_from_world=R0, t_cam_from_world=-np.einsum("nij,nj->ni", R0, C0),
+                points=X + rng.normal(0, 0.05, X.shape), obs_camera=cam, obs_point=pt, obs_bearings=bearings,
+                fixed_cameras=(0,), loss="soft_l1", loss_scale_rad=2e-3, gravity_prior=prior)
+
+
+def test_closed_form_3x3_inverse_and_cholesky_equal_lapacks():
+    """`bundle._inverse_spd3` and `_cholesky3` (the Schur solve's per-point 3×3 blocks) give numpy's LAPACK results
+    to rounding, down to condition numbers far beyond a triangulated point's."""
+    from fullview.sfm.bundle import _cholesky3, _inverse_spd3
+
+    rng = np.random.default_rng(3)
+    for condition in (1.0, 1e3, 1e6):
+        Q = Rotation.random(200, random_state=rng).as_matrix()
+        eig = np.exp(rng.uniform(0, np.log(condition), (200, 3)))
+        eig[:, 0] = 1.0
+        A = np.einsum("nij,nj,nkj->nik", Q, eig, Q) * rng.uniform(1e-4, 1e4, (200, 1, 1))
+        A = 0.5 * (A + A.transpose(0, 2, 1))
+        inverse = np.linalg.inv(A)
+        np.testing.assert_allclose(_inverse_spd3(A), inverse, rtol=0, atol=1e-13 * condition * np.abs(inverse).max())
+        np.testing.assert_allclose(_cholesky3(A), np.linalg.cholesky(A), rtol=0,
+                                   atol=1e-13 * condition * np.abs(np.linalg.cholesky(A)).max())
+    # Where LAPACK raises (not positive definite, singular), the closed forms give NaN / inf, which the solve treats
+    # as a failed factorisation.
+    assert np.isnan(_cholesky3(np.diag([1.0, 1.0, -1.0])[None])).any()
+    assert not np.isfinite(_inverse_spd3(np.zeros((1, 3, 3)))).all()
+
+
+def test_schur_products_from_a_contiguous_transpose_and_closed_forms_keep_the_adjustment(monkeypatch):
+    """The Schur solve takes its per-observation products from a contiguous Jᵀ and inverts / factors the 3×3 point
+    blocks in closed form: each step equals the step of numpy's LAPACK inverse and Cholesky to 1e-9, and the whole
+    adjustment ends at the same poses, points and cost (with and without a gravity prior)."""
+    from fullview.sfm import bundle
+
+    for gravity in (False, True):
+        args = _noisy_ring_adjustment(np.random.default_rng(4), gravity=gravity)
+        fast = bundle.bundle_adjust(**args)
+        steps = []
+        solve = bundle._SchurSystem.solve
+        monkeypatch.setattr(bundle._SchurSystem, "solve", lambda self, *a: steps.append((self, a)) or solve(self, *a))
+        bundle.bundle_adjust(**args)
+        monkeypatch.setattr(bundle._SchurSystem, "solve", solve)
+        monkeypatch.setattr(bundle, "_inverse_spd3", np.linalg.inv)
+        monkeypatch.setattr(bundle, "_cholesky3", np.linalg.cholesky)
+        for system, a in steps[:3]:
+            step, _ = solve(system, *a)
+            monkeypatch.undo()
+            step_fast, _ = solve(system, *a)
+            monkeypatch.setattr(bundle, "_inverse_spd3", np.linalg.inv)
+            monkeypatch.setattr(bundle, "_cholesky3", np.linalg.cholesky)
+            np.testing.assert_allclose(step_fast, step, rtol=0, atol=1e-9 * np.abs(step).max())
+        lapack = bundle.bundle_adjust(**args)
+        monkeypatch.undo()
+        assert fast.num_evaluations == lapack.num_evaluations
+        assert fast.final_cost == pytest.approx(lapack.final_cost, rel=1e-9)
+        np.testing.assert_allclose(fast.R_cam_from_world, lapack.R_cam_from_world, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(fast.points, lapack.points, rtol=0, atol=1e-8)
+
+
+def test_pose_tolerance_stops_once_the_cameras_settle_and_changes_nothing_when_off():
+    """`bundle_adjust(pose_tolerance_rad=...)` (the triangulation's pose round): 0 is exactly the default; a
+    tolerance stops the reweighting rounds earlier, at poses within a few tolerances of the full run's."""
+    from fullview.sfm import bundle
+
+    args = _noisy_ring_adjustment(np.random.default_rng(5), gravity=True)
+    full = bundle.bundle_adjust(**args)
+    off = bundle.bundle_adjust(**args, pose_tolerance_rad=0.0)
+    for key in ("R_cam_from_world", "t_cam_from_world", "points", "obs_error_rad"):
+        assert np.array_equal(getattr(full, key), getattr(off, key))
+    tolerance = np.radians(0.005)
+    early = bundle.bundle_adjust(**args, pose_tolerance_rad=tolerance)
+    assert early.num_evaluations < full.num_evaluations
+    relative = np.einsum("nij,nkj->nik", early.R_cam_from_world, full.R_cam_from_world)
+    angles = np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1))
+    assert angles.max() < 3 * tolerance
+    assert early.final_cost == pytest.approx(full.final_cost, rel=1e-3)
+
+
+def test_stages_run_with_single_threaded_blas_from_the_cached_controller(tiny_dataset, make_pipeline, monkeypatch):
+    """The runner limits BLAS to one thread per stage through one cached threadpoolctl controller (rescanned only
+    after imports): inside every stage each BLAS library reports one thread, afterwards its own count again; a
+    module imported since forces a new scan."""
+    import sys
+
+    from threadpoolctl import threadpool_info
+
+    from fullview.stages import features as features_stage
+    from fullview.stages import runner
+
+    before = {info["filepath"]: info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"}
+    seen = []
+    run = features_stage.run
+    monkeypatch.setattr(features_stage, "run", lambda ctx: seen.append(
+        [info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"]) or run(ctx))
+    pipe = make_pipeline(tiny_dataset)
+    pipe.run(until="features")
+    controller = runner._blas_controller()
+    assert runner._blas_controller() is controller  # no import since: the same scan
+    assert seen and seen[0] and set(seen[0]) == {1}
+    after = {info["filepath"]: info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"}
+    assert after == before
+    monkeypatch.setitem(sys.modules, "fullview_test_new_module", SimpleNamespace())
+    assert runner._blas_controller() is not controller
+
+
+def test_registration_reads_descriptors_only_when_matching_needs_them(tiny_dataset, make_pipeline, monkeypatch,
+                                                                     tmp_path):
+    """Registration's descriptors are read lazily (`NormalisedDescriptors`): where the view graph places every image
+    none is read, and the stored registration is byte for byte the one with every image's descriptors read first."""
+    from fullview.io.workspace import Workspace
+    from fullview.stages import registration as registration_stage
+
+    lazy, eager = (make_pipeline(tiny_dataset, workspace=tmp_path / name) for name in ("lazy", "eager"))
+    for pipe in (lazy, eager):
+        pipe.run(until="epipoles")
+    reads = []
+    load = Workspace.load_descriptors
+    monkeypatch.setattr(Workspace, "load_descriptors", lambda self, name: reads.append(name) or load(self, name))
+    lazy.run(until="registration")
+    assert lazy.ws.load_registration()["registered"].all() and reads == []
+    read_all = registration_stage._descriptors
+    monkeypatch.setattr(registration_stage, "_descriptors",
+                        lambda ctx, obs: [read_all(ctx, obs)[k] for k in range(len(obs))])
+    eager.run(until="registration")
+    assert len(reads) == len(lazy.dataset.image_names)  # the list read every image's descriptors
+    files = [p for p in (lazy.ws.root / "registration").rglob("*") if p.is_file() and p.name != "manifest.json"]
+    assert files
+    for path in files:
+        assert path.read_bytes() == (eager.ws.root / "registration" / path.relative_to(lazy.ws.root / "registration")
+                                     ).read_bytes()
+
+
+def test_feature_files_are_hashed_by_their_writing_task_and_rehashed_when_changed(tmp_path, monkeypatch):
+    """`StageWriter.save_features` takes the file's sha256 on the writing task; the manifest reuses it (no second
+    read of the file) while size and mtime match, and hashes the file again once it was rewritten."""
+    from fullview.io import workspace as workspace_module
+    from fullview.io.workspace import FEATURE_KEYS, StageWriter
+
+    rng = np.random.default_rng(0)
+    arrays = {k: rng.normal(size=(5, 3)) for k in FEATURE_KEYS}
+    writer = StageWriter("features", tmp_path)
+    first = writer.save_features("a.png", **arrays)
+    second = writer.save_features("b.png", **arrays)
+    hashed = []
+    sha256 = workspace_module.file_sha256
+    monkeypatch.setattr(workspace_module, "file_sha256", lambda p: hashed.append(p) or sha256(p))
+    manifest = writer.commit_manifest({})
+    assert hashed == []
+    for path in (first, second):
+        assert manifest["outputs"][path.name]["sha256"] == sha256(path)
+    second.write_bytes(second.read_bytes() + b"changed")
+    manifest = writer.commit_manifest({})
+    assert hashed == [second] and manifest["outputs"][second.name]["sha256"] == sha256(second)

@@ -540,11 +540,13 @@ def _grow_by_points(state: ModelSet, m: int, links: PairLinks, bearings, options
 
 def _resect_round(state: ModelSet, m: int, tracks: Tracks, bearings, options: RegistrationOptions) -> list[int]:
     """Every free image seeing >= min_resection_points of model m's points, placed if its resection holds."""
+    resect_options = ResectionOptions(threshold_rad=np.radians(options.resection_threshold_deg),
+                                      min_inliers=options.min_resection_points, seed=options.seed)
+    if not (state.model_id < 0).any():  # nothing to place: the model's points are not needed
+        return []
     X, point_of_track = _points_of(state, m, tracks, bearings)
     seen = (state.model_id[tracks.image_ids] < 0) & (point_of_track[tracks.track_ids] >= 0)
     counts = np.bincount(tracks.image_ids[seen], minlength=len(state.model_id))
-    resect_options = ResectionOptions(threshold_rad=np.radians(options.resection_threshold_deg),
-                                      min_inliers=options.min_resection_points, seed=options.seed)
     added = []
     for b in np.argsort(-counts, kind="stable"):
         if counts[b] < options.min_resection_points:
@@ -597,6 +599,8 @@ def _match_round(state: ModelSet, m: int, candidates: np.ndarray, bearings, desc
     mutual check, then resection (P3P LO-RANSAC) on the matches. An image whose tracks reach too few model points
     (one verified pair into the model, whose other end sees little of the rest) is placed this way. With `commit`,
     the placed images join model m and their inlier matches join the tracks."""
+    if not len(candidates):  # nothing to place: the model's points and their descriptors are not needed
+        return []
     X, point_of_track = _points_of(state, m, state.tracks, bearings)
     if len(X) < options.min_resection_points:
         return []
@@ -631,7 +635,7 @@ MATCHING = MatchesOptions(ratio=0.8, mutual=True)  # 2D-3D matching: Lowe's rati
 def _point_descriptors(tracks: Tracks, cameras: np.ndarray, point_of_track: np.ndarray, descriptors):
     """(P, D) one L2-normalised descriptor per point (the mean of its SIFT observations' in the (N,) bool
     `cameras`) and (P,) its track."""
-    num_sift = np.array([len(d) for d in descriptors])
+    num_sift = np.array(getattr(descriptors, "counts", None) or [len(d) for d in descriptors])
     sel = (cameras[tracks.image_ids] & (point_of_track[tracks.track_ids] >= 0)
            & (tracks.feature_ids < num_sift[tracks.image_ids]))
     rows = point_of_track[tracks.track_ids[sel]]
