@@ -6,6 +6,9 @@
    sparse points (a low percentile of the camera-to-point distances), since the model's scale is arbitrary.
 3. Per panorama: the pair estimates are combined (median of the agreeing ones; pixels whose estimates conflict are
    dropped).
+3a. Stereo check (``densify.stereo_check``): a range resting on one pair that a neighbouring panorama's stereo sees
+   clearly beyond, with no neighbour confirming it, is dropped from the saved map after the fills (which still see
+   it: it bounds their image regions).
 3b. Textureless regions (``densify.fill_planes``, ``fullview.sfm.dense.planes``): each edge-bounded region whose
    border depths lie on planes gets them where the views do not contradict it, and a filled pixel is kept only where
    another panorama's own result (stereo, else its own fill) agrees.
@@ -94,10 +97,15 @@ def _run(ctx: StageContext) -> dict:
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
     clock.lap("load")
-    maps, pair_log = _range_maps(ctx, images, R, t, near, pairs)
+    maps, singles, pair_log = _range_maps(ctx, images, R, t, near, pairs)
     clock.lap("stereo")
+    unconfirmed = _seen_through_stereo(config, maps, singles, R, t, centers) if config.stereo_check else {}
+    del singles
+    clock.lap("stereo_check")
     filled = _fill_textureless(ctx, images, maps, R, t, centers, sparse["points"], float(np.nanmedian(median_depth))) \
         if config.fill_planes or config.world_planes else {}
+    for k, drop in unconfirmed.items():  # the fills have seen them: they bounded the image regions (module doc, 3a)
+        maps[k] = (np.where(drop, np.nan, maps[k][0]).astype(np.float32), maps[k][1] & ~drop)
     clock.lap("fill")
     _release_freed_memory()
     list(thread_map(lambda k: ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k])), sorted(maps)))
@@ -125,6 +133,7 @@ def _run(ctx: StageContext) -> dict:
         "width": int(width), "median_pair_time_s": float(np.median([p["time_s"] for p in pair_log])),
         "valid_share": {names[k]: float(np.mean(m[1])) for k, m in maps.items()},
         "filled_share": filled,
+        "stereo_dropped_share": {names[k]: float(np.mean(drop)) for k, drop in unconfirmed.items()},
         "pair_log": pair_log,
         "mesh": mesh,
         "phases_s": clock.phases,
@@ -183,13 +192,15 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
     and numpy without the GIL); combine each panorama's estimates, in pair order, as soon as its last pair is done
     (the same maps as one pair after the other).
 
-    Returns ({camera: (range float32 NaN-invalid, valid bool)}, per-pair log)."""
+    Returns ({camera: (range float32 NaN-invalid, valid bool)}, {camera: ``dense.single_partner`` map} (with
+    ``densify.stereo_check``), per-pair log)."""
     config: DensifyOptions = ctx.options
     names = ctx.dataset.image_names
     remaining = {k: int(np.sum(pairs == k)) for k in np.unique(pairs)}
     estimates: dict[int, list[np.ndarray]] = {k: [] for k in remaining}
     errors: dict[int, list[np.ndarray]] = {k: [] for k in remaining}
-    maps, pair_log = {}, []
+    partners: dict[int, list[int]] = {k: [] for k in remaining}
+    maps, singles, pair_log = {}, {}, []
     # never upsample: the rectified grid spans 180° in at most as many rows as the panoramas have
     rect_height = min(config.rect_height, min(image.shape[0] for image in images.values()))
     work = partial(_densify_pair, config, images, R, t, near, rect_height)
@@ -204,15 +215,32 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
         log.info("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%% (well conditioned %.0f%% / "
                  "%.0f%%), %.1f s", names[i], names[j], baseline, ratio, 100 * res.valid_i.mean(),
                  100 * res.valid_j.mean(), 100 * kept[0], 100 * kept[1], elapsed)
-        for cam, rng, err in ((i, res.range_i, pair_errors[0]), (j, res.range_j, pair_errors[1])):
+        for cam, other, rng, err in ((i, j, res.range_i, pair_errors[0]), (j, i, res.range_j, pair_errors[1])):
             estimates[cam].append(rng)
             errors[cam].append(err)
+            partners[cam].append(int(other))
             remaining[cam] -= 1
             if remaining[cam] == 0:
+                if config.stereo_check:
+                    singles[cam] = dense.single_partner(estimates[cam], partners[cam])
                 combined = combine_range_estimates(estimates.pop(cam), config.combine_tolerance, errors.pop(cam))
                 combined = mask_below_latitude(*combined, config.min_latitude_deg, config.max_latitude_deg)
                 maps[cam] = apply_mask(*combined, ctx.dataset.load_mask(names[cam]))
-    return maps, pair_log
+    return maps, singles, pair_log
+
+
+def _seen_through_stereo(config: DensifyOptions, maps, singles, R, t, centers) -> dict[int, np.ndarray]:
+    """Per panorama, the stereo ranges resting on one pair that a neighbouring panorama's stereo sees through and
+    none confirms (``fusion.seen_through_single_estimates``; module doc, step 3a), one panorama per local thread."""
+    cams = sorted(maps)
+    ranges = [maps[k][0] for k in cams]
+    neighbours = fusion_neighbours(centers[cams], config.fusion_views)
+    drops = thread_map(lambda a: dense.seen_through_single_estimates(
+        ranges, [singles[k] for k in cams], cams, R[cams], t[cams], neighbours, config.consistency_tolerance,
+        views=[a])[0], range(len(cams)))
+    drops = dict(zip(cams, drops))
+    log.info("stereo check: %s", ", ".join(f"{k} {100 * d.mean():.1f}%" for k, d in drops.items()))
+    return drops
 
 
 def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, pair: tuple[int, int]):

@@ -225,6 +225,21 @@ def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float,
     return out, valid
 
 
+def single_partner(estimates: list[np.ndarray], partners: list[int]) -> np.ndarray:
+    """(H, W) int32: the partner camera whose pair gave a pixel's only estimate (``partners[k]`` for ``estimates[k]``),
+    −1 where none or several pairs did. A panorama's range there rests on that one pair; the partner's own range at
+    the same point comes from the same disparity and is no independent check of it
+    (``fusion.seen_through_single_estimates``)."""
+    out = np.full(np.shape(estimates[0]), -1, np.int32)
+    count = np.zeros(out.shape, np.int32)
+    for estimate, partner in zip(estimates, partners):
+        finite = np.isfinite(estimate)
+        count += finite
+        out[finite] = partner
+    out[count != 1] = -1
+    return out
+
+
 def _combine_rows(estimates: list[np.ndarray], rel_tol: float, errors: list[np.ndarray] | None
                   ) -> tuple[np.ndarray, np.ndarray]:
     """``combine_range_estimates`` of a block of rows of two or more estimates."""

@@ -120,6 +120,58 @@ def fuse_depth_maps(
     return points, colors
 
 
+def seen_through_single_estimates(
+    range_maps: Sequence[np.ndarray], single_partners: Sequence[np.ndarray], cameras: Sequence[int],
+    R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, neighbors: Sequence[Sequence[int]], rel_tol: float,
+    views: Sequence[int] | None = None,
+) -> list[np.ndarray]:
+    """Per view (``views``, default all), (H, W) bool: the stereo ranges to drop, those resting on one pair
+    (``single_partners[i] >= 0``, ``depth.single_partner``) that a neighbouring view (``neighbors[i]``) sees clearly
+    beyond (its range at the point's nearest pixel exceeds the point's distance by more than ``rel_tol``) while
+    no neighbour holds the point within ``rel_tol``.
+
+    ``cameras[i]`` is view i's camera id, the id ``single_partners`` name. The partner's own range at the point,
+    where it rests on this very pair, is the same disparity read from the other end: it neither confirms nor
+    contradicts. A neighbour with a nearer range there says nothing (the point may be hidden from it): only a view
+    that looks through the point can reject it, so a range no other view can judge is kept.
+    Why: one pair's errors are mostly too far (a matching window straddling the line where two surfaces meet takes
+    the far one's disparity) and seldom land on another pair's ranges; every such range also votes against the
+    other views' right ranges in what they see."""
+    R_all = np.asarray(R_cam_from_world, np.float64)
+    t_all = np.asarray(t_cam_from_world, np.float64)
+    out = []
+    for i in range(len(range_maps)) if views is None else views:
+        rmap = np.asarray(range_maps[i], np.float32)
+        height, width = rmap.shape
+        drop = np.zeros((height, width), bool)
+        rows, cols = np.nonzero((np.asarray(single_partners[i]) >= 0) & _valid_range(rmap))
+        if len(rows):
+            partner = single_partners[i][rows, cols]
+            x_cam = pixels_to_bearings(np.stack([cols + 0.5, rows + 0.5], axis=1), width, height) \
+                * rmap[rows, cols, None].astype(np.float64)
+            points = (x_cam - t_all[i]) @ R_all[i]
+            confirmed = np.zeros(len(rows), bool)
+            beyond = np.zeros(len(rows), bool)
+            for k in neighbors[i]:
+                if k == i:
+                    continue
+                x_k = points @ R_all[k].T + t_all[k]
+                r_pred = np.linalg.norm(x_k, axis=1)
+                h_k, w_k = np.shape(range_maps[k])
+                pix = bearings_to_pixels(x_k, w_k, h_k)
+                row = np.clip(pix[:, 1].astype(np.intp), 0, h_k - 1)
+                col = np.clip(pix[:, 0].astype(np.intp), 0, w_k - 1)
+                r_obs = np.asarray(range_maps[k])[row, col]
+                same_pair = (partner == cameras[k]) & (np.asarray(single_partners[k])[row, col] == cameras[i])
+                with np.errstate(invalid="ignore"):
+                    confirmed |= (np.abs(r_obs - r_pred) <= rel_tol * r_pred) & ~same_pair
+                    beyond |= (r_obs > (1 + rel_tol) * r_pred) & ~same_pair
+            bad = beyond & ~confirmed
+            drop[rows[bad], cols[bad]] = True
+        out.append(drop)
+    return out
+
+
 def clean_point_cloud(
     points: np.ndarray,
     colors: np.ndarray,
