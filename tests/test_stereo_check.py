@@ -76,3 +76,55 @@ def test_a_range_resting_on_two_pairs_or_judged_by_no_view_is_kept(room):
     empty = [maps[0]] + [np.full_like(m, np.nan) for m in maps[1:]]
     assert not dense.seen_through_single_estimates(empty, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02,
                                                    views=[0])[0].any()
+
+
+def test_conflicting_estimates_are_those_combine_drops():
+    a = np.array([[1.0, 1.0, 1.0, np.nan]], np.float32)
+    b = np.array([[1.0, 1.5, np.nan, 2.0]], np.float32)
+    c = np.array([[np.nan, 2.5, np.nan, 2.0]], np.float32)
+    pixels, candidates = dense.conflicting_estimates([a, b, c], 0.02)
+    _, valid = dense.combine_range_estimates([a, b, c], 0.02)
+    assert pixels.tolist() == [1] and not valid.ravel()[1] and valid.ravel()[[0, 2, 3]].all()
+    assert candidates[:, 0].tolist() == [1.0, 1.5, 2.5]
+
+
+def test_a_third_view_settles_conflicting_estimates(room):
+    ranges, R, t = room
+    maps = [r.copy() for r in ranges]
+    singles = [np.full(r.shape, -1, np.int32) for r in ranges]
+    pixels = np.arange(60 * 256 + 100, 60 * 256 + 140)  # a row of view 0 whose two pairs (with 1 and 2) conflict
+    truth = ranges[0].ravel()[pixels]
+    maps[0].ravel()[pixels] = np.nan
+    candidates = np.stack([1.1 * truth, truth])  # the pair with view 1 is 10% too far there
+    got, values = dense.resolve_conflicts(maps, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02, 0, pixels,
+                                          candidates, [1, 2])
+    assert len(got) > 0.5 * len(pixels)  # (the rest: nearest pixels of 1.4° at oblique views, neither confirmed)
+    np.testing.assert_allclose(values, ranges[0].ravel()[got], rtol=1e-6)  # always the right one
+    # no view can judge: nothing is settled
+    blind = [maps[0]] + [np.full_like(m, np.nan) for m in maps[1:]]
+    assert len(dense.resolve_conflicts(blind, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02, 0, pixels,
+                                       candidates, [1, 2])[0]) == 0
+    # the right estimate held by its own partner alone (the same pair's disparity): no confirmation, a tie
+    only_partner = [maps[0], np.full_like(maps[1], np.nan), maps[2], np.full_like(maps[3], np.nan)]
+    partner_singles = [s.copy() for s in singles]
+    partner_singles[2][:] = 0
+    assert len(dense.resolve_conflicts(only_partner, partner_singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02, 0,
+                                       pixels, candidates, [1, 2])[0]) == 0
+
+
+def test_a_range_behind_another_views_surface_is_dropped_with_its_points(room):
+    ranges, R, t = room
+    maps = [r.copy() for r in ranges]
+    singles = [np.full(r.shape, -1, np.int32) for r in ranges]
+    patch = (slice(60, 80), slice(100, 140))
+    maps[0][patch] *= 1.1  # too far: behind the wall, where no view can see through it
+    singles[0][:] = 1
+    from fullview.sfm.dense_metrics import backproject_range_map
+    points = [backproject_range_map(m, R[k], t[k]) for k, m in enumerate(maps)]
+    args = (maps, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02)
+    without = dense.seen_through_single_estimates(*args, views=[0])[0]
+    with_points = dense.seen_through_single_estimates(*args, views=[0], points=points)[0]
+    assert with_points[patch].mean() > 0.8 > 0.2 > without[patch].mean()
+    outside = np.ones(with_points.shape, bool)
+    outside[patch] = False
+    assert with_points[outside].mean() < 0.02
