@@ -9,8 +9,8 @@
 3a. Stereo check (``densify.stereo_check``): where a panorama's pair estimates conflict, the one its neighbours'
    stereo confirms is taken where the fills leave the pixel empty (``densify.resolve_conflicts``); a range resting
    on one pair that a neighbouring panorama's stereo sees clearly beyond (or puts a surface in front of), with no
-   neighbour confirming it, is dropped from the saved map after the fills (which still see
-   it: it bounds their image regions).
+   neighbour confirming it, is dropped from the saved map after the fills (which still see it: it bounds their
+   image regions).
 3b. Textureless regions (``densify.fill_planes``, ``fullview.sfm.dense.planes``): each edge-bounded region whose
    border depths lie on planes gets them where the views do not contradict it, and a filled pixel is kept only where
    another panorama's own result (stereo, else its own fill) agrees.
@@ -257,8 +257,9 @@ def _resolve_conflicts(config: DensifyOptions, maps, singles, conflicts, R, t, c
 
 
 def _seen_through_stereo(config: DensifyOptions, maps, singles, R, t, centers) -> dict[int, np.ndarray]:
-    """Per panorama, the stereo ranges resting on one pair that a neighbouring panorama's stereo sees through and
-    none confirms (``fusion.seen_through_single_estimates``; module doc, step 3a), one panorama per local thread."""
+    """Per panorama, the stereo ranges resting on one pair that a neighbouring panorama's stereo sees through (or
+    puts a surface in front of) and none confirms (``fusion.seen_through_single_estimates``; module doc, step 3a),
+    one panorama per local thread."""
     cams = sorted(maps)
     ranges = [maps[k][0] for k in cams]
     neighbours = fusion_neighbours(centers[cams], config.fusion_views)
