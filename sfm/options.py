@@ -191,6 +191,12 @@ class DensifyOptions:
                                       le=90.0)
     combine_tolerance: float = setting(0.02, "relative agreement of a panorama's pair estimates (conflicting ones "
                                        "are dropped)", gt=0.0, le=1.0)
+    stereo_check: bool = setting(True, "drop a stereo range resting on one pair that a neighbouring panorama's stereo "
+                                 "sees clearly beyond while none confirms it (fusion_views nearest, "
+                                 "consistency_tolerance); the textureless fills still see it")
+    resolve_conflicts: bool = setting(True, "where a panorama's pair estimates conflict, take the one its "
+                                      "neighbouring panoramas' stereo confirms (fusion_views nearest; with "
+                                      "stereo_check), instead of none")
     min_consistent: int = setting(1, "other depth maps that must agree for a fused point", ge=0, le=64)
     consistency_tolerance: float = setting(0.02, "relative range tolerance for agreement", gt=0.0, le=1.0)
     fusion_views: int = setting(4, "nearest other panoramas checking each panorama's points", ge=1, le=64)

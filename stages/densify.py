@@ -6,6 +6,11 @@
    sparse points (a low percentile of the camera-to-point distances), since the model's scale is arbitrary.
 3. Per panorama: the pair estimates are combined (median of the agreeing ones; pixels whose estimates conflict are
    dropped).
+3a. Stereo check (``densify.stereo_check``): where a panorama's pair estimates conflict, the one its neighbours'
+   stereo confirms is taken where the fills leave the pixel empty (``densify.resolve_conflicts``); a range resting
+   on one pair that a neighbouring panorama's stereo sees clearly beyond (or puts a surface in front of), with no
+   neighbour confirming it, is dropped from the saved map after the fills (which still see it: it bounds their
+   image regions).
 3b. Textureless regions (``densify.fill_planes``, ``fullview.sfm.dense.planes``): each edge-bounded region whose
    border depths lie on planes gets them where the views do not contradict it, and a filled pixel is kept only where
    another panorama's own result (stereo, else its own fill) agrees.
@@ -50,7 +55,7 @@ from fullview.sfm.camera import camera_center, camera_up
 from fullview.sfm.dense import planes, world_planes
 from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimates, fusion_neighbours,
                                 mask_below_latitude, pair_min_depth_ratio, range_error_per_pixel, scene_size)
-from fullview.sfm.dense_metrics import voxel_downsample
+from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
 from fullview.sfm.options import DensifyOptions
 from fullview.stages import mesh_step
 from fullview.stages.protocol import StageContext, thread_map
@@ -94,10 +99,21 @@ def _run(ctx: StageContext) -> dict:
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
     clock.lap("load")
-    maps, pair_log = _range_maps(ctx, images, R, t, near, pairs)
+    maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs)
     clock.lap("stereo")
+    settled = _resolve_conflicts(config, maps, singles, conflicts, R, t, centers) \
+        if config.stereo_check and config.resolve_conflicts else {}
+    unconfirmed = _seen_through_stereo(config, maps, singles, R, t, centers) if config.stereo_check else {}
+    del singles, conflicts
+    clock.lap("stereo_check")
     filled = _fill_textureless(ctx, images, maps, R, t, centers, sparse["points"], float(np.nanmedian(median_depth))) \
         if config.fill_planes or config.world_planes else {}
+    for k, drop in unconfirmed.items():  # the fills have seen them: they bounded the image regions (module doc, 3a)
+        maps[k] = (np.where(drop, np.nan, maps[k][0]).astype(np.float32), maps[k][1] & ~drop)
+    for k, (pixels, values) in settled.items():  # where the fills left the pixel empty
+        rng, valid = maps[k]
+        empty = ~valid.ravel()[pixels]
+        rng.ravel()[pixels[empty]], valid.ravel()[pixels[empty]] = values[empty], True
     clock.lap("fill")
     _release_freed_memory()
     list(thread_map(lambda k: ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k])), sorted(maps)))
@@ -125,6 +141,7 @@ def _run(ctx: StageContext) -> dict:
         "width": int(width), "median_pair_time_s": float(np.median([p["time_s"] for p in pair_log])),
         "valid_share": {names[k]: float(np.mean(m[1])) for k, m in maps.items()},
         "filled_share": filled,
+        "stereo_dropped_share": {names[k]: float(np.mean(drop)) for k, drop in unconfirmed.items()},
         "pair_log": pair_log,
         "mesh": mesh,
         "phases_s": clock.phases,
@@ -183,13 +200,16 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
     and numpy without the GIL); combine each panorama's estimates, in pair order, as soon as its last pair is done
     (the same maps as one pair after the other).
 
-    Returns ({camera: (range float32 NaN-invalid, valid bool)}, per-pair log)."""
+    Returns ({camera: (range float32 NaN-invalid, valid bool)}, {camera: ``dense.single_partner`` map}, {camera:
+    (its observable pixels whose pair estimates conflict, their estimates, the partners)} (both with
+    ``densify.stereo_check``), per-pair log)."""
     config: DensifyOptions = ctx.options
     names = ctx.dataset.image_names
     remaining = {k: int(np.sum(pairs == k)) for k in np.unique(pairs)}
     estimates: dict[int, list[np.ndarray]] = {k: [] for k in remaining}
     errors: dict[int, list[np.ndarray]] = {k: [] for k in remaining}
-    maps, pair_log = {}, []
+    partners: dict[int, list[int]] = {k: [] for k in remaining}
+    maps, singles, conflicts, pair_log = {}, {}, {}, []
     # never upsample: the rectified grid spans 180° in at most as many rows as the panoramas have
     rect_height = min(config.rect_height, min(image.shape[0] for image in images.values()))
     work = partial(_densify_pair, config, images, R, t, near, rect_height)
@@ -204,15 +224,52 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
         log.info("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%% (well conditioned %.0f%% / "
                  "%.0f%%), %.1f s", names[i], names[j], baseline, ratio, 100 * res.valid_i.mean(),
                  100 * res.valid_j.mean(), 100 * kept[0], 100 * kept[1], elapsed)
-        for cam, rng, err in ((i, res.range_i, pair_errors[0]), (j, res.range_j, pair_errors[1])):
+        for cam, other, rng, err in ((i, j, res.range_i, pair_errors[0]), (j, i, res.range_j, pair_errors[1])):
             estimates[cam].append(rng)
             errors[cam].append(err)
+            partners[cam].append(int(other))
             remaining[cam] -= 1
             if remaining[cam] == 0:
+                keep = _observable(config, ctx.dataset.load_mask(names[cam]), rng.shape)
+                if config.stereo_check:
+                    singles[cam] = dense.single_partner(estimates[cam], partners[cam])
+                    pixels, candidates = dense.conflicting_estimates(estimates[cam], config.combine_tolerance)
+                    inside = keep.ravel()[pixels]
+                    conflicts[cam] = (pixels[inside], candidates[:, inside], partners[cam])
                 combined = combine_range_estimates(estimates.pop(cam), config.combine_tolerance, errors.pop(cam))
-                combined = mask_below_latitude(*combined, config.min_latitude_deg, config.max_latitude_deg)
-                maps[cam] = apply_mask(*combined, ctx.dataset.load_mask(names[cam]))
-    return maps, pair_log
+                maps[cam] = (np.where(keep, combined[0], np.nan).astype(np.float32), combined[1] & keep)
+    return maps, singles, conflicts, pair_log
+
+
+def _resolve_conflicts(config: DensifyOptions, maps, singles, conflicts, R, t, centers
+                       ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per panorama, the conflicting pair estimates its neighbours settle (``fusion.resolve_conflicts``; module doc,
+    step 3a): (flat pixel indices, ranges), all judged by the maps as combined (one panorama per local thread)."""
+    cams = sorted(maps)
+    ranges = [maps[k][0] for k in cams]
+    neighbours = fusion_neighbours(centers[cams], config.fusion_views)
+    settled = dict(zip(cams, thread_map(lambda a: dense.resolve_conflicts(
+        ranges, [singles[k] for k in cams], cams, R[cams], t[cams], neighbours, config.consistency_tolerance, a,
+        *conflicts[cams[a]]), range(len(cams)))))
+    log.info("conflicting pair estimates settled: %s", ", ".join(
+        f"{k} {100 * len(p) / maps[k][0].size:.1f}%" for k, (p, _) in settled.items()))
+    return settled
+
+
+def _seen_through_stereo(config: DensifyOptions, maps, singles, R, t, centers) -> dict[int, np.ndarray]:
+    """Per panorama, the stereo ranges resting on one pair that a neighbouring panorama's stereo sees through (or
+    puts a surface in front of) and none confirms (``fusion.seen_through_single_estimates``; module doc, step 3a),
+    one panorama per local thread."""
+    cams = sorted(maps)
+    ranges = [maps[k][0] for k in cams]
+    neighbours = fusion_neighbours(centers[cams], config.fusion_views)
+    points = list(thread_map(lambda k: backproject_range_map(maps[k][0], R[k], t[k], stride=2), cams))
+    drops = thread_map(lambda a: dense.seen_through_single_estimates(
+        ranges, [singles[k] for k in cams], cams, R[cams], t[cams], neighbours, config.consistency_tolerance,
+        views=[a], points=points)[0], range(len(cams)))
+    drops = dict(zip(cams, drops))
+    log.info("stereo check: %s", ", ".join(f"{k} {100 * d.mean():.1f}%" for k, d in drops.items()))
+    return drops
 
 
 def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, pair: tuple[int, int]):

@@ -225,6 +225,41 @@ def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float,
     return out, valid
 
 
+def single_partner(estimates: list[np.ndarray], partners: list[int]) -> np.ndarray:
+    """(H, W) int32: the partner camera whose pair gave a pixel's only estimate (``partners[k]`` for ``estimates[k]``),
+    −1 where none or several pairs did. A panorama's range there rests on that one pair; the partner's own range at
+    the same point comes from the same disparity and is no independent check of it
+    (``fusion.seen_through_single_estimates``)."""
+    out = np.full(np.shape(estimates[0]), -1, np.int32)
+    count = np.zeros(out.shape, np.int32)
+    for estimate, partner in zip(estimates, partners):
+        finite = np.isfinite(estimate)
+        count += finite
+        out[finite] = partner
+    out[count != 1] = -1
+    return out
+
+
+def conflicting_estimates(estimates: list[np.ndarray], rel_tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels ``combine_range_estimates`` drops because its pair estimates conflict (two or more, fewer than two
+    within ``rel_tol`` of their median): (flat pixel indices (N,), their estimates (len(estimates), N) float32,
+    NaN where a pair has none). Another panorama can tell which one is right (``fusion.resolve_conflicts``)."""
+    if len(estimates) < 2:
+        return np.zeros(0, np.intp), np.zeros((len(estimates), 0), np.float32)
+    raw = np.stack([np.asarray(e, np.float32).ravel() for e in estimates])
+    count = np.isfinite(raw).sum(0)
+    several = np.flatnonzero(count >= 2)
+    raw = raw[:, several]
+    stack = np.sort(raw, axis=0)  # NaN last
+    count = count[several]
+    median = 0.5 * (np.take_along_axis(stack, ((count - 1) // 2)[None], 0)[0]
+                    + np.take_along_axis(stack, (count // 2)[None], 0)[0])
+    with np.errstate(invalid="ignore"):
+        n_agree = (np.abs(raw - median) <= rel_tol * median).sum(0)
+    conflict = n_agree < 2
+    return several[conflict], raw[:, conflict]
+
+
 def _combine_rows(estimates: list[np.ndarray], rel_tol: float, errors: list[np.ndarray] | None
                   ) -> tuple[np.ndarray, np.ndarray]:
     """``combine_range_estimates`` of a block of rows of two or more estimates."""

@@ -15,6 +15,7 @@ from fullview.sfm.options import DensifyOptions
 
 from fullview.sfm.camera import bearings_to_pixels, pixels_to_bearings
 from fullview.sfm.dense.depth import sample_edge_aware
+from fullview.sfm.dense_metrics import splat_nearest
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +119,108 @@ def fuse_depth_maps(
     if return_sources:
         return points, colors, (np.concatenate(all_src) if all_src else np.zeros(0, np.int64))
     return points, colors
+
+
+def seen_through_single_estimates(
+    range_maps: Sequence[np.ndarray], single_partners: Sequence[np.ndarray], cameras: Sequence[int],
+    R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, neighbors: Sequence[Sequence[int]], rel_tol: float,
+    views: Sequence[int] | None = None, points: Sequence[np.ndarray] | None = None,
+) -> list[np.ndarray]:
+    """Per view (``views``, default all), (H, W) bool: the stereo ranges to drop, those resting on one pair
+    (``single_partners[i] >= 0``, ``depth.single_partner``) that a neighbouring view (``neighbors[i]``) sees clearly
+    beyond (its range at the point's nearest pixel exceeds the point's distance by more than ``rel_tol``) while
+    no neighbour holds the point within ``rel_tol``. With ``points`` (each view's stereo as world points,
+    ``dense_metrics.backproject_range_map``) a neighbour's point on the ray clearly in front of the range also
+    rejects it (the range is too far: the ray meets that surface first), unless the neighbour is the partner.
+
+    ``cameras[i]`` is view i's camera id, the id ``single_partners`` name. The partner's own range at the point,
+    where it rests on this very pair, is the same disparity read from the other end: it neither confirms nor
+    contradicts. A neighbour with a nearer range there says nothing (the point may be hidden from it): only a view
+    that looks through the point can reject it, so a range no other view can judge is kept.
+    Why: one pair's errors are mostly too far (a matching window straddling the line where two surfaces meet takes
+    the far one's disparity) and seldom land on another pair's ranges; every such range also votes against the
+    other views' right ranges in what they see."""
+    R_all = np.asarray(R_cam_from_world, np.float64)
+    t_all = np.asarray(t_cam_from_world, np.float64)
+    out = []
+    for i in range(len(range_maps)) if views is None else views:
+        rmap = np.asarray(range_maps[i], np.float32)
+        height, width = rmap.shape
+        drop = np.zeros((height, width), bool)
+        rows, cols = np.nonzero((np.asarray(single_partners[i]) >= 0) & _valid_range(rmap))
+        if len(rows):
+            x_cam = pixels_to_bearings(np.stack([cols + 0.5, rows + 0.5], axis=1), width, height) \
+                * rmap[rows, cols, None].astype(np.float64)
+            confirmed, beyond = _independent_votes((x_cam - t_all[i]) @ R_all[i], single_partners[i][rows, cols],
+                                                   cameras[i], range_maps, single_partners, cameras, R_all, t_all,
+                                                   neighbors[i], rel_tol)
+            if points is not None:
+                r_own = rmap[rows, cols]
+                for k in neighbors[i]:
+                    if k != i:
+                        nearest = splat_nearest(points[k], R_all[i], t_all[i], (height, width))
+                        beyond += (nearest[rows * width + cols] < (1 - rel_tol) * r_own) \
+                            & (single_partners[i][rows, cols] != cameras[k])
+            bad = (beyond > 0) & (confirmed == 0)
+            drop[rows[bad], cols[bad]] = True
+        out.append(drop)
+    return out
+
+
+def _independent_votes(points: np.ndarray, partner: np.ndarray, camera: int, range_maps, single_partners,
+                       cameras, R_all, t_all, neighbors: Sequence[int], rel_tol: float
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """(confirming, seeing-through) neighbour counts (N,) of world points from one view (camera id ``camera``)
+    whose ranges rest on the pair with ``partner`` (N,): a neighbour's range within ``rel_tol`` of the point's
+    distance confirms it, one beyond it sees through it, read at the nearest pixel; the partner's range there that
+    rests on this very pair (the same disparity) does neither."""
+    confirmed = np.zeros(len(points), np.int32)
+    beyond = np.zeros(len(points), np.int32)
+    for k in neighbors:
+        if cameras[k] == camera:
+            continue
+        x_k = points @ R_all[k].T + t_all[k]
+        r_pred = np.linalg.norm(x_k, axis=1)
+        h_k, w_k = np.shape(range_maps[k])
+        pix = bearings_to_pixels(x_k, w_k, h_k)
+        row = np.clip(pix[:, 1].astype(np.intp), 0, h_k - 1)
+        col = np.clip(pix[:, 0].astype(np.intp), 0, w_k - 1)
+        r_obs = np.asarray(range_maps[k])[row, col]
+        same_pair = (partner == cameras[k]) & (np.asarray(single_partners[k])[row, col] == camera)
+        with np.errstate(invalid="ignore"):
+            confirmed += (np.abs(r_obs - r_pred) <= rel_tol * r_pred) & ~same_pair
+            beyond += (r_obs > (1 + rel_tol) * r_pred) & ~same_pair
+    return confirmed, beyond
+
+
+def resolve_conflicts(range_maps: Sequence[np.ndarray], single_partners: Sequence[np.ndarray],
+                      cameras: Sequence[int], R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray,
+                      neighbors: Sequence[Sequence[int]], rel_tol: float, view: int, pixels: np.ndarray,
+                      candidates: np.ndarray, partners: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels of ``view`` whose pair estimates conflict (``depth.conflicting_estimates``: flat ``pixels`` (N,),
+    ``candidates`` (n, N) from the pairs with ``partners`` (n,)) that the neighbouring views settle: the estimate
+    the most neighbours confirm (``_independent_votes``, at least one, no tie, none seeing through it) is taken.
+    Returns (flat pixel indices, ranges). With collinear cameras the pairs of a panorama look along the same
+    epipoles and make different mistakes at the same pixels; a third view tells which one is right."""
+    R_all = np.asarray(R_cam_from_world, np.float64)
+    t_all = np.asarray(t_cam_from_world, np.float64)
+    height, width = np.shape(range_maps[view])
+    if not len(pixels):
+        return np.zeros(0, np.intp), np.zeros(0, np.float32)
+    rows, cols = np.divmod(pixels, width)
+    bearings = pixels_to_bearings(np.stack([cols + 0.5, rows + 0.5], axis=1), width, height)
+    votes = np.full(candidates.shape, -1, np.int32)
+    for m, partner in enumerate(partners):
+        has = np.flatnonzero(np.isfinite(candidates[m]))
+        points = (bearings[has] * candidates[m, has, None].astype(np.float64) - t_all[view]) @ R_all[view]
+        confirmed, beyond = _independent_votes(points, np.full(len(has), partner), cameras[view], range_maps,
+                                               single_partners, cameras, R_all, t_all, neighbors[view], rel_tol)
+        votes[m, has] = np.where(beyond > 0, 0, confirmed)
+    best = np.argmax(votes, axis=0)
+    top = np.take_along_axis(votes, best[None], 0)[0]
+    unique = (votes == top[None]).sum(0) == 1
+    ok = (top >= 1) & unique
+    return pixels[ok], candidates[best[ok], np.flatnonzero(ok)].astype(np.float32)
 
 
 def clean_point_cloud(

@@ -1,0 +1,130 @@
+"""The stereo check of densify (``densify.stereo_check``): a range resting on one pair that another panorama sees
+through is dropped; the partner's copy of the same disparity is no confirmation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fullview import synth
+from fullview.sfm import dense
+
+
+@pytest.fixture(scope="module")
+def room():
+    scene = synth.render_scene(views=4, width=256, seed=2, supersample=1)
+    R = np.stack([v.R_world_from_cam.T for v in scene.views])
+    t = -np.einsum("nab,nb->na", R, np.stack([v.center for v in scene.views]))
+    return [v.depth.astype(np.float32) for v in scene.views], R, t
+
+
+def test_single_partner_names_the_only_pair_of_a_pixel():
+    a = np.array([[1.0, np.nan, 2.0, np.nan]], np.float32)
+    b = np.array([[np.nan, np.nan, 2.0, 3.0]], np.float32)
+    assert dense.single_partner([a, b], [7, 9]).tolist() == [[7, -1, -1, 9]]
+
+
+def _too_near_patch(room):
+    """View 0 with a patch 10% too near resting on its pair with view 1, and view 1 holding the same wrong points
+    (the same disparity, carried over), resting on its pair with view 0."""
+    ranges, R, t = room
+    maps = [r.copy() for r in ranges]
+    singles = [np.full(r.shape, -1, np.int32) for r in ranges]
+    patch = (slice(60, 80), slice(100, 140))
+    maps[0][patch] *= 0.9
+    singles[0][:] = 1  # every range of view 0 comes from its pair with view 1 alone
+    center0 = -R[0].T @ t[0]
+    rows, cols = np.mgrid[patch]
+    from fullview.sfm.camera import bearings_to_pixels, pixels_to_bearings
+    bearings = pixels_to_bearings(np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], 1), 256, 128)
+    points = center0 + (bearings * maps[0][rows, cols].reshape(-1, 1)) @ R[0]
+    x1 = points @ R[1].T + t[1]
+    uv = bearings_to_pixels(x1, 256, 128).astype(np.intp)
+    maps[1][uv[:, 1], uv[:, 0]] = np.linalg.norm(x1, axis=1)
+    singles[1][uv[:, 1], uv[:, 0]] = 0
+    return maps, singles, R, t, patch
+
+
+def test_a_range_another_view_sees_through_is_dropped(room):
+    maps, singles, R, t, patch = _too_near_patch(room)
+    drop = dense.seen_through_single_estimates(maps, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02,
+                                               views=[0])[0]
+    assert drop[patch].mean() > 0.8  # views 2 and 3 see the wall behind the floating points
+    outside = np.ones(drop.shape, bool)
+    outside[patch] = False
+    assert drop[outside].mean() < 0.02  # the exact ranges: confirmed or not judged
+
+
+def test_the_partner_of_the_same_pair_is_no_confirmation(room):
+    maps, singles, R, t, patch = _too_near_patch(room)  # (5%: view 1 holds the copies to a pixel)
+    drop = dense.seen_through_single_estimates(maps, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.05,
+                                               views=[0])[0]
+    # the same maps with view 1's copies counted as independent (another pair): the patch is confirmed and stays
+    other = [s.copy() for s in singles]
+    other[1][other[1] == 0] = -1
+    kept = dense.seen_through_single_estimates(maps, other, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.05,
+                                               views=[0])[0]
+    assert drop[patch].mean() > 0.8 > 0.2 > kept[patch].mean()
+
+
+def test_a_range_resting_on_two_pairs_or_judged_by_no_view_is_kept(room):
+    maps, singles, R, t, patch = _too_near_patch(room)
+    singles[0][:] = -1  # two pairs agreed on every range
+    assert not dense.seen_through_single_estimates(maps, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02,
+                                                   views=[0])[0].any()
+    maps, singles, R, t, patch = _too_near_patch(room)
+    empty = [maps[0]] + [np.full_like(m, np.nan) for m in maps[1:]]
+    assert not dense.seen_through_single_estimates(empty, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02,
+                                                   views=[0])[0].any()
+
+
+def test_conflicting_estimates_are_those_combine_drops():
+    a = np.array([[1.0, 1.0, 1.0, np.nan]], np.float32)
+    b = np.array([[1.0, 1.5, np.nan, 2.0]], np.float32)
+    c = np.array([[np.nan, 2.5, np.nan, 2.0]], np.float32)
+    pixels, candidates = dense.conflicting_estimates([a, b, c], 0.02)
+    _, valid = dense.combine_range_estimates([a, b, c], 0.02)
+    assert pixels.tolist() == [1] and not valid.ravel()[1] and valid.ravel()[[0, 2, 3]].all()
+    assert candidates[:, 0].tolist() == [1.0, 1.5, 2.5]
+
+
+def test_a_third_view_settles_conflicting_estimates(room):
+    ranges, R, t = room
+    maps = [r.copy() for r in ranges]
+    singles = [np.full(r.shape, -1, np.int32) for r in ranges]
+    pixels = np.arange(60 * 256 + 100, 60 * 256 + 140)  # a row of view 0 whose two pairs (with 1 and 2) conflict
+    truth = ranges[0].ravel()[pixels]
+    maps[0].ravel()[pixels] = np.nan
+    candidates = np.stack([1.1 * truth, truth])  # the pair with view 1 is 10% too far there
+    got, values = dense.resolve_conflicts(maps, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02, 0, pixels,
+                                          candidates, [1, 2])
+    assert len(got) > 0.5 * len(pixels)  # (the rest: nearest pixels of 1.4° at oblique views, neither confirmed)
+    np.testing.assert_allclose(values, ranges[0].ravel()[got], rtol=1e-6)  # always the right one
+    # no view can judge: nothing is settled
+    blind = [maps[0]] + [np.full_like(m, np.nan) for m in maps[1:]]
+    assert len(dense.resolve_conflicts(blind, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02, 0, pixels,
+                                       candidates, [1, 2])[0]) == 0
+    # the right estimate held by its own partner alone (the same pair's disparity): no confirmation, a tie
+    only_partner = [maps[0], np.full_like(maps[1], np.nan), maps[2], np.full_like(maps[3], np.nan)]
+    partner_singles = [s.copy() for s in singles]
+    partner_singles[2][:] = 0
+    assert len(dense.resolve_conflicts(only_partner, partner_singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02, 0,
+                                       pixels, candidates, [1, 2])[0]) == 0
+
+
+def test_a_range_behind_another_views_surface_is_dropped_with_its_points(room):
+    ranges, R, t = room
+    maps = [r.copy() for r in ranges]
+    singles = [np.full(r.shape, -1, np.int32) for r in ranges]
+    patch = (slice(60, 80), slice(100, 140))
+    maps[0][patch] *= 1.1  # too far: behind the wall, where no view can see through it
+    singles[0][:] = 1
+    from fullview.sfm.dense_metrics import backproject_range_map
+    points = [backproject_range_map(m, R[k], t[k]) for k, m in enumerate(maps)]
+    args = (maps, singles, [0, 1, 2, 3], R, t, [[1, 2, 3]] * 4, 0.02)
+    without = dense.seen_through_single_estimates(*args, views=[0])[0]
+    with_points = dense.seen_through_single_estimates(*args, views=[0], points=points)[0]
+    assert with_points[patch].mean() > 0.8 > 0.2 > without[patch].mean()
+    outside = np.ones(with_points.shape, bool)
+    outside[patch] = False
+    assert with_points[outside].mean() < 0.02
