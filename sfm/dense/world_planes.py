@@ -20,7 +20,7 @@ has no single plane, but every pixel of it still lies on one of the world's plan
    plane's extent (from inside a room that is the surface it sees), among the planes that explain at least a
    quarter of the stereo depths around its image region (Canny edges and stereo pixels bound the regions, as in
    ``planes``; a region may leak, it then holds several planes' evidence); a pixel no such plane takes may take
-   the nearest wall that the ranges next to it in its image column or row lie on (``_bracketed``); small islands
+   the nearest wall that the ranges next to it in its image column or row lie on (``_wall_brackets``); small islands
    of one label are dropped.
 4. ``fill_from_world_planes`` keeps a filled point where ``planes.check_against_views`` does (no nearby view sees
    through it; its colour is seen by another view); the stage then confirms it per tile by the other panoramas'
@@ -76,8 +76,8 @@ class WorldPlaneOptions:
     # wall direction (or its perpendicular) turned onto it (_snap_to_gravity); 0: fitted normals kept
     one_level_per_band: bool = True  # with snap_deg > 0: one level plane per side within LEVEL_MERGE_BANDS median
     # tolerances, the best supported (_one_level_plane_per_band)
-    wall_brackets: bool = True  # label_pixels: a wall may also take a pixel whose column's nearest ranges above
-    # and below it lie on the wall (_column_brackets), whatever its image region's evidence
+    wall_brackets: bool = True  # label_pixels: a pixel no plane of its image region takes may take the nearest
+    # wall that brackets it in its image column or row (_wall_brackets)
     walls_floor_to_ceiling: bool = True  # with snap_deg > 0 and observers: a wall's columns run from the floor to
     # the ceiling plane (_walls_floor_to_ceiling); the free-space check and the views then cut what is not wall
 
@@ -586,8 +586,8 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
                  ) -> tuple[np.ndarray, np.ndarray]:
     """((h, w) float32 range, (h, w) int32 label: plane index + 1, 0 none) of the ``fillable`` pixels of ``ref``:
     the nearest plane each ray meets inside its extent (in front, not grazing), among the planes ``allowed``
-    (regions, planes) in the pixel's image region (``regions``), if given. With ``options.wall_brackets`` a wall
-    (upright plane) is also allowed at a pixel whose column brackets it (``_column_brackets``)."""
+    (regions, planes) in the pixel's image region (``regions``), if given. With ``options.wall_brackets`` a pixel
+    no such plane takes gets the nearest wall (upright plane) that brackets it (``_wall_brackets``)."""
     h, w = ref.range_map.shape
     label = np.zeros(h * w, np.int32)
     pix = np.flatnonzero(fillable.ravel())
@@ -598,96 +598,95 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
     taken = np.zeros(len(pix), np.int32)
     bearings = reduced_bearings_world(ref.R_cam_from_world, w, h).reshape(-1, 3)[pix].astype(np.float64)
     center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
-    min_cos = np.sin(np.radians(options.min_incidence_deg))
     pix_regions = regions.ravel()[pix] if regions is not None else None
-    brackets = _column_brackets(ref, pix) if regions is not None and options.wall_brackets else None
-    # walls its brackets allow, for the pixels no plane its region allows takes (the nearest of those walls)
-    bracket_nearest = np.full(len(pix), np.inf, np.float32)
-    bracket_taken = np.zeros(len(pix), np.int32)
     for k, plane in enumerate(planes):
-        if plane.front and np.sign(plane.normal @ center - plane.offset) != plane.front:
-            continue  # this camera is behind the surface (it would see the back of a wall's other face)
-        by_column = brackets is not None and not plane.level
-        if regions is not None and not by_column and not allowed[:, k].any():
+        if regions is not None and not allowed[:, k].any():
             continue  # no region of this view may take it
         # only the pixels whose region may take the plane are looked at (per pixel: the same numbers; BLAS gives a
         # row of bearings the same product in any subset)
-        sel = np.flatnonzero(allowed[:, k][pix_regions]) if regions is not None and not by_column \
-            else np.arange(len(pix))
-        cos = bearings[sel] @ plane.normal
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = (plane.offset - plane.normal @ center) / cos
-        hit = (r > 0) & (np.abs(cos) >= min_cos) & ((r < nearest[sel]) | (by_column & (r < bracket_nearest[sel])))
-        if not hit.any():
-            continue
-        sel, r = sel[hit], r[hit]
-        inside = plane.contains(center + bearings[sel] * r[:, None])
-        if by_column:
-            by_region = inside & allowed[pix_regions[sel], k]
-            bracketed = inside & (r < bracket_nearest[sel]) & _bracketed(plane, center, brackets, sel,
-                                                                         options.view_tolerance)
-            bracket_nearest[sel[bracketed]] = r[bracketed]
-            bracket_taken[sel[bracketed]] = k + 1
-            inside = by_region & (r < nearest[sel])
-        nearest[sel[inside]] = r[inside]
-        taken[sel[inside]] = k + 1
-    free = taken == 0
-    nearest[free], taken[free] = bracket_nearest[free], bracket_taken[free]
+        sel = np.flatnonzero(allowed[:, k][pix_regions]) if regions is not None else np.arange(len(pix))
+        _take_nearest(plane, k, sel, bearings, center, nearest, taken, options)
+    if regions is not None and options.wall_brackets:
+        # the pixels no plane of their region takes: the nearest wall that brackets them
+        free = np.flatnonzero(taken == 0)
+        bits = _wall_brackets(ref, planes, pix[free], options.view_tolerance)
+        for k, plane in enumerate(planes):
+            if not plane.level:
+                sel = free[((bits[:, k // 8] >> (7 - k % 8)) & 1).astype(bool)]
+                _take_nearest(plane, k, sel, bearings, center, nearest, taken, options)
     best[pix], label[pix] = nearest, taken
     label = _drop_islands(label.reshape(h, w), options.min_island_pixels)
     out = np.where(label > 0, best.reshape(h, w), np.nan).astype(np.float32)
     return out, label
 
 
-def _column_brackets(ref: View, pix: np.ndarray) -> tuple[np.ndarray, ...]:
-    """For the pixels ``pix`` (flat indices) of ``ref``: the world bearing and range of the nearest pixel with a
-    range above, below, left and right of each in its image column and row ((N, 3), (N,) four times; range NaN:
-    none; rows wrap around the ±180° seam). A column of a level panorama is a vertical half-plane through the
-    camera: on a wall it is a vertical line, from the wall's floor line to its ceiling line; a row runs along the
-    wall between its corners."""
+def _take_nearest(plane: WorldPlane, k: int, sel: np.ndarray, bearings: np.ndarray, center: np.ndarray,
+                  nearest: np.ndarray, taken: np.ndarray, options: WorldPlaneOptions) -> None:
+    """Label ``k + 1`` (in place) the pixels ``sel`` whose ray meets the plane inside its extent, in front, not
+    grazing, and nearer than their current ``nearest``; nothing for a camera behind a one-sided plane (it would see
+    the back of a wall's other face)."""
+    if not len(sel) or (plane.front and np.sign(plane.normal @ center - plane.offset) != plane.front):
+        return
+    cos = bearings[sel] @ plane.normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = (plane.offset - plane.normal @ center) / cos
+    hit = (r > 0) & (np.abs(cos) >= np.sin(np.radians(options.min_incidence_deg))) & (r < nearest[sel])
+    if not hit.any():
+        return
+    sel, r = sel[hit], r[hit]
+    inside = plane.contains(center + bearings[sel] * r[:, None])
+    nearest[sel[inside]] = r[inside]
+    taken[sel[inside]] = k + 1
+
+
+def _wall_brackets(ref: View, planes: list[WorldPlane], pix: np.ndarray, tolerance: float) -> np.ndarray:
+    """(len(pix), ceil(planes / 8)) uint8, bit k (``np.packbits`` order) set where wall k brackets pixel ``pix``
+    (flat indices of ``ref``): it explains (within ``tolerance`` of the range) both the nearest range above and the
+    nearest range below the pixel in its image column, or both the nearest ranges left and right of it in its row
+    with neither column range beyond it. A column of a level panorama is a vertical half-plane through the camera:
+    on a wall it is a vertical line between the wall's floor and ceiling lines; a row runs along the wall between
+    its corners. A plane in front of the wall (a cupboard's face carried up to the ceiling) explains neither the
+    ceiling line nor the wall's corners; across a doorway the two jambs lie on the wall, but the floor beyond the
+    opening, below the pixel in its column, lies beyond it. Level planes get no bits."""
     h, w = ref.range_map.shape
-    finite = np.isfinite(ref.range_map)
-    row, col = np.divmod(pix, w)
-    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
-    above = np.maximum.accumulate(np.where(finite, rows, -1), axis=0)  # nearest at or above
-    below = np.minimum.accumulate(np.where(finite, rows, h)[::-1], axis=0)[::-1]  # nearest at or below
-    up = np.where(row > 0, above[np.maximum(row - 1, 0), col], -1)
-    down = np.where(row < h - 1, below[np.minimum(row + 1, h - 1), col], h)
-    cols = np.broadcast_to(np.arange(2 * w)[None], (h, 2 * w))
-    twice = np.concatenate([finite, finite], axis=1)
-    left_of = np.maximum.accumulate(np.where(twice, cols, -1), axis=1)  # nearest at or left of (twice the row)
-    right_of = np.minimum.accumulate(np.where(twice, cols, 2 * w)[:, ::-1], axis=1)[:, ::-1]
-    left = left_of[row, col + w - 1]
-    left = np.where(left > col - 1, left, -1)  # within one turn
-    right = right_of[row, col + 1]
-    right = np.where(right < col + w + 1, right, -1)
-    bearings = reduced_bearings_world(ref.R_cam_from_world, w, h)
-    out = []
-    for r, c, ok in ((up, col, up >= 0), (down, col, down < h), (row, left % w, left >= 0),
-                     (row, right % w, right >= 0)):
-        r, c = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
-        out += [bearings[r, c].astype(np.float64), np.where(ok, ref.range_map[r, c], np.nan).astype(np.float64)]
-    return tuple(out)
-
-
-def _bracketed(plane: WorldPlane, center: np.ndarray, brackets: tuple[np.ndarray, ...], sel: np.ndarray,
-               tolerance: float) -> np.ndarray:
-    """Whether the plane explains (within ``tolerance`` of the range) both the range above and the range below
-    each pixel ``sel`` in its column, or both the ranges left and right of it in its row (``_column_brackets``):
-    the wall's ceiling and floor lines, or its corners, or whatever bounds its plain face there. A plane in front
-    of the wall (a cupboard's face carried up to the ceiling) explains neither the ceiling line nor the wall's
-    corners; a wall carried down across a doorway explains neither the floor beyond it."""
-    distance = plane.offset - plane.normal @ center
-    on, beyond = [], []
-    for k in range(4):
-        b, r = brackets[2 * k][sel], brackets[2 * k + 1][sel]
+    rows, cols = np.nonzero(np.isfinite(ref.range_map))
+    index = np.full((h, w), len(rows), np.intp)  # the last row of the bits below: "no range there"
+    index[rows, cols] = np.arange(len(rows))
+    bearings = reduced_bearings_world(ref.R_cam_from_world, w, h)[rows, cols].astype(np.float64)
+    observed = ref.range_map[rows, cols].astype(np.float64)
+    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
+    upright = np.array([not p.level for p in planes])
+    normals = np.array([p.normal for p in planes])
+    distances = np.array([p.offset for p in planes]) - normals @ center
+    width = (len(planes) + 7) // 8
+    on, beyond = [np.zeros((0, width), np.uint8)], [np.zeros((0, width), np.uint8)]
+    for start in range(0, len(rows), EVIDENCE_BLOCK):  # per range: on each wall, clearly beyond it
+        block = slice(start, start + EVIDENCE_BLOCK)
         with np.errstate(divide="ignore", invalid="ignore"):
-            pred = distance / (b @ plane.normal)
-            on.append(np.abs(pred - r) <= tolerance * r)
-            beyond.append(r > (1 + tolerance) * pred)
-    # a row bracket alone also holds across a doorway (its two jambs lie on the wall): there the column must not
-    # see beyond the plane (the floor of the next room below the opening)
-    return (on[0] & on[1]) | (on[2] & on[3] & ~beyond[0] & ~beyond[1])
+            predicted = distances[None] / _rows_times(bearings[block], normals.T)
+            o = observed[block, None]
+            on.append(np.packbits((np.abs(predicted - o) <= tolerance * o) & upright, axis=1))
+            beyond.append(np.packbits((o > (1 + tolerance) * predicted) & upright, axis=1))
+    none = np.zeros((1, width), np.uint8)
+    on, beyond = np.concatenate(on + [none]), np.concatenate(beyond + [none])
+    finite = index < len(rows)
+    row, col = np.divmod(pix, w)
+    grid = np.broadcast_to(np.arange(h)[:, None], (h, w))
+    above = np.maximum.accumulate(np.where(finite, grid, -1), axis=0)  # nearest range at or above
+    below = np.minimum.accumulate(np.where(finite, grid, h)[::-1], axis=0)[::-1]  # ... at or below
+    up = above[np.maximum(row - 1, 0), col]
+    down = below[np.minimum(row + 1, h - 1), col]
+    twice = np.concatenate([finite, finite], axis=1)  # a row twice: the nearest range left / right wraps the seam
+    grid = np.broadcast_to(np.arange(2 * w)[None], (h, 2 * w))
+    left = np.maximum.accumulate(np.where(twice, grid, -1), axis=1)[row, col + w - 1]
+    right = np.minimum.accumulate(np.where(twice, grid, 2 * w)[:, ::-1], axis=1)[:, ::-1][row, col + 1]
+
+    def at(r, c, ok):
+        return np.where(ok, index[np.clip(r, 0, h - 1), np.clip(c, 0, 2 * w - 1) % w], len(rows))
+
+    u, d = at(up, col, (row > 0) & (up >= 0)), at(down, col, (row < h - 1) & (down < h))
+    lt, rt = at(row, left, left > col), at(row, right, right < col + w)  # within one turn, not the pixel itself
+    return (on[u] & on[d]) | (on[lt] & on[rt] & ~beyond[u] & ~beyond[d])
 
 
 def _drop_islands(label: np.ndarray, min_pixels: int) -> np.ndarray:
