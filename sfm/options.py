@@ -253,6 +253,12 @@ class DensifyOptions:
     one_level_plane_per_band: bool = setting(True, "world planes: of the level planes facing one way within 3 median "
                                              "tolerances (one ceiling found in pieces a few cm apart) only the best "
                                              "supported is kept (with world_plane_snap_deg > 0)")
+    walls_floor_to_ceiling: bool = setting(True, "world planes: every column of a wall's extent runs from the floor "
+                                           "to the ceiling plane (what the views see through is cut, and a pixel "
+                                           "takes the wall only where its region or its brackets support it)")
+    wall_brackets: bool = setting(True, "world fill: a wall may also take a pixel whose nearest ranges above and "
+                                  "below it in its image column, or left and right in its row, lie on the wall "
+                                  "(its floor and ceiling lines, its corners), whatever its image region's evidence")
     RULES: ClassVar[list[Rule]] = [
         ("min_triangulation_angle_deg < max_triangulation_angle_deg",
          lambda o: o.min_triangulation_angle_deg < o.max_triangulation_angle_deg),

@@ -17,10 +17,11 @@
 3c. World planes (``densify.world_planes``, ``fullview.sfm.dense.world_planes``): the dominant level and upright planes
    of the whole model (RANSAC on every panorama's stereo points and the sparse points; level ones made exactly level,
    walls turned onto the dominant wall direction, ``densify.world_plane_snap_deg``), each within the extent its
-   points support minus what the views' confirmed stereo sees through (``densify.free_space_confirmed``); a pixel
-   still empty gets the nearest such plane its ray meets, among those its image region's stereo depths support (a
-   ceiling needs none, ``densify.free_ceiling``), kept under the same view checks (by confirmed stereo) and
-   confirmation as 3b.
+   points support (a wall's columns carried to the floor and the ceiling, ``densify.walls_floor_to_ceiling``) minus
+   what the views' confirmed stereo sees through (``densify.free_space_confirmed``); a pixel still empty gets the
+   nearest such plane its ray meets, among those its image region's stereo depths support (a ceiling needs none,
+   ``densify.free_ceiling``; a wall may instead be bracketed by the ranges next to the pixel in its image column or
+   row, ``densify.wall_brackets``), kept under the same view checks (by confirmed stereo) and confirmation as 3b.
    The maps are saved as ``depth/<stem>.npz``
    (``range``, ``valid``) and a colour-mapped ``depth/<stem>.png``.
 4. Fusion: every panorama's points are kept where the nearest other panoramas agree, voxel down-sampled per
@@ -345,7 +346,9 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
                                           view_tolerance=options.view_tolerance, extent=config.world_plane_extent,
                                           snap_deg=config.world_plane_snap_deg, free_ceiling=config.free_ceiling,
                                           sweep_walls=config.sweep_walls,
-                                          one_level_per_band=config.one_level_plane_per_band)
+                                          one_level_per_band=config.one_level_plane_per_band,
+                                          walls_floor_to_ceiling=config.walls_floor_to_ceiling,
+                                          wall_brackets=config.wall_brackets)
     points, ranges, observers = _model_points(views, sparse_points)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
                                              up=camera_up(np.array([v.R_cam_from_world for v in views])),

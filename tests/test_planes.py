@@ -5,6 +5,8 @@ two surfaces meet (what SGBM finds in a plain room). Filling must recover the su
 where another view sees through the surface.
 """
 
+import sys
+
 import cv2
 import numpy as np
 import pytest
@@ -367,3 +369,75 @@ def test_a_colour_the_model_says_is_hidden_is_no_vote_against_a_point():
     # a hidden view's own colour still counts for the point, and a view that is not hidden still votes against it
     far = [np.full(o.shape, np.nan, np.float32) for o in occluders]
     assert not planes.check_against_views(point, colour, others, gains, options, far)[0]
+
+
+# ------------------------------------------------------------------------------------------------ walls to the lines
+def _without_wall_ceiling_line(rng: np.ndarray, face: np.ndarray) -> np.ndarray:
+    """``_edges_only`` without the line where the +z wall (face 5) meets the ceiling (face 2): stereo along a line
+    parallel to the baseline finds nothing (on the home, a long wall's ceiling line was in no stereo)."""
+    stereo = _edges_only(rng, face)
+    pad = np.pad(face, 1, mode="edge")
+    near = {f: np.zeros(face.shape, bool) for f in (2, 5)}
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            window = pad[1 + dy:1 + dy + face.shape[0], 1 + dx:1 + dx + face.shape[1]]
+            for f in near:
+                near[f] |= window == f
+    stereo[(near[2] & (face == 5)) | (near[5] & (face == 2))] = np.nan
+    return stereo
+
+
+def _world_fill_seen_from(views, options):
+    """``_world_fill`` with each stereo point's camera known (one-sided planes, walls carried to the lines)."""
+    points, ranges, observers = [], [], []
+    for v in views:
+        ok = np.isfinite(v.range_map)
+        c = -v.t_cam_from_world
+        points.append(c + pixel_grid_bearings(WIDTH, WIDTH // 2)[ok] * v.range_map[ok][:, None])
+        ranges.append(v.range_map[ok])
+        observers.append(np.broadcast_to(c, (int(ok.sum()), 3)))
+    found = world_planes.detect_world_planes(np.concatenate(points), np.concatenate(ranges),
+                                             np.random.default_rng(0), options, up=np.array([0.0, -1.0, 0.0]),
+                                             observers=np.concatenate(observers))
+    kept = world_planes.carve_extents(found, views, options)
+    popt = planes.PlaneOptions(min_region_pixels=50)
+    fills = [world_planes.fill_from_world_planes(v, kept, [o for o in views if o is not v], options, popt)
+             for v in views]
+    return [(f, planes.confirmed_by_views(v, f, lab, [o for o in views if o is not v],
+                                          [g for o, (g, _) in zip(views, fills) if o is not v], popt))
+            for v, (f, lab) in zip(views, fills)]
+
+
+def test_a_wall_seen_only_along_its_floor_line_is_filled_up_to_the_ceiling(monkeypatch):
+    # the +z wall has the ceiling's colour (its image region leaks into the ceiling) and no stereo at its ceiling
+    # line: its columns hold only the floor line. Carried up to the ceiling plane, and taken where the pixel's row
+    # (the wall's corners) brackets it, the wall is filled in every view; without either, it is not
+    grey = FACE_GREY.copy()
+    grey[5] = grey[2]
+    monkeypatch.setattr(sys.modules[__name__], "FACE_GREY", grey)
+    views, truth = _world_views(_render, _without_wall_ceiling_line)
+    for ext, brackets in ((True, True), (True, False), (False, True)):
+        options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1, walls_floor_to_ceiling=ext,
+                                                 wall_brackets=brackets)
+        shares = []
+        for center, (fill, ok), rng in zip(CENTERS, _world_fill_seen_from(views, options), truth):
+            wall = _render(center)[1] == 5
+            good = ok & (np.abs(fill - rng) <= 0.01 * rng)
+            assert np.all(np.abs(fill[ok & wall] - rng[ok & wall]) <= 0.01 * rng[ok & wall])
+            shares.append(good[wall].mean())
+        if ext and brackets:
+            assert min(shares) > 0.7
+        else:
+            assert min(shares) < 0.1
+
+
+def test_a_wall_is_not_carried_down_across_a_doorway_the_floor_goes_on_through():
+    # a plain doorway (no stereo beyond it but the far wall's lines) whose wall has no ceiling line either: the
+    # wall's columns are carried to the ceiling and to the floor, except where the floor's points go on behind it
+    # (through the doorway). The doorway's pixels get the floor beyond or nothing, never the wall
+    views, truth = _world_views(_render_with_door, _without_wall_ceiling_line)
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1)
+    for center, (fill, ok), rng in zip(CENTERS, _world_fill_seen_from(views, options), truth):
+        _, face, _, door = _render_with_door(center)
+        assert np.all(np.abs(fill[ok & door] - rng[ok & door]) <= 0.01 * rng[ok & door])
+        assert ok[(face == 5) & ~door].mean() > 0.6

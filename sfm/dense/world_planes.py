@@ -14,10 +14,14 @@ has no single plane, but every pixel of it still lies on one of the world's plan
    through more often than on it (a window, a doorway bridged by the closing) is removed, and a plane seen through
    on more than half of the cells some view has a range for was invented (e.g. through two parallel lines across a
    room) and is dropped.
+   With gravity, a wall's columns are carried to the floor and ceiling planes where these do not go on behind it
+   (``_walls_floor_to_ceiling``: a plain wall's stereo often holds only one of its two horizontal lines).
 3. ``region_candidates`` and ``label_pixels``: each empty pixel gets the nearest plane its ray meets inside that
    plane's extent (from inside a room that is the surface it sees), among the planes that explain at least a
    quarter of the stereo depths around its image region (Canny edges and stereo pixels bound the regions, as in
-   ``planes``; a region may leak, it then holds several planes' evidence); small islands of one label are dropped.
+   ``planes``; a region may leak, it then holds several planes' evidence); a pixel no such plane takes may take
+   the nearest wall that the ranges next to it in its image column or row lie on (``_wall_brackets``); small islands
+   of one label are dropped.
 4. ``fill_from_world_planes`` keeps a filled point where ``planes.check_against_views`` does (no nearby view sees
    through it; its colour is seen by another view); the stage then confirms it per tile by the other panoramas'
    results (``planes.confirmed_by_views``), as for the region fill.
@@ -43,6 +47,8 @@ LEVEL_TRIM_PERCENTILE = 1.0  # a level plane's gravity rectangle spans these per
 SNAP_SHRINK = (1.0, 0.5)  # bands of the offset refinement of a snapped plane (x distance)
 LEVEL_MERGE_BANDS = 3  # _one_level_plane_per_band: level planes of one side within this many median tolerances
 SWEEP_SUPPORT_FACTOR = 2  # a swept wall needs this many times min_support points (its lines, seen from its side)
+BEHIND_CELLS = 2  # _walls_floor_to_ceiling: floor (ceiling) points this many cells behind a wall's face ...
+BEHIND_POINTS = 3  # ... at least this many in a column: the floor (ceiling) goes on behind the wall there
 EVIDENCE_BLOCK = 16_384  # region_candidates judges this many stereo pixels against all planes at a time
 
 
@@ -70,6 +76,10 @@ class WorldPlaneOptions:
     # wall direction (or its perpendicular) turned onto it (_snap_to_gravity); 0: fitted normals kept
     one_level_per_band: bool = True  # with snap_deg > 0: one level plane per side within LEVEL_MERGE_BANDS median
     # tolerances, the best supported (_one_level_plane_per_band)
+    wall_brackets: bool = True  # label_pixels: a pixel no plane of its image region takes may take the nearest
+    # wall that brackets it in its image column or row (_wall_brackets)
+    walls_floor_to_ceiling: bool = True  # with snap_deg > 0 and observers: a wall's columns run from the floor to
+    # the ceiling plane (_walls_floor_to_ceiling); the free-space check and the views then cut what is not wall
 
 
 @dataclass(kw_only=True)
@@ -252,10 +262,74 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
             planes = _one_level_plane_per_band(planes, float(np.median(tolerance)))
         if options.sweep_walls and observers is not None:
             planes = planes + _sweep_walls(planes, points, tolerance, np.asarray(up, np.float64), observers, options)
+        if options.walls_floor_to_ceiling and observers is not None:
+            _walls_floor_to_ceiling(planes, np.asarray(up, np.float64), observers, points, tolerance)
     return planes
 
 
 # ------------------------------------------------------------------------------------------------ gravity
+def _floor_and_ceiling_heights(planes: list[WorldPlane], up: np.ndarray, eye: float) -> tuple[float, float] | None:
+    """Heights (along ``up``) of the best-supported level plane below ``eye`` (the floor) and above it (the
+    ceiling); None unless both exist."""
+    below, above = None, None
+    for p in sorted((p for p in planes if p.level), key=lambda p: -p.support):
+        height = p.offset * float(np.sign(p.normal @ up))
+        if height < eye and below is None:
+            below = height
+        elif height > eye and above is None:
+            above = height
+    return (below, above) if below is not None and above is not None else None
+
+
+def _walls_floor_to_ceiling(planes: list[WorldPlane], up: np.ndarray, observers: np.ndarray, points: np.ndarray,
+                            tolerance: np.ndarray) -> None:
+    """Carry the columns of each one-sided upright plane's extent that hold a cell down to the floor plane and up to
+    the ceiling plane (in place), except where that floor or ceiling goes on behind the wall.
+
+    Why: a plain wall's stereo is its floor line, its ceiling line and its corners, and often only one of the two
+    horizontal lines lies within the point tolerance (on the home, a long wall parallel to the walk had its ceiling
+    line in no stereo: matching along a line parallel to the baseline has nothing to lock on): its columns then held
+    only that line. Where the floor's own points go on behind the wall (more than ``BEHIND_CELLS`` cells behind its
+    face, at least ``BEHIND_POINTS`` of them in a column), the wall is not what bounds the room there: a doorway (the
+    floor goes on into the next room) or an interior wall, whose own lines stay its extent; the same for the ceiling
+    (a wall that stops below it). What the views see through is removed later (``carve_extents``), and a pixel takes
+    a wall only where its image region or its brackets support it (``label_pixels``)."""
+    up = up / np.linalg.norm(up)
+    heights = _floor_and_ceiling_heights(planes, up, float(np.median(observers @ up)))
+    if heights is None:
+        return
+    levels = {}
+    for name, height in zip(("floor", "ceiling"), heights):
+        on = np.abs(points @ up - height) <= tolerance
+        levels[name] = (height, points[on])
+    for plane in planes:
+        if plane.level or not plane.front or abs(plane.normal @ up) > 1e-6 \
+                or abs(plane.axes[1] @ up) < 1 - 1e-6 or not plane.extent.any():
+            continue
+        for name, (height, level_points) in levels.items():
+            base = float(plane.origin @ plane.axes[1])  # height of row 0's lower edge
+            target = int(np.floor((height - base) / plane.cell))
+            pad = (max(0, -target), 0) if name == "floor" else (0, max(0, target - plane.extent.shape[0] + 1))
+            if any(pad):
+                plane.extent = np.pad(plane.extent, (pad, (0, 0)))
+                if plane.fallback is not None:
+                    plane.fallback = np.pad(plane.fallback, (pad, (0, 0)))
+                plane.origin = plane.origin - pad[0] * plane.cell * plane.axes[1]
+                target += pad[0]
+            rows, cols = plane.extent.shape
+            behind = plane.front * (level_points @ plane.normal - plane.offset) < -BEHIND_CELLS * plane.cell
+            col = np.floor((level_points[behind] - plane.origin) @ plane.axes[0] / plane.cell).astype(np.intp)
+            goes_on = np.bincount(col[(col >= 0) & (col < cols)], minlength=cols) >= BEHIND_POINTS
+            columns = plane.extent.any(axis=0) & ~goes_on
+            row = np.arange(rows)[:, None]
+            if name == "floor":
+                lowest = np.argmax(plane.extent, axis=0)[None]
+                plane.extent |= columns[None] & (row >= target) & (row < lowest)
+            else:
+                highest = rows - 1 - np.argmax(plane.extent[::-1], axis=0)[None]
+                plane.extent |= columns[None] & (row > highest) & (row <= target)
+
+
 def _one_level_plane_per_band(planes: list[WorldPlane], band: float) -> list[WorldPlane]:
     """The planes without the level ones that lie within ``LEVEL_MERGE_BANDS`` bands of a better-supported level
     plane facing the same way: one ceiling (or floor) seen as several pieces a few cm apart, whose nearest piece
@@ -512,7 +586,8 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
                  ) -> tuple[np.ndarray, np.ndarray]:
     """((h, w) float32 range, (h, w) int32 label: plane index + 1, 0 none) of the ``fillable`` pixels of ``ref``:
     the nearest plane each ray meets inside its extent (in front, not grazing), among the planes ``allowed``
-    (regions, planes) in the pixel's image region (``regions``), if given."""
+    (regions, planes) in the pixel's image region (``regions``), if given. With ``options.wall_brackets`` a pixel
+    no such plane takes gets the nearest wall (upright plane) that brackets it (``_wall_brackets``)."""
     h, w = ref.range_map.shape
     label = np.zeros(h * w, np.int32)
     pix = np.flatnonzero(fillable.ravel())
@@ -523,30 +598,95 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
     taken = np.zeros(len(pix), np.int32)
     bearings = reduced_bearings_world(ref.R_cam_from_world, w, h).reshape(-1, 3)[pix].astype(np.float64)
     center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
-    min_cos = np.sin(np.radians(options.min_incidence_deg))
     pix_regions = regions.ravel()[pix] if regions is not None else None
     for k, plane in enumerate(planes):
-        if plane.front and np.sign(plane.normal @ center - plane.offset) != plane.front:
-            continue  # this camera is behind the surface (it would see the back of a wall's other face)
         if regions is not None and not allowed[:, k].any():
             continue  # no region of this view may take it
         # only the pixels whose region may take the plane are looked at (per pixel: the same numbers; BLAS gives a
         # row of bearings the same product in any subset)
         sel = np.flatnonzero(allowed[:, k][pix_regions]) if regions is not None else np.arange(len(pix))
-        cos = bearings[sel] @ plane.normal
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = (plane.offset - plane.normal @ center) / cos
-        hit = (r > 0) & (np.abs(cos) >= min_cos) & (r < nearest[sel])
-        if not hit.any():
-            continue
-        sel, r = sel[hit], r[hit]
-        inside = plane.contains(center + bearings[sel] * r[:, None])
-        nearest[sel[inside]] = r[inside]
-        taken[sel[inside]] = k + 1
+        _take_nearest(plane, k, sel, bearings, center, nearest, taken, options)
+    if regions is not None and options.wall_brackets:
+        # the pixels no plane of their region takes: the nearest wall that brackets them
+        free = np.flatnonzero(taken == 0)
+        bits = _wall_brackets(ref, planes, pix[free], options.view_tolerance)
+        for k, plane in enumerate(planes):
+            if not plane.level:
+                sel = free[((bits[:, k // 8] >> (7 - k % 8)) & 1).astype(bool)]
+                _take_nearest(plane, k, sel, bearings, center, nearest, taken, options)
     best[pix], label[pix] = nearest, taken
     label = _drop_islands(label.reshape(h, w), options.min_island_pixels)
     out = np.where(label > 0, best.reshape(h, w), np.nan).astype(np.float32)
     return out, label
+
+
+def _take_nearest(plane: WorldPlane, k: int, sel: np.ndarray, bearings: np.ndarray, center: np.ndarray,
+                  nearest: np.ndarray, taken: np.ndarray, options: WorldPlaneOptions) -> None:
+    """Label ``k + 1`` (in place) the pixels ``sel`` whose ray meets the plane inside its extent, in front, not
+    grazing, and nearer than their current ``nearest``; nothing for a camera behind a one-sided plane (it would see
+    the back of a wall's other face)."""
+    if not len(sel) or (plane.front and np.sign(plane.normal @ center - plane.offset) != plane.front):
+        return
+    cos = bearings[sel] @ plane.normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = (plane.offset - plane.normal @ center) / cos
+    hit = (r > 0) & (np.abs(cos) >= np.sin(np.radians(options.min_incidence_deg))) & (r < nearest[sel])
+    if not hit.any():
+        return
+    sel, r = sel[hit], r[hit]
+    inside = plane.contains(center + bearings[sel] * r[:, None])
+    nearest[sel[inside]] = r[inside]
+    taken[sel[inside]] = k + 1
+
+
+def _wall_brackets(ref: View, planes: list[WorldPlane], pix: np.ndarray, tolerance: float) -> np.ndarray:
+    """(len(pix), ceil(planes / 8)) uint8, bit k (``np.packbits`` order) set where wall k brackets pixel ``pix``
+    (flat indices of ``ref``): it explains (within ``tolerance`` of the range) both the nearest range above and the
+    nearest range below the pixel in its image column, or both the nearest ranges left and right of it in its row
+    with neither column range beyond it. A column of a level panorama is a vertical half-plane through the camera:
+    on a wall it is a vertical line between the wall's floor and ceiling lines; a row runs along the wall between
+    its corners. A plane in front of the wall (a cupboard's face carried up to the ceiling) explains neither the
+    ceiling line nor the wall's corners; across a doorway the two jambs lie on the wall, but the floor beyond the
+    opening, below the pixel in its column, lies beyond it. Level planes get no bits."""
+    h, w = ref.range_map.shape
+    rows, cols = np.nonzero(np.isfinite(ref.range_map))
+    index = np.full((h, w), len(rows), np.intp)  # the last row of the bits below: "no range there"
+    index[rows, cols] = np.arange(len(rows))
+    bearings = reduced_bearings_world(ref.R_cam_from_world, w, h)[rows, cols].astype(np.float64)
+    observed = ref.range_map[rows, cols].astype(np.float64)
+    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
+    upright = np.array([not p.level for p in planes])
+    normals = np.array([p.normal for p in planes])
+    distances = np.array([p.offset for p in planes]) - normals @ center
+    width = (len(planes) + 7) // 8
+    on, beyond = [np.zeros((0, width), np.uint8)], [np.zeros((0, width), np.uint8)]
+    for start in range(0, len(rows), EVIDENCE_BLOCK):  # per range: on each wall, clearly beyond it
+        block = slice(start, start + EVIDENCE_BLOCK)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            predicted = distances[None] / _rows_times(bearings[block], normals.T)
+            o = observed[block, None]
+            on.append(np.packbits((np.abs(predicted - o) <= tolerance * o) & upright, axis=1))
+            beyond.append(np.packbits((o > (1 + tolerance) * predicted) & upright, axis=1))
+    none = np.zeros((1, width), np.uint8)
+    on, beyond = np.concatenate(on + [none]), np.concatenate(beyond + [none])
+    finite = index < len(rows)
+    row, col = np.divmod(pix, w)
+    grid = np.broadcast_to(np.arange(h)[:, None], (h, w))
+    above = np.maximum.accumulate(np.where(finite, grid, -1), axis=0)  # nearest range at or above
+    below = np.minimum.accumulate(np.where(finite, grid, h)[::-1], axis=0)[::-1]  # ... at or below
+    up = above[np.maximum(row - 1, 0), col]
+    down = below[np.minimum(row + 1, h - 1), col]
+    twice = np.concatenate([finite, finite], axis=1)  # a row twice: the nearest range left / right wraps the seam
+    grid = np.broadcast_to(np.arange(2 * w)[None], (h, 2 * w))
+    left = np.maximum.accumulate(np.where(twice, grid, -1), axis=1)[row, col + w - 1]
+    right = np.minimum.accumulate(np.where(twice, grid, 2 * w)[:, ::-1], axis=1)[:, ::-1][row, col + 1]
+
+    def at(r, c, ok):
+        return np.where(ok, index[np.clip(r, 0, h - 1), np.clip(c, 0, 2 * w - 1) % w], len(rows))
+
+    u, d = at(up, col, (row > 0) & (up >= 0)), at(down, col, (row < h - 1) & (down < h))
+    lt, rt = at(row, left, left > col), at(row, right, right < col + w)  # within one turn, not the pixel itself
+    return (on[u] & on[d]) | (on[lt] & on[rt] & ~beyond[u] & ~beyond[d])
 
 
 def _drop_islands(label: np.ndarray, min_pixels: int) -> np.ndarray:
