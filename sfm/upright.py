@@ -345,12 +345,21 @@ def detect_line_normals(image: np.ndarray, *, face_size: int = 0, margin_deg: fl
     return np.concatenate(normals), np.concatenate(lengths)
 
 
+def _circle_pairs(m: int, num_pairs: int, seed: int) -> np.ndarray:
+    """(P, 2) pairs of m circles whose intersections are the candidate directions: every pair when there are at most
+    num_pairs of them (an image's 16-130 vertical segments: the result then does not depend on the seed), else
+    num_pairs random ones."""
+    if m * (m - 1) // 2 <= num_pairs:
+        return np.column_stack(np.triu_indices(m, k=1))
+    return np.random.default_rng(seed).integers(0, m, size=(num_pairs, 2))
+
+
 GRAVITY_REFIT_ROUNDS = 20  # at most this many least-squares re-fits of the vertical direction
 
 
 def vertical_direction_from_normals(normals: np.ndarray, weights: np.ndarray | None = None, *,
                                     max_tilt_deg: float = 20.0, inlier_deg: float = 1.0, min_lines: int = 6,
-                                    num_pairs: int = 2000, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+                                    num_pairs: int = 10_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
     """Direction v (y ≥ 0) within max_tilt_deg of +y that the most great circles (unit normals) pass through, and
     the inlier mask; None with fewer than min_lines supporting circles.
 
@@ -364,7 +373,7 @@ def vertical_direction_from_normals(normals: np.ndarray, weights: np.ndarray | N
     n, w = normals[candidates], weights[candidates]
     if len(n) < max(min_lines, 2):
         return None
-    pairs = np.random.default_rng(seed).integers(0, len(n), size=(num_pairs, 2))
+    pairs = _circle_pairs(len(n), num_pairs, seed)
     v = np.cross(n[pairs[:, 0]], n[pairs[:, 1]])
     # Near-parallel circles (one edge detected twice) pin v down poorly.
     v = normalize(v[np.linalg.norm(v, axis=1) > np.sin(np.radians(5.0))])
