@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
-from functools import partial
 
 import numpy as np
 
@@ -171,46 +170,6 @@ def _draw_samples(rng: np.random.Generator, batch: int, n: int, head_share: floa
     return np.argpartition(keys, 7, axis=1)[:, :8]
 
 
-LO_CANDIDATES = 4  # hypotheses of a batch locally optimised (the lowest costs that beat the best so far)
-
-
-def optimize_best_hypotheses(Fs, costs, best_F, best_cost, optimize):
-    """The best model so far after `optimize(F) -> (F, cost)` of the batch's LO_CANDIDATES lowest-cost hypotheses
-    that beat it.
-
-    Why more than the batch's best: on a weak pair several models gather nearly the same support, and the raw
-    sample with the lowest cost need not lie in the basin of the best optimised model; optimising only it left the
-    result depending on the seed (30-view synthetic homes: pairs with 25-50 % inliers ended 1-9° apart)."""
-    order = np.argsort(costs)[:LO_CANDIDATES]
-    for k in order[costs[order] < best_cost]:
-        F, cost = optimize(F=Fs[k])
-        if cost < best_cost:
-            best_F, best_cost = F, cost
-    return best_F, best_cost
-
-
-CONVERGENCE_ROUNDS = 4  # at most this many local optimisation + refinement rounds per candidate
-
-
-def optimize_to_convergence(b_i, b_j, F, threshold, local_optimization, refine: bool, refine_fn=None,
-                            min_points: int = 8):
-    """(F, MSAC cost): `local_optimization(F) -> (F, cost)` then the refinement to its fixed point (`_finish`),
-    repeated while the cost drops.
-
-    Why repeated: a refined model's inliers may settle one or two matches short of a neighbouring, better fixed point
-    (yaw 0.03° and baseline 0.05° away on a synthetic home's pair with 75 % inliers); the local optimisation's
-    looser inlier sets reach it from there, whichever sample the search started at."""
-    best_F, best_cost = None, np.inf
-    for _ in range(CONVERGENCE_ROUNDS):
-        F, _ = local_optimization(F)
-        result = _finish(b_i, b_j, F, threshold, refine, 0, refine_fn=refine_fn, min_points=min_points)
-        cost = _msac_scores(result.errors, threshold).sum()
-        if cost >= best_cost:
-            break
-        best_F, best_cost, F = result.F, cost, result.F
-    return best_F, best_cost
-
-
 def ransac_f(b_i: np.ndarray, b_j: np.ndarray, options: RansacOptions) -> FResult:
     """LO-MSAC on bearings with the 8-point minimal solver, angular errors, optional refinement."""
     n = len(b_i)
@@ -225,9 +184,9 @@ def ransac_f(b_i: np.ndarray, b_j: np.ndarray, options: RansacOptions) -> FResul
         Fs = estimate_f_linear(b_i[samples], b_j[samples])
         costs = msac_costs(Fs, b_i, b_j, thr)
         drawn += batch
-        best_F, best_cost = optimize_best_hypotheses(Fs, costs, best_F, best_cost, lambda F: optimize_to_convergence(
-            b_i, b_j, F, thr, partial(_local_optimization, b_i, b_j, threshold=thr,
-                                      steps=options.local_optimization_steps), options.refine))
+        k = int(np.argmin(costs))
+        if costs[k] < best_cost:
+            best_F, best_cost = _local_optimization(b_i, b_j, Fs[k], thr, options.local_optimization_steps)
         ratio = float((epipolar_angular_errors(best_F, b_i, b_j) < thr).mean())
         if drawn >= options.min_iterations and drawn >= required_iterations(ratio, options.confidence):
             break
@@ -353,32 +312,35 @@ def points_determine_f(b_i: np.ndarray, b_j: np.ndarray) -> bool:
 POLISH_ROUNDS = 8  # at most this many refinements, each on the inliers of the one before
 
 
-def _finish(b_i, b_j, F, threshold, refine, iterations, refine_fn=None, min_points: int = 8) -> FResult:
-    """The result of a search: F refined on its inliers until the inlier set no longer changes.
+def _finish(b_i, b_j, F, threshold, refine, iterations, refine_fn=None, min_points: int = 8,
+            polish: bool = False) -> FResult:
+    """The result of a search: F refined on its inliers (soft-l1 loss), or with `polish` to a fixed point.
 
-    Why until it settles: one refinement on the inliers of the search's model leaves F depending on which sample
-    found it (its inliers are not those of the refined F). Iterated to a fixed point, models from different samples
-    in one basin end at the same F and inliers, so the result no longer depends on the random seed (measured on the
-    30-view synthetic homes: one refinement left 31 of 46 pairs' poses seed-dependent, up to 0.1° on strong pairs).
-    `refine_fn` (default `refine_f`) replaces the refinement, e.g. the upright one."""
+    Why polish: one refinement on the inliers of the search's model leaves F depending on which sample found it (its
+    inliers are not those of the refined F, and borderline matches enter or leave). Polished, F is refined with a
+    Cauchy loss on the matches within POLISH_SPAN thresholds (a match at the span's edge weighs 3%, so which
+    borderline matches are in hardly matters) until its inliers no longer change: models from different samples in
+    one basin end at the same F and inliers (30-view synthetic homes: one refinement left 31 of 46 pairs' poses
+    seed-dependent, up to 0.1° on strong pairs; polished, 2-6, each a distinct optimum of a weak pair). The upright
+    search polishes; the 8-point one does not (its refinement on a thousand matches per pair made the filter on the
+    bench's 24-view room 40% slower). `refine_fn` (default `refine_f`) replaces the refinement."""
     refine_fn = refine_f if refine_fn is None else refine_fn
     errors = epipolar_angular_errors(F, b_i, b_j)
+    if refine and (errors < threshold).sum() >= min_points and not polish:
+        F = refine_fn(F, b_i[errors < threshold], b_j[errors < threshold], threshold)
+        errors = epipolar_angular_errors(F, b_i, b_j)
     span, best = errors < POLISH_SPAN * threshold, None
-    if refine and (errors < threshold).sum() < min_points:
-        refine = False
-    for _ in range(POLISH_ROUNDS if refine else 0):
-        if span.sum() < min_points:
-            break
+    for _ in range(POLISH_ROUNDS if refine and polish and (errors < threshold).sum() >= min_points else 0):
         current = refine_fn(F, b_i[span], b_j[span], threshold, loss="cauchy")
         current_errors = epipolar_angular_errors(current, b_i, b_j)
         cost = _msac_scores(current_errors, threshold).sum()
         if best is None or cost < best[0]:
             best = (cost, current, current_errors)
-        settled = np.array_equal(current_errors < POLISH_SPAN * threshold, span)
-        F, span = current, current_errors < POLISH_SPAN * threshold
+        settled = np.array_equal(current_errors < threshold, errors < threshold)
+        F, errors, span = current, current_errors, current_errors < POLISH_SPAN * threshold
         if settled:
             break
-    if best is not None:  # the lowest-cost refinement: where the sets cycle, whichever the cycle began at
+    if best is not None:  # the lowest-cost refinement: where the inlier sets cycle, whichever the cycle began at
         _, F, errors = best
     return FResult(F=F, inliers=errors < threshold, errors=errors, iterations=iterations)
 
@@ -458,9 +420,10 @@ LOSSES = {"soft_l1": (_soft_l1_cost, lambda z: 1.0 / np.sqrt(1.0 + z)),
 
 
 def robust_levenberg_marquardt(with_jacobian, x0: np.ndarray, f_scale: float, loss: str = "soft_l1") -> np.ndarray:
-    """Minimises the soft_l1 cost of the residuals; `with_jacobian(x)` -> (r, J) in one evaluation.
+    """Minimises the robust cost (`LOSSES`: soft_l1, or cauchy) of the residuals; `with_jacobian(x)` -> (r, J) in one
+    evaluation.
 
-    Iteratively reweighted Gauss-Newton (weights ρ'(z) = 1/√(1 + (r/f)²)) damped Levenberg-Marquardt style,
+    Iteratively reweighted Gauss-Newton (soft_l1 weights ρ'(z) = 1/√(1 + (r/f)²)) damped Levenberg-Marquardt style,
     stopping on scipy's ftol / xtol / gtol tests: its minimum is scipy's least_squares(loss="soft_l1") minimum
     (the same stationarity condition Jᵀ ρ' r = 0), without scipy's per-call machinery, which cost 2 ms of the
     F refinement's 2.5 ms per pair (README, "Fifth speed pass")."""

@@ -258,10 +258,10 @@ def ransac_f_upright(b_i: np.ndarray, b_j: np.ndarray, options: tv.RansacOptions
         if valid.any():
             Fs = Fs[valid]
             costs = tv.msac_costs(Fs, b_i, b_j, thr)
-            best_F, best_cost = tv.optimize_best_hypotheses(Fs, costs, best_F, best_cost, lambda F: (
-                tv.optimize_to_convergence(b_i, b_j, F, thr, lambda G: _local_optimization_upright(
-                    b_i, b_j, G, thr, options.local_optimization_steps), options.refine, refine_fn=refine_f_upright,
-                                           min_points=MIN_LINEAR_POINTS)))
+            k = int(np.argmin(costs))
+            if costs[k] < best_cost:
+                best_F, best_cost = _local_optimization_upright(b_i, b_j, Fs[k], thr,
+                                                                options.local_optimization_steps)
         if best_F is None:
             continue
         ratio = float((tv.epipolar_angular_errors(best_F, b_i, b_j) < thr).mean())
@@ -272,7 +272,7 @@ def ransac_f_upright(b_i: np.ndarray, b_j: np.ndarray, options: tv.RansacOptions
         raise ValueError("no upright model: every sample was degenerate")
     # two_view's refinement is not upright: the upright one, to the same fixed point of F and its inliers.
     return tv._finish(b_i, b_j, best_F, thr, options.refine, drawn, refine_fn=refine_f_upright,
-                      min_points=MIN_LINEAR_POINTS)
+                      min_points=MIN_LINEAR_POINTS, polish=True)
 
 
 # --------------------------------------------------------------------------------------------- levelling
