@@ -321,9 +321,10 @@ def _finish(b_i, b_j, F, threshold, refine, iterations, refine_fn=None, min_poin
     Cauchy loss on the matches within POLISH_SPAN thresholds (a match at the span's edge weighs 3%, so which
     borderline matches are in hardly matters) until its inliers no longer change: models from different samples in
     one basin end at the same F and inliers (30-view synthetic homes: one refinement left 31 of 46 pairs' poses
-    seed-dependent, up to 0.1° on strong pairs; polished, 2-6, each a distinct optimum of a weak pair). The upright
-    search polishes; the 8-point one does not (its refinement on a thousand matches per pair made the filter on the
-    bench's 24-view room 40% slower). `refine_fn` (default `refine_f`) replaces the refinement."""
+    seed-dependent, up to 0.1° on strong pairs; polished, 3-4, mostly distinct optima of weak pairs). The soft-l1
+    refinement on the settled inliers follows (the Cauchy fit alone failed the closed-door test home's merge). The
+    upright search polishes; the 8-point one does not (its refinement on a thousand matches per pair made the filter
+    on the bench's 24-view room 40% slower). `refine_fn` (default `refine_f`) replaces the refinement."""
     refine_fn = refine_f if refine_fn is None else refine_fn
     errors = epipolar_angular_errors(F, b_i, b_j)
     if refine and (errors < threshold).sum() >= min_points and not polish:
