@@ -213,7 +213,7 @@ def refine_f_upright(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold:
         return rows[0], ((rows[1:] - rows[0]) / steps[:, None]).T
 
     # The in-house solver of two_view's refinement (the same soft_l1 minimum as scipy's least_squares, without its
-    # per-call cost): the search polishes several candidate models per pair.
+    # per-call cost), which also has the Cauchy loss of the polish; the polish refines a few times per pair.
     return models(tv.robust_levenberg_marquardt(with_jacobian, np.zeros(3), threshold / 2, loss))
 
 
@@ -270,7 +270,8 @@ def ransac_f_upright(b_i: np.ndarray, b_j: np.ndarray, options: tv.RansacOptions
             break
     if best_F is None:
         raise ValueError("no upright model: every sample was degenerate")
-    # two_view's refinement is not upright: the upright one, to the same fixed point of F and its inliers.
+    # two_view's refinement is not upright: the upright one, polished (`two_view._finish`): the same F and inliers
+    # whichever sample found the model.
     return tv._finish(b_i, b_j, best_F, thr, options.refine, drawn, refine_fn=refine_f_upright,
                       min_points=MIN_LINEAR_POINTS, polish=True)
 
