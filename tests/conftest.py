@@ -5,10 +5,12 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from fullview.io.config import load_config
 from fullview.io.dataset import Dataset
+from fullview import synth
 from fullview.synth import write_synthetic_dataset
 from fullview.io.workspace import Workspace
 from fullview.stages.runner import Pipeline
@@ -54,3 +56,13 @@ def dataset_copy(tiny_dataset, tmp_path) -> Path:
 def tiny_set_args() -> list[str]:
     """TINY_OVERRIDES as CLI arguments."""
     return [a for o in TINY_OVERRIDES for a in ("--set", o)]
+
+
+@pytest.fixture(scope="session")
+def small_room() -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """Four 256-px panoramas of the synthetic room (seed 2), rendered once: their exact range maps (float64),
+    R_cam_from_world and t_cam_from_world. Modules copy the maps before changing them."""
+    scene = synth.render_scene(views=4, width=256, seed=2, supersample=1)
+    R = np.stack([v.R_world_from_cam.T for v in scene.views])
+    t = -np.einsum("nab,nb->na", R, np.stack([v.center for v in scene.views]))
+    return [v.depth.astype(np.float64) for v in scene.views], R, t

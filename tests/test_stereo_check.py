@@ -6,16 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fullview import synth
 from fullview.sfm import dense
 
 
 @pytest.fixture(scope="module")
-def room():
-    scene = synth.render_scene(views=4, width=256, seed=2, supersample=1)
-    R = np.stack([v.R_world_from_cam.T for v in scene.views])
-    t = -np.einsum("nab,nb->na", R, np.stack([v.center for v in scene.views]))
-    return [v.depth.astype(np.float32) for v in scene.views], R, t
+def room(small_room):
+    ranges, R, t = small_room
+    return [r.astype(np.float32) for r in ranges], R, t
 
 
 def test_single_partner_names_the_only_pair_of_a_pixel():
