@@ -310,6 +310,7 @@ def points_determine_f(b_i: np.ndarray, b_j: np.ndarray) -> bool:
 
 
 POLISH_ROUNDS = 8  # at most this many refinements, each on the inliers of the one before
+POLISH_SPAN = 3.0  # matches within this many thresholds enter the final refinement (the LO's loosest inlier set)
 
 
 def _finish(b_i, b_j, F, threshold, refine, iterations, refine_fn=None, min_points: int = 8,
@@ -351,8 +352,6 @@ def _finish(b_i, b_j, F, threshold, refine, iterations, refine_fn=None, min_poin
     return FResult(F=F, inliers=errors < threshold, errors=errors, iterations=iterations)
 
 
-POLISH_SPAN = 3.0  # matches within this many thresholds enter the final refinement (the LO's loosest inlier set)
-
 
 # --------------------------------------------------------------------------------------------- refinement
 def _rotations_from_rotvecs(w: np.ndarray) -> np.ndarray:
@@ -386,6 +385,20 @@ def _sine_residuals_batch(Fs: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, desi
     return np.concatenate([num / np.sqrt((n_i * n_i).sum(axis=1)), num / np.sqrt((n_j * n_j).sum(axis=1))], axis=1)
 
 
+def sine_residuals_with_jacobian(models, b_i: np.ndarray, b_j: np.ndarray):
+    """`with_jacobian(x)` for `robust_levenberg_marquardt`: the sine residuals of F = models(x) and their forward
+    difference Jacobian (scipy's '2-point' steps), the model and its perturbed copies evaluated in one batch
+    (`models`: (K, P) parameters -> (K, 3, 3) F)."""
+    design = _design_matrix(b_i, b_j)
+
+    def with_jacobian(x):
+        steps = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
+        rows = _sine_residuals_batch(models(np.vstack([x, x + np.diag(steps)])), b_i, b_j, design)
+        return rows[0], ((rows[1:] - rows[0]) / steps[:, None]).T
+
+    return with_jacobian
+
+
 def refine_f(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: float, loss: str = "soft_l1") -> np.ndarray:
     """Non-linear refinement of (R, T) minimising angular epipolar errors with a robust loss.
 
@@ -395,13 +408,7 @@ def refine_f(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: float, 
     R, t = decompose_f_svd(F)[0]  # any of the four decompositions spans the same F up to sign
     T = -R.T @ t  # F = [T]× Rᵀ takes camera j's centre in camera i (starting from t itself began off F)
     tangent = tangent_basis(T[None])[0]
-    design = _design_matrix(b_i, b_j)
-    def with_jacobian(x):
-        steps = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
-        rows = _sine_residuals_batch(_f_from_params(R, T, np.vstack([x, x + np.diag(steps)]), tangent), b_i, b_j,
-                                     design)
-        return rows[0], ((rows[1:] - rows[0]) / steps[:, None]).T
-
+    with_jacobian = sine_residuals_with_jacobian(lambda xs: _f_from_params(R, T, xs, tangent), b_i, b_j)
     x = robust_levenberg_marquardt(with_jacobian, np.zeros(5), threshold / 2, loss)
     return project_to_essential(_f_from_params(R, T, x, tangent))
 

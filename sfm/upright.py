@@ -189,13 +189,6 @@ def estimate_f_upright_linear(b_i: np.ndarray, b_j: np.ndarray, weights: np.ndar
     return upright_f(theta, T)
 
 
-def _sine_residuals(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray) -> np.ndarray:
-    """Sines of both bearings' angles to the other's epipolar circle (the residuals of ``two_view.refine_f``)."""
-    n_i, n_j = b_j @ F.T, b_i @ F
-    num = np.einsum("na,na->n", b_i, n_i)
-    return np.concatenate([num / np.linalg.norm(n_i, axis=1), num / np.linalg.norm(n_j, axis=1)])
-
-
 def refine_f_upright(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold: float,
                      loss: str = "soft_l1") -> np.ndarray:
     """Robust non-linear least squares over yaw and T's 2 tangent parameters; the result stays exactly upright."""
@@ -204,14 +197,7 @@ def refine_f_upright(F: np.ndarray, b_i: np.ndarray, b_j: np.ndarray, threshold:
     def models(x):  # (..., 3) parameters -> (..., 3, 3) upright F
         return upright_f(theta0 + x[..., 0], normalize(T0 + x[..., 1:2] * u + x[..., 2:3] * v))
 
-    def with_jacobian(x):  # scipy's '2-point' forward differences, the 4 models evaluated in one batch
-        steps = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
-        Fs = models(np.vstack([x, x + np.diag(steps)]))
-        n_i, n_j = np.einsum("kab,nb->kna", Fs, b_j), np.einsum("nb,kba->kna", b_i, Fs)
-        num = np.einsum("na,kna->kn", b_i, n_i)
-        rows = np.concatenate([num / np.linalg.norm(n_i, axis=2), num / np.linalg.norm(n_j, axis=2)], axis=1)
-        return rows[0], ((rows[1:] - rows[0]) / steps[:, None]).T
-
+    with_jacobian = tv.sine_residuals_with_jacobian(models, b_i, b_j)
     # The in-house solver of two_view's refinement (the same soft_l1 minimum as scipy's least_squares, without its
     # per-call cost), which also has the Cauchy loss of the polish; the polish refines a few times per pair.
     return models(tv.robust_levenberg_marquardt(with_jacobian, np.zeros(3), threshold / 2, loss))
