@@ -247,16 +247,9 @@ def conflicting_estimates(estimates: list[np.ndarray], rel_tol: float) -> tuple[
     if len(estimates) < 2:
         return np.zeros(0, np.intp), np.zeros((len(estimates), 0), np.float32)
     raw = np.stack([np.asarray(e, np.float32).ravel() for e in estimates])
-    count = np.isfinite(raw).sum(0)
-    several = np.flatnonzero(count >= 2)
+    several = np.flatnonzero(np.isfinite(raw).sum(0) >= 2)
     raw = raw[:, several]
-    stack = np.sort(raw, axis=0)  # NaN last
-    count = count[several]
-    median = 0.5 * (np.take_along_axis(stack, ((count - 1) // 2)[None], 0)[0]
-                    + np.take_along_axis(stack, (count // 2)[None], 0)[0])
-    with np.errstate(invalid="ignore"):
-        n_agree = (np.abs(raw - median) <= rel_tol * median).sum(0)
-    conflict = n_agree < 2
+    conflict = _agreement_with_median(raw, rel_tol)[2].sum(0) < 2
     return several[conflict], raw[:, conflict]
 
 
@@ -264,13 +257,7 @@ def _combine_rows(estimates: list[np.ndarray], rel_tol: float, errors: list[np.n
                   ) -> tuple[np.ndarray, np.ndarray]:
     """``combine_range_estimates`` of a block of rows of two or more estimates."""
     raw = np.stack(estimates).astype(np.float32)
-    stack = _sorted_finite_first(raw)
-    count = np.isfinite(stack).sum(0)
-    lo = np.take_along_axis(stack, np.maximum((count - 1) // 2, 0)[None], 0)[0]
-    hi = np.take_along_axis(stack, np.maximum(count // 2, 0)[None], 0)[0]
-    median = 0.5 * (lo + hi)
-    with np.errstate(invalid="ignore"):
-        agree = np.abs(raw - median) <= rel_tol * median
+    stack, count, agree = _agreement_with_median(raw, rel_tol)
     n_agree = agree.sum(0)
     if errors is None:
         weight = agree.astype(np.float32)
@@ -284,6 +271,18 @@ def _combine_rows(estimates: list[np.ndarray], rel_tol: float, errors: list[np.n
     out = np.where(count == 1, stack[0], mean)
     valid &= np.isfinite(out) & (out > 0)
     return np.where(valid, out, np.nan).astype(np.float32), valid
+
+
+def _agreement_with_median(raw: np.ndarray, rel_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Of (n, ...) estimates (NaN invalid): the estimates sorted finite first (``_sorted_finite_first``), their count
+    of finite ones per pixel, and which estimates lie within ``rel_tol`` (relative) of their median (bool (n, ...))."""
+    stack = _sorted_finite_first(raw)
+    count = np.isfinite(stack).sum(0)
+    lo = np.take_along_axis(stack, np.maximum((count - 1) // 2, 0)[None], 0)[0]
+    hi = np.take_along_axis(stack, np.maximum(count // 2, 0)[None], 0)[0]
+    median = 0.5 * (lo + hi)
+    with np.errstate(invalid="ignore"):
+        return stack, count, np.abs(raw - median) <= rel_tol * median
 
 
 def _sorted_finite_first(raw: np.ndarray) -> np.ndarray:
