@@ -12,9 +12,10 @@ Prints a table with the ratio ours/COLMAP, writes benchmarks/results/<date>.json
 
 `--scale` runs only the scaling rows instead (not part of the default `make bench`: COLMAP's exhaustive matching on
 96 views and the 200-view walk take long on 2 cores): the synthetic room at 6, 24, 48 and 96 views and the corridor
-walk of 200 views (`fullview synth --scene corridor`), all at 1024x512, ours with `matches.pairs: auto` (the
-pipeline.yaml default), COLMAP exhaustive on the room and sequential on the walk; plots time against views
-(log-log), fits the growth exponent over the rows with >= 48 views and projects time and memory to 1,000 views.
+walk of 50, 100 and 200 views (`fullview synth --scene corridor`), all at 1024x512, ours with `matches.pairs: auto`
+(the pipeline.yaml default), COLMAP exhaustive on the room and sequential on the walk; plots time against views
+(log-log), fits the growth exponent per scene (the room's rows with >= 48 views; every walk row) and projects time
+and memory to 1,000 views.
 """
 
 from __future__ import annotations
@@ -200,9 +201,9 @@ def viewer_timing(dataset: Path, ws: Path) -> dict:
 
 
 SCALE_VIEWS = (6, 24, 48, 96)  # the synthetic room
-WALK_VIEWS = 200  # the corridor walk
+WALK_VIEWS = (50, 100, 200)  # the corridor walk: one scene grown along its path, for the growth exponent
 SCALE_WIDTH = 1024
-SCALE_FIT_FROM = 48  # the growth exponent is fitted on the rows with at least this many views
+SCALE_FIT_FROM = 48  # the room's growth exponent is fitted on its rows with at least this many views
 PROJECT_TO = 1000
 # The corridor's cameras are level by construction; its busy textures give the vanishing-point gravity estimate
 # (filter.upright: vanishing) too few clean vertical lines at this width, so the walk takes gravity as the image's
@@ -224,12 +225,11 @@ def scale_rows(args) -> list[dict]:
     """Ours (auto pairs) and COLMAP on the room at args.scale_views and on the corridor walk."""
     rows = []
     scenes = [("room", v, "exhaustive", []) for v in args.scale_views]
-    if args.walk_views:
-        scenes.append(("corridor", args.walk_views, "sequential", WALK_SETTINGS))
+    scenes += [("corridor", v, "sequential", WALK_SETTINGS) for v in args.walk_views if v > 0]
     for kind, views, matcher, settings in scenes:
         dataset = scale_dataset(args.work, kind, views, args.seed)
         label = f"scale-{kind}{views}"
-        row = {"scene": label, "views": views, "ours": ours(dataset, args.work, label, settings, reuse=args.reuse)}
+        row = {"scene": label, "kind": kind, "views": views, "ours": ours(dataset, args.work, label, settings, reuse=args.reuse)}
         from fullview.io.workspace import Workspace
         manifest = Workspace(args.work / "ws" / label, dataset.name).read_manifest("matches") or {}
         row["ours"]["pairs"] = (manifest.get("summary") or {}).get("pairs")
@@ -252,13 +252,24 @@ def growth_fit(views: list[int], values: list[float]) -> dict | None:
             f"projected_{PROJECT_TO}": round(float(np.exp(log_a) * PROJECT_TO**exponent), 1)}
 
 
+def _kind(row: dict) -> str:
+    return row.get("kind") or row["scene"].removeprefix("scale-").rstrip("0123456789")
+
+
 def scale_summary(rows: list[dict]) -> dict:
-    fit_rows = [r for r in rows if r["views"] >= SCALE_FIT_FROM]
-    views = [r["views"] for r in fit_rows]
-    side = {"ours": lambda r: r["ours"].get("sparse_time_s"), "colmap": lambda r: r.get("colmap", {}).get("wall_time_s")}
-    out = {f"{k}_time": growth_fit(views, [f(r) or np.nan for r in fit_rows]) for k, f in side.items()}
-    out["ours_memory"] = growth_fit(views, [r["ours"].get("peak_rss_mb") or np.nan for r in fit_rows])
-    out["colmap_memory"] = growth_fit(views, [r.get("colmap", {}).get("peak_rss_mb") or np.nan for r in fit_rows])
+    """Growth fits per scene: the room from SCALE_FIT_FROM views, the walk over all its rows (one scene each, so
+    an exponent is not bent by two scenes' different costs per view)."""
+    # CPU time too: on a shared machine the wall time of one row can be stretched by load the next row did not see
+    keys = {"time": ("sparse_time_s", "wall_time_s"), "cpu": ("sparse_cpu_s", "cpu_time_s"),
+            "memory": ("peak_rss_mb", "peak_rss_mb")}
+    out = {}
+    for kind, first in (("room", SCALE_FIT_FROM), ("corridor", 0)):
+        fit_rows = [r for r in rows if _kind(r) == kind and r["views"] >= first]
+        views = [r["views"] for r in fit_rows]
+        for measure, (ours_key, colmap_key) in keys.items():
+            for who, key in (("ours", ours_key), ("colmap", colmap_key)):
+                values = [r.get(who, {}).get(key) or np.nan for r in fit_rows]
+                out[f"{kind}_{who}_{measure}"] = growth_fit(views, values)
     return out
 
 
@@ -279,7 +290,7 @@ def scale_table(rows: list[dict], summary: dict) -> str:
             fmt(c.get("peak_rss_mb"), ".0f")]))
     for key, fit in summary.items():
         if fit:
-            unit = "MB" if key.endswith("memory") else "s"
+            unit = "MB" if key.endswith("memory") else "CPU s" if key.endswith("cpu") else "s"
             lines.append(f"\n{key}: exponent {fit['exponent']} over views {fit['views']}, projected to "
                          f"{PROJECT_TO} views: {fit[f'projected_{PROJECT_TO}']} {unit}")
     return "\n".join(lines)
@@ -298,11 +309,13 @@ def scale_plot(rows: list[dict], summary: dict, path: Path) -> None:
         t = np.array([get(r) or np.nan for r in rows], float)
         if np.isfinite(t).any():
             ax.loglog(v, t, marker, label=label)
-            fit = summary.get(f"{key}_time")
-            if fit:
-                xs = np.geomspace(min(fit["views"]), PROJECT_TO, 20)
-                ax.loglog(xs, fit["a"] * xs ** fit["exponent"], "--", alpha=0.6,
-                          label=f"{key} fit ≥{SCALE_FIT_FROM} views: exponent {fit['exponent']}")
+            for kind in ("room", "corridor"):
+                fit = summary.get(f"{kind}_{key}_time")
+                if fit:
+                    xs = np.geomspace(min(fit["views"]), PROJECT_TO, 20)
+                    ax.loglog(xs, fit["a"] * xs ** fit["exponent"], "--", alpha=0.6,
+                              label=f"{key}, {kind} {min(fit['views'])}-{max(fit['views'])} views: "
+                                    f"exponent {fit['exponent']}")
     ax.set_xlabel("views")
     ax.set_ylabel("wall time (s)")
     ax.set_title(f"time against views ({SCALE_WIDTH}×{SCALE_WIDTH // 2}; room, corridor walk)")
@@ -409,8 +422,8 @@ def main() -> int:
     parser.add_argument("--scale", action="store_true", help="run only the scaling rows (see the module doc)")
     parser.add_argument("--scale-views", type=int, nargs="*", default=list(SCALE_VIEWS))
     parser.add_argument("--tag", default="", help="--scale: suffix of the result files (runs split in parts)")
-    parser.add_argument("--walk-views", type=int, default=WALK_VIEWS, help="--scale: views of the corridor walk "
-                        "(0: none)")
+    parser.add_argument("--walk-views", type=int, nargs="*", default=list(WALK_VIEWS),
+                        help="--scale: views of the corridor walk, one row each (0 or none: no walk)")
     parser.add_argument("--colmap-worker", nargs=2, type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--colmap-matcher", default="exhaustive", help=argparse.SUPPRESS)
     parser.add_argument("--reuse", action="store_true", help="--scale: keep the results of an earlier run whose "
@@ -428,7 +441,7 @@ def main() -> int:
         for hand in (True, False):
             label = f"synth{views}-{'hand' if hand else 'nohand'}"
             dense = hand and views == args.dense_views
-            row = {"scene": label, "views": views, "ours": ours(dataset, args.work, label,
+            row = {"scene": label, "kind": kind, "views": views, "ours": ours(dataset, args.work, label,
                                                                 [f"filter.use_hand_points={str(hand).lower()}"], dense)}
             if hand and not args.no_colmap:
                 row["colmap"] = colmap(dataset, args.work, label)
