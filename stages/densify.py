@@ -348,11 +348,17 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
                                           sweep_walls=config.sweep_walls,
                                           one_level_per_band=config.one_level_plane_per_band,
                                           walls_floor_to_ceiling=config.walls_floor_to_ceiling,
-                                          wall_brackets=config.wall_brackets)
+                                          wall_brackets=config.wall_brackets,
+                                          ceiling_over_camera=config.ceiling_over_camera,
+                                          ground_max_tilt_deg=config.ground_max_tilt_deg)
     points, ranges, observers = _model_points(views, sparse_points)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
                                              up=camera_up(np.array([v.R_cam_from_world for v in views])),
                                              observers=observers)
+    if config.ground_max_tilt_deg > 0:
+        found = world_planes.tilt_ground(
+            found, points, ranges, np.array([camera_center(v.R_cam_from_world, v.t_cam_from_world) for v in views]),
+            camera_up(np.array([v.R_cam_from_world for v in views])), np.random.default_rng(config.seed), wopt)
     judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance) \
         if config.free_space_confirmed else views
     kept = world_planes.carve_extents(found, judges, wopt)
