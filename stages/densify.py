@@ -356,9 +356,15 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
                                              up=camera_up(np.array([v.R_cam_from_world for v in views])),
                                              observers=observers)
     if config.ground_max_tilt_deg > 0:
-        found = world_planes.tilt_ground(
+        up = camera_up(np.array([v.R_cam_from_world for v in views]))
+        tilted = world_planes.tilt_ground(
             found, points, ranges, np.array([camera_center(v.R_cam_from_world, v.t_cam_from_world) for v in views]),
-            camera_up(np.array([v.R_cam_from_world for v in views])), np.random.default_rng(config.seed), wopt)
+            up, np.random.default_rng(config.seed), wopt)
+        for plane in (p for p in tilted if not any(p is q for q in found)):
+            log.info("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
+                     np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support,
+                     len(found) - len(tilted))
+        found = tilted
     judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance) \
         if config.free_space_confirmed else views
     kept = world_planes.carve_extents(found, judges, wopt)
