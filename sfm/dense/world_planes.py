@@ -388,7 +388,10 @@ def tilt_ground(planes: list[WorldPlane], points: np.ndarray, ranges: np.ndarray
     normals, a = normals[keep], a[keep]
     offsets = np.einsum("ij,ij->i", normals, a)
     cand, cand_tol = points[candidates], tolerance[candidates]
-    score = np.count_nonzero(np.abs(cand @ normals.T - offsets) <= cand_tol[:, None], axis=0)
+    scored = rng.choice(len(cand), min(SCORE_SAMPLE, len(cand)), replace=False)  # bounded memory, as detection
+    score = np.count_nonzero(np.abs(cand[scored].astype(np.float32) @ normals.T.astype(np.float32)
+                                    - offsets.astype(np.float32)) <= cand_tol[scored, None].astype(np.float32),
+                             axis=0)
     best = int(np.argmax(score))
     normal, offset = normals[best], float(offsets[best])
     for shrink in REFINE_SHRINK:
