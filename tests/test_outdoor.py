@@ -6,6 +6,7 @@ depth. The scene here: three panoramas over a plain ground tilted by 3°, with a
 ground stereo, as on real asphalt or concrete at 1280 px), in front of a textured facade; above, the sky.
 """
 
+import shutil
 from pathlib import Path
 
 import cv2
@@ -203,9 +204,11 @@ def test_the_school_courtyard_gets_its_ground(tmp_path):
     config = Path(__file__).resolve().parents[1] / "pipeline.yaml"
     base = ["-c", str(config), "--set", "densify.mesh=false", "--set", "densify.preview=false"]
     level, tilted = tmp_path / "level", tmp_path / "tilted"
-    assert main(["run", str(tmp_path / "school"), "-w", str(level), "--until", "densify", *base,
-                 "--set", "densify.ground_max_tilt_deg=0"]) == 0
     assert main(["run", str(tmp_path / "school"), "-w", str(tilted), "--until", "densify", *base]) == 0
+    shutil.copytree(tilted, level)  # the same sparse model: only densify runs again
+    assert main(["run", str(tmp_path / "school"), "-w", str(level), "--from", "densify", "--until", "densify",
+                 *base, "--set", "densify.ground_max_tilt_deg=0"]) == 0
     before, after = _ground_share(level), _ground_share(tilted)
     assert len(after) == 4
+    # measured: 0.158 / 0.178 / 0.191 / 0.152 level, 0.232 / 0.400 / 0.376 / 0.265 tilted
     assert np.median(after) > 1.3 * np.median(before), (before, after)
