@@ -16,11 +16,12 @@
    another panorama's own result (stereo, else its own fill) agrees.
 3c. World planes (``densify.world_planes``, ``fullview.sfm.dense.world_planes``): the dominant level and upright planes
    of the whole model (RANSAC on every panorama's stereo points and the sparse points; level ones made exactly level,
-   walls turned onto the dominant wall direction, ``densify.world_plane_snap_deg``), each within the extent its
+   walls turned onto the dominant wall direction, ``densify.world_plane_snap_deg``; the ground refitted with a tilt
+   where it slopes, ``densify.ground_max_tilt_deg``), each within the extent its
    points support (a wall's columns carried to the floor and the ceiling, ``densify.walls_floor_to_ceiling``) minus
    what the views' confirmed stereo sees through (``densify.free_space_confirmed``); a pixel still empty gets the
-   nearest such plane its ray meets, among those its image region's stereo depths support (a ceiling needs none,
-   ``densify.free_ceiling``; a wall may instead be bracketed by the ranges next to the pixel in its image column or
+   nearest such plane its ray meets, among those its image region's stereo depths support (a ceiling that spans over
+   the camera needs none, ``densify.free_ceiling``, ``densify.ceiling_over_camera``; a wall may instead be bracketed by the ranges next to the pixel in its image column or
    row, ``densify.wall_brackets``), kept under the same view checks (by confirmed stereo) and confirmation as 3b.
    The maps are saved as ``depth/<stem>.npz``
    (``range``, ``valid``) and a colour-mapped ``depth/<stem>.png``.

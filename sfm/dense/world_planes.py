@@ -82,7 +82,6 @@ class WorldPlaneOptions:
     # wall that brackets it in its image column or row (_wall_brackets)
     ground_band: float = 0.5  # tilt_ground: its candidates lie within this share of the camera height of the ground
     ground_max_tilt_deg: float = 10.0  # tilt_ground: the ground may be refitted this far from level (0: never)
-    ground_max_slope_deg: float = 10.0  # ... on a line no steeper than this
     walls_floor_to_ceiling: bool = True  # with snap_deg > 0 and observers: a wall's columns run from the floor to
     # the ceiling plane (_walls_floor_to_ceiling); the free-space check and the views then cut what is not wall
 
@@ -349,8 +348,8 @@ def tilt_ground(planes: list[WorldPlane], points: np.ndarray, ranges: np.ndarray
 
     Indoors a floor is level, and snapping it to gravity removes the noise of its fit. Outdoors the ground slopes
     (drainage, a street's camber, a hill) and the panoramas' gravity is known to a degree or two: on the school
-    courtyard the level ground explains 19% of the low stereo points within 3 cm per metre of camera height, a plane
-    tilted 2.7° explains 40%, and a quadric no more than that plane. A ray meets the ground at a grazing angle, so
+    courtyard the level ground explains 19% of the low stereo points within 3% of the camera height, a plane tilted
+    2.7° explains 40%, and a quadric no more than that plane. A ray meets the ground at a grazing angle, so
     the range errs by the height error over the camera's height: the level plane put the ground 8% too near or too
     far, which the other views rightly rejected.
 
@@ -381,8 +380,7 @@ def tilt_ground(planes: list[WorldPlane], points: np.ndarray, ranges: np.ndarray
     keep = norm > 1e-12
     normals = normals[keep] / norm[keep, None]
     a = a[keep]
-    cos_tilt = np.abs(normals @ up)
-    keep = cos_tilt >= np.cos(np.radians(options.ground_max_tilt_deg))
+    keep = np.abs(normals @ up) >= np.cos(np.radians(options.ground_max_tilt_deg))
     if not keep.any():
         return planes
     normals, a = normals[keep], a[keep]
