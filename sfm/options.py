@@ -229,6 +229,12 @@ class DensifyOptions:
                                 "by the floor and the ceiling first)")
     free_ceiling: bool = setting(True, "a level world plane above a camera (its ceiling) may fill any of its image "
                                  "regions, without their stereo support (with world_plane_snap_deg > 0)")
+    ceiling_over_camera: bool = setting(True, "with free_ceiling, a level plane above a camera is its ceiling only "
+                                        "where its extent spans over the camera (outdoors a ledge or a roof beside "
+                                        "the camera is no ceiling, and the sky stays empty)")
+    ground_max_tilt_deg: float = setting(10.0, "world planes: the ground (best supported level plane below the "
+                                         "cameras) is refitted with a tilt up to this where that explains 1.5x its "
+                                         "points (outdoor ground slopes)", ge=0.0, le=30.0, zero_means="always level")
     free_space_confirmed: bool = setting(True, "the free-space check of the world planes counts only the stereo "
                                          "ranges another panorama confirms (one view's errors at the lines where "
                                          "surfaces meet see through true floors and ceilings)")

@@ -16,11 +16,12 @@
    another panorama's own result (stereo, else its own fill) agrees.
 3c. World planes (``densify.world_planes``, ``fullview.sfm.dense.world_planes``): the dominant level and upright planes
    of the whole model (RANSAC on every panorama's stereo points and the sparse points; level ones made exactly level,
-   walls turned onto the dominant wall direction, ``densify.world_plane_snap_deg``), each within the extent its
+   walls turned onto the dominant wall direction, ``densify.world_plane_snap_deg``; the ground refitted with a tilt
+   where it slopes, ``densify.ground_max_tilt_deg``), each within the extent its
    points support (a wall's columns carried to the floor and the ceiling, ``densify.walls_floor_to_ceiling``) minus
    what the views' confirmed stereo sees through (``densify.free_space_confirmed``); a pixel still empty gets the
-   nearest such plane its ray meets, among those its image region's stereo depths support (a ceiling needs none,
-   ``densify.free_ceiling``; a wall may instead be bracketed by the ranges next to the pixel in its image column or
+   nearest such plane its ray meets, among those its image region's stereo depths support (a ceiling that spans over
+   the camera needs none, ``densify.free_ceiling``, ``densify.ceiling_over_camera``; a wall may instead be bracketed by the ranges next to the pixel in its image column or
    row, ``densify.wall_brackets``), kept under the same view checks (by confirmed stereo) and confirmation as 3b.
    The maps are saved as ``depth/<stem>.npz``
    (``range``, ``valid``) and a colour-mapped ``depth/<stem>.png``.
@@ -348,11 +349,23 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
                                           sweep_walls=config.sweep_walls,
                                           one_level_per_band=config.one_level_plane_per_band,
                                           walls_floor_to_ceiling=config.walls_floor_to_ceiling,
-                                          wall_brackets=config.wall_brackets)
+                                          wall_brackets=config.wall_brackets,
+                                          ceiling_over_camera=config.ceiling_over_camera,
+                                          ground_max_tilt_deg=config.ground_max_tilt_deg)
     points, ranges, observers = _model_points(views, sparse_points)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
                                              up=camera_up(np.array([v.R_cam_from_world for v in views])),
                                              observers=observers)
+    if config.ground_max_tilt_deg > 0:
+        up = camera_up(np.array([v.R_cam_from_world for v in views]))
+        tilted = world_planes.tilt_ground(
+            found, points, ranges, np.array([camera_center(v.R_cam_from_world, v.t_cam_from_world) for v in views]),
+            up, np.random.default_rng(config.seed), wopt)
+        for plane in (p for p in tilted if not any(p is q for q in found)):
+            log.info("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
+                     np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support,
+                     len(found) - len(tilted))
+        found = tilted
     judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance) \
         if config.free_space_confirmed else views
     kept = world_planes.carve_extents(found, judges, wopt)
