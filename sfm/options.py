@@ -159,7 +159,7 @@ class TriangulationOptions:
                                   "lines (filter.upright: vanishing), weighted by its precision")
     free_block_min_pairs: int = setting(3, "after the final adjustment, blocks of cameras that share no track with "
                                         "the rest (meeting at one camera) and hold this many verified pairs get the "
-                                        "largest block's median pair baseline", ge=0, le=1_000_000,
+                                        "median pair baseline of the block with the most pairs", ge=0, le=1_000_000,
                                         zero_means="keep registration's scales")
     RULES: ClassVar[list[Rule]] = []
 

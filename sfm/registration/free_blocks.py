@@ -7,7 +7,7 @@ such a block about its junction camera leaves every reprojection error unchanged
 registration guessed part by part (a median over the 3-5 pairs of a small part, 5-20% off) and chained guesses
 compound. Here each block is found as a biconnected component of the graph "two cameras share a track"; its
 junctions are the articulation cameras. Every block with enough verified pairs is scaled about its junction so
-that its median verified-pair baseline equals the largest block's (rooms of one capture are walked with similar
+that its median verified-pair baseline equals that of the block with the most pairs (rooms of one capture are walked with similar
 steps; a block of a dozen cameras has a far steadier median than a registration part). Cameras and points move
 together, so the adjustment's cost is exactly the same. Pure geometry: no file access.
 """
@@ -77,13 +77,14 @@ def biconnected_blocks(num_images: int, links: np.ndarray) -> list[np.ndarray]:
 def free_block_similarities(centers: np.ndarray, links: np.ndarray, pairs: np.ndarray, min_pairs: int
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per camera the similarity x -> scale·x + shift that puts every block with at least `min_pairs` verified
-    pairs (`pairs` (P, 2)) inside it at the median baseline of its component's largest block, scaled about the
-    junction camera it hangs from (its subtree of blocks moving with it), and the camera's depth in the tree of
-    blocks (0: the largest block, -1: no link). A track lies in one block: its points move with its deepest camera.
+    pairs (`pairs` (P, 2)) inside it at the median baseline of its component's block with the most verified pairs
+    (the root), scaled about the junction camera it hangs from (its subtree of blocks moving with it), and the
+    camera's depth in the tree of blocks (0: the root, -1: no link). A track lies in one block: its points move with its deepest camera.
     Returns (scale (N,), shift (N, 3), depth (N,))."""
     n = len(centers)
     scale, shift, depth = np.ones(n), np.zeros((n, 3)), np.full(n, -1)
-    blocks = sorted(biconnected_blocks(n, links), key=len, reverse=True)
+    # the block with the most verified pairs sets the step: its median is the steadiest
+    blocks = sorted(biconnected_blocks(n, links), key=lambda b: (len(_inner_pairs(b, pairs)), len(b)), reverse=True)
     C = centers.copy()
     placed = np.zeros(len(blocks), bool)
     for root in range(len(blocks)):
