@@ -783,7 +783,7 @@ def _observation_sigma(errors: np.ndarray, pt: np.ndarray) -> float:
     little against the bearings."""
     kept = errors <= NOISE_CLIP_MEDIANS * max(float(np.median(errors)), 1e-12)
     components = 2 * len(errors)
-    residual_dof = max(components - 3 * len(np.unique(pt)), 1)
+    residual_dof = max(components - 3 * np.count_nonzero(np.bincount(pt)), 1)
     return float(np.sqrt(np.sum(errors[kept] ** 2) / residual_dof * len(errors) / max(kept.sum(), 1)))
 
 

@@ -23,14 +23,15 @@ def camera_links(track_ids: np.ndarray, image_ids: np.ndarray) -> np.ndarray:
     track_ids, image_ids = track_ids[order], image_ids[order]
     starts = np.flatnonzero(np.r_[True, track_ids[1:] != track_ids[:-1]])
     lengths = np.diff(np.r_[starts, len(track_ids)])
-    links = [np.zeros((0, 2), np.int64)]
+    n = int(image_ids.max(initial=0)) + 1
+    codes = [np.zeros(0, np.int64)]
     for length in np.unique(lengths[lengths >= 2]):  # tracks of one length at a time: all their camera pairs at once
         cams = image_ids[starts[lengths == length][:, None] + np.arange(length)]
         a, b = np.triu_indices(length, k=1)
-        links.append(np.stack([cams[:, a].ravel(), cams[:, b].ravel()], axis=1))
-    links = np.sort(np.concatenate(links), axis=1)
-    links = links[links[:, 0] != links[:, 1]]
-    return np.unique(links, axis=0)
+        lo, hi = np.minimum(cams[:, a], cams[:, b]).ravel(), np.maximum(cams[:, a], cams[:, b]).ravel()
+        codes.append(np.unique(lo[lo != hi] * n + hi[lo != hi]))  # a pair as one integer: unique is a 1-D sort
+    codes = np.unique(np.concatenate(codes))
+    return np.stack([codes // n, codes % n], axis=1)
 
 
 def biconnected_blocks(num_images: int, links: np.ndarray) -> list[np.ndarray]:
