@@ -2,7 +2,9 @@
 
 Two rounds: triangulate with the registration's poses and keep tracks under a loose error bound, bundle-adjust
 the poses on each image's longest of them, then re-triangulate every track with the refined poses, apply the
-configured bounds and bundle-adjust again.
+configured bounds and bundle-adjust again. Blocks of cameras that no track joins to the rest (rooms meeting at one
+doorway camera) are then put at one median pair baseline (`triangulation.free_block_min_pairs`): the adjustment's
+cost is the same for any scale of such a block, so it kept registration's guesses.
 Every model of the registration is adjusted in its own frame (one problem, its first camera fixed per model: tracks
 never span two models, since only pairs inside one model are consistent) and written as ``models/<k>/``.
 """

@@ -80,8 +80,9 @@ def free_block_similarities(centers: np.ndarray, links: np.ndarray, pairs: np.nd
     """Per camera the similarity x -> scale·x + shift that puts every block with at least `min_pairs` verified
     pairs (`pairs` (P, 2)) inside it at the median baseline of its component's block with the most verified pairs
     (the root), scaled about the junction camera it hangs from (its subtree of blocks moving with it), and the
-    camera's depth in the tree of blocks (0: the root, -1: no link). A track lies in one block: its points move with its deepest camera.
-    Returns (scale (N,), shift (N, 3), depth (N,))."""
+    camera's depth in the tree of blocks (0: the root, -1: no link). A track lies in one block: its points move with
+    its deepest camera. A root with fewer than `min_pairs` pairs scales nothing. Returns (scale (N,), shift (N, 3),
+    depth (N,))."""
     n = len(centers)
     scale, shift, depth = np.ones(n), np.zeros((n, 3)), np.full(n, -1)
     # the block with the most verified pairs sets the step: its median is the steadiest
@@ -93,7 +94,8 @@ def free_block_similarities(centers: np.ndarray, links: np.ndarray, pairs: np.nd
             continue  # a block of a component already rooted
         placed[root] = True
         depth[blocks[root]] = 0
-        reference = _median_baseline(C, blocks[root], pairs)
+        reference = _median_baseline(C, blocks[root], pairs) if len(_inner_pairs(blocks[root], pairs)) >= min_pairs \
+            else np.nan
         queue = [root]
         while queue:
             parent = queue.pop(0)
@@ -105,8 +107,9 @@ def free_block_similarities(centers: np.ndarray, links: np.ndarray, pairs: np.nd
                 queue.append(k)
                 v, members = junction[0], blocks[k][blocks[k] != junction[0]]
                 depth[members] = depth[v] + 1
-                inner = _inner_pairs(blocks[k], pairs)
-                s = reference / _median_baseline(C, blocks[k], pairs) if len(inner) >= min_pairs else 1.0
+                own = _median_baseline(C, blocks[k], pairs) if len(_inner_pairs(blocks[k], pairs)) >= min_pairs \
+                    else np.nan
+                s = reference / own if np.isfinite(reference) and np.isfinite(own) and own > 0 else 1.0
                 # the block's whole subtree moves: cameras not yet placed that this block reaches without v
                 moving = _subtree(blocks, k, v, placed)
                 C[moving] = C[v] + s * (C[moving] - C[v])
