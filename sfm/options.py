@@ -157,6 +157,10 @@ class TriangulationOptions:
                                         "its known epipolar circles", ge=8, le=1_000_000)
     gravity_prior: bool = setting(True, "bundle adjustment holds each image's tilt to its gravity from vertical "
                                   "lines (filter.upright: vanishing), weighted by its precision")
+    free_block_min_pairs: int = setting(3, "after the final adjustment, blocks of cameras that share no track with "
+                                        "the rest (meeting at one camera) and hold this many verified pairs get the "
+                                        "median pair baseline of the block with the most pairs", ge=0, le=1_000_000,
+                                        zero_means="keep registration's scales")
     RULES: ClassVar[list[Rule]] = []
 
 

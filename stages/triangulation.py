@@ -2,7 +2,9 @@
 
 Two rounds: triangulate with the registration's poses and keep tracks under a loose error bound, bundle-adjust
 the poses on each image's longest of them, then re-triangulate every track with the refined poses, apply the
-configured bounds and bundle-adjust again.
+configured bounds and bundle-adjust again. Blocks of cameras that no track joins to the rest (rooms meeting at one
+doorway camera) are then put at one median pair baseline (`triangulation.free_block_min_pairs`): the adjustment's
+cost is the same for any scale of such a block, so it kept registration's guesses.
 Every model of the registration is adjusted in its own frame (one problem, its first camera fixed per model: tracks
 never span two models, since only pairs inside one model are consistent) and written as ``models/<k>/``.
 """
@@ -14,6 +16,7 @@ import numpy as np
 
 from fullview.io.exports import SparseModel, split_models, write_colmap_model
 from fullview.sfm.bundle import bundle_adjust, gravity_prior_for_models
+from fullview.sfm.registration.free_blocks import camera_links, free_block_similarities
 from fullview.sfm.tracks import Tracks, build_tracks
 from fullview.sfm.options import TriangulationOptions
 from fullview.sfm.triangulation import (filter_tracks, gather_bearings, longest_tracks_per_image,
@@ -76,9 +79,32 @@ def run(ctx: StageContext) -> dict:
         np.maximum.at(worst, final.track_ids, errors)
         good = worst <= max_err
         final, points, errors = final.subset(good), points[good], errors[good[final.track_ids]]
+        if config.free_block_min_pairs:
+            pairs = np.asarray(verified.pairs, np.int64).reshape(-1, 2)[reg["pair_inlier_mask"]]
+            R, t, points = _rescale_free_blocks(final, R, t, points, pairs, config.free_block_min_pairs)
     else:  # the errors of the points just triangulated (with an adjustment, its own errors replace them)
         errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     return _write(ctx, obs, model_id, R, t, final, points, errors, geometry_pairs=len(extra))
+
+
+def _rescale_free_blocks(tracks: Tracks, R, t, points, pairs, min_pairs: int):
+    """Blocks of cameras that no track joins put at one median verified-pair baseline (`free_blocks`): the
+    adjustment's cost is the same for any scale of such a block about its junction camera, so it kept the parts'
+    guesses."""
+    centers = -np.einsum("nba,nb->na", R, t)
+    scale, shift, depth = free_block_similarities(centers, camera_links(tracks.track_ids, tracks.image_ids), pairs,
+                                                  min_pairs)
+    if np.all(scale == 1.0):
+        return R, t, points
+    moved = centers * scale[:, None] + shift
+    log.info("blocks no track joins re-scaled to one median baseline: cameras %s, scales %s",
+             np.flatnonzero(scale != 1.0).tolist(), np.round(np.unique(scale[scale != 1.0]), 3).tolist())
+    # each track's points move with its deepest camera (the block it lies in)
+    order = np.lexsort((depth[tracks.image_ids], tracks.track_ids))
+    last = np.r_[tracks.track_ids[order][1:] != tracks.track_ids[order][:-1], True]
+    owner = tracks.image_ids[order][last]  # (num_tracks,) in track order
+    points = points * scale[owner, None] + shift[owner]
+    return R, -np.einsum("nab,nb->na", R, moved), points
 
 
 def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
