@@ -62,3 +62,21 @@ def test_hand_points_lower_what_the_matches_must_supply():
     for_8 = filter_stage.capped_for_verification(opts, 8, 38, up.UPRIGHT_SAMPLE_SIZE).max_iterations
     for_15 = filter_stage.capped_for_verification(opts, 15, 38, up.UPRIGHT_SAMPLE_SIZE).max_iterations
     assert for_8 > 4 * for_15
+
+
+def test_the_stage_asks_the_matches_for_what_the_hand_points_do_not_supply(monkeypatch):
+    """A pair with 7 hand points (fewer than the 8 of a seed) and 38 matches: the search is capped for 15 - 7 = 8."""
+    from types import SimpleNamespace
+    b_i, b_j = _levelled_pair(1, 45, 0)
+    hand = np.stack([np.arange(38, 45), np.arange(38, 45)], axis=1)
+    ctx = SimpleNamespace(dataset=SimpleNamespace(hand_pair_matches=lambda num_sift, i, j: hand))
+    raw = SimpleNamespace(pairs=[(0, 1)], matches=[np.stack([np.arange(38), np.arange(38)], axis=1)])
+    asked = []
+    cap = filter_stage.capped_for_verification
+    monkeypatch.setattr(filter_stage, "capped_for_verification",
+                        lambda opts, needed, n, size: asked.append((needed, n, size)) or cap(opts, needed, n, size))
+    obs = [{"bearings": b_i}, {"bearings": b_j}]
+    options = FilterOptions(upright="level")
+    filter_stage._filter_pair(ctx, options, obs, [38, 38], raw, np.array(LEVEL), None, None,
+                              options.min_inliers_upright, 0)
+    assert asked == [(options.min_inliers_upright - 7, 38, up.UPRIGHT_SAMPLE_SIZE)]
