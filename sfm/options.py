@@ -87,7 +87,8 @@ class FilterOptions:
     min_hand_points: int = setting(8, "hand correspondences needed to seed a pair (the 8-point algorithm)", ge=8,
                                    le=1_000_000)
     threshold_deg: float = setting(0.35, "angular distance to the epipolar great circle of an inlier", gt=0.0, le=90.0)
-    max_iterations: int = setting(5000, "RANSAC hypotheses cap", ge=1, le=10_000_000)
+    max_iterations: int = setting(5000, "RANSAC hypotheses cap (lower on a pair with few matches: what finding the "
+                                   "min_inliers it needs takes)", ge=1, le=10_000_000)
     confidence: float = setting(0.9999, "RANSAC adaptive stopping confidence", gt=0.0, lt=1.0)
     min_inliers: int = setting(30, "pairs with fewer inliers are dropped", ge=8, le=1_000_000)
     min_inliers_upright: int = setting(15, "pairs fitted by the upright model (3 unknowns, not 5) are kept from this "

@@ -9,7 +9,7 @@ feature index space (SIFT features, then hand observations; see `Workspace.load_
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache, partial
 
 import numpy as np
@@ -102,7 +102,9 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
         F, keep = np.zeros((3, 3)), np.zeros(len(raw.matches[k]), bool)
     else:
         F, keep = _verify_pair(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], hand if use_seed else None,
-                               threshold, options, seed=options.seed + k, gravity=(gravity[i], gravity[j]))
+                               threshold, options, seed=options.seed + k, gravity=(gravity[i], gravity[j]),
+                               # the hand points (fewer than a seed) count towards the pair's inliers
+                               needed=max(1, min(minimum, options.min_inliers) - len(hand)))
     good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
     added = None
     if descriptors is not None and len(good) >= options.min_inliers:
@@ -188,15 +190,17 @@ def _fit_upright(b_i, b_j, gravity, opts: two_view.RansacOptions) -> two_view.FR
     return res
 
 
-def _verify_pair(bear_i, bear_j, matches, hand, threshold, options: FilterOptions, seed, gravity):
+def _verify_pair(bear_i, bear_j, matches, hand, threshold, options: FilterOptions, seed, gravity, needed=1):
     """F and the inlier mask over `matches` (hand correspondences, when given, seed the estimate; with both
-    gravities known, the upright 3-point solver on levelled bearings)."""
+    gravities known, the upright 3-point solver on levelled bearings). `needed`: the inliers the pair must have to
+    count at all, which bounds the search on pairs with few matches (`capped_for_verification`)."""
     b_i, b_j = bear_i[matches[:, 0]], bear_j[matches[:, 1]]
     opts = two_view.RansacOptions(threshold_rad=threshold, max_iterations=options.max_iterations,
                                   confidence=options.confidence, seed=seed)
     try:
         if hand is None:
-            res = _fit_matches(b_i, b_j, gravity, opts)
+            sample_size = upright.UPRIGHT_SAMPLE_SIZE if _upright(gravity) else 8
+            res = _fit_matches(b_i, b_j, gravity, capped_for_verification(opts, needed, len(b_i), sample_size))
         else:
             h_i, h_j = bear_i[hand[:, 0]], bear_j[hand[:, 1]]
             res = two_view.fit_f_seeded(h_i, h_j, b_i, b_j, threshold)
@@ -208,6 +212,19 @@ def _verify_pair(bear_i, bear_j, matches, hand, threshold, options: FilterOption
         log.debug("pair not verified: %s", e)
         return np.zeros((3, 3)), np.zeros(len(matches), bool)
     return res.F, res.inliers
+
+
+def capped_for_verification(opts: two_view.RansacOptions, needed: int, n: int, sample_size: int
+                            ) -> two_view.RansacOptions:
+    """`opts` with the hypotheses a pair of `n` matches needs to find a model of `needed` inliers, if it has one.
+
+    Why: a pair the retrieval proposed but that sees other rooms (most of them on a walk) has a few dozen chance
+    matches; with no model to find, RANSAC never stops early and drew `max_iterations` hypotheses. A pair that can
+    verify has an inlier ratio of at least needed / n, and that ratio bounds the samples needed (with the options'
+    confidence). Only half the samples are uniform (the other half come from the head of the matches,
+    `_draw_samples`), so the bound is doubled. Pairs with many matches keep the full cap."""
+    bound = two_view.iterations_to_beat(needed - 1, n, opts, sample_size).max_iterations
+    return replace(opts, max_iterations=min(opts.max_iterations, max(opts.min_iterations, 2 * bound)))
 
 
 # Clicked points are a pixel or so off (0.35° at 1024 px, as much as the inlier threshold): a fit explains them when
