@@ -98,24 +98,57 @@ def owned_by_face(bearings: np.ndarray, face: int) -> np.ndarray:
     return (local[:, 2] > 0) & (np.abs(local[:, 0]) <= local[:, 2]) & (np.abs(local[:, 1]) <= local[:, 2])
 
 
-def detect_on_face(face: np.ndarray, options: FeaturesOptions, keep_mask: np.ndarray | None = None
-                   ) -> tuple[list, np.ndarray | None]:
-    """SIFT keypoints and descriptors of one face. A face with fewer than `min_features_per_face` keypoints (a plain
-    wall) is detected again with the contrast threshold halved, down to `min_contrast_threshold`: low-contrast
-    texture is all a bare room offers, while textured faces keep the stricter threshold.
+def detect_on_face(face: np.ndarray, options: FeaturesOptions, keep_mask: np.ndarray, *,
+                   expect_retry: bool = False) -> tuple[list, np.ndarray | None, bool]:
+    """SIFT keypoints and descriptors of one face, and whether the threshold was lowered. A face with fewer than
+    `min_features_per_face` keypoints (a plain wall) is detected again with the contrast threshold halved, down to
+    `min_contrast_threshold`: low-contrast texture is all a bare room offers, while textured faces keep the stricter
+    threshold.
 
-    `keep_mask` (uint8, the face's size; `face_keep_mask`): only the keypoints on its non-zero pixels get a
-    descriptor. OpenCV applies it after choosing the `max_features_per_face` strongest keypoints of the whole face
-    and before the descriptors (three quarters of SIFT's time), from the same pyramid: the keypoints it keeps and
-    their descriptors are exactly those of an unmasked run. The threshold is still lowered on the unmasked count."""
+    Only the keypoints on the non-zero pixels of `keep_mask` (uint8, the face's size: `face_keep_masks`) are
+    returned, and only they get a descriptor (three quarters of SIFT's time goes to descriptors): the same keypoints
+    and descriptors as an unmasked run's, the threshold lowered on the unmasked count. `expect_retry` (a performance
+    hint) picks how: a face expected to keep its threshold is detected once with OpenCV's mask (applied after the
+    `max_features_per_face` strongest keypoints of the whole face are chosen, before the descriptors, from the same
+    pyramid); a face expected to need a lower one is detected without descriptors until its threshold is found,
+    then described from its keypoints (`_describe`)."""
     threshold, floor, wanted = options.contrast_threshold, options.min_contrast_threshold, options.min_features_per_face
-    while True:
-        sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=threshold)
+    sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=threshold)
+    retried = False
+    if not expect_retry:
         keypoints, desc = sift.detectAndCompute(face, keep_mask)
-        if threshold / 2 < floor or len(keypoints) >= wanted or \
-                (keep_mask is not None and len(sift.detect(face, None)) >= wanted):
-            return keypoints, desc
+        if threshold / 2 < floor or len(keypoints) >= wanted or len(sift.detect(face, None)) >= wanted:
+            return keypoints, desc, False
         threshold /= 2
+        retried = True
+        sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=threshold)
+    while True:
+        keypoints = sift.detect(face, None)
+        if len(keypoints) >= wanted or threshold / 2 < floor:
+            break
+        threshold /= 2
+        retried = True
+        sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=threshold)
+    keypoints, desc = _describe(sift, face, keypoints, keep_mask)
+    return keypoints, desc, retried
+
+
+def _describe(sift, face: np.ndarray, keypoints: list, keep_mask: np.ndarray) -> tuple[list, np.ndarray | None]:
+    """The keypoints on `keep_mask` (tested as OpenCV's mask tests them) with their descriptors, computed from a
+    pyramid built again. A keypoint of the upsampled octave is added and its descriptor dropped: OpenCV builds the
+    pyramid from the lowest octave among the keypoints it is given, and from the upsampled image, as detection did,
+    only with one of them (the descriptors are then the detection's, bit for bit)."""
+    if not keypoints:
+        return [], None
+    xy = np.array([k.pt for k in keypoints], dtype=np.float32)
+    on = keep_mask[(xy[:, 1] + np.float32(0.5)).astype(int), (xy[:, 0] + np.float32(0.5)).astype(int)] > 0
+    kept = [keypoints[k] for k in np.flatnonzero(on)]
+    if not kept:
+        return [], None
+    centre = 0.5 * face.shape[1], 0.5 * face.shape[0]
+    upsampled = cv2.KeyPoint(*centre, 2.0, -1, 0, 255 | 1 << 8)  # octave -1 (low byte), layer 1
+    _, desc = sift.compute(face, kept + [upsampled])
+    return kept, desc[:-1]
 
 
 @lru_cache(maxsize=4)
@@ -142,8 +175,12 @@ def _within_latitudes(bearings: np.ndarray, min_latitude_deg: float, max_latitud
     return (lat >= np.radians(min_latitude_deg)) & (lat <= np.radians(max_latitude_deg))
 
 
-def detect_features(image: np.ndarray, options: FeaturesOptions) -> Features:
-    """SIFT on the cube faces of an equirectangular image (grey or BGR uint8)."""
+def detect_features(image: np.ndarray, options: FeaturesOptions, retry_faces: set[int] | None = None) -> Features:
+    """SIFT on the cube faces of an equirectangular image (grey or BGR uint8).
+
+    `retry_faces`, when given, is a hint carried from image to image (never changes the features): the indices of
+    the faces that needed a lower contrast threshold in the last image, updated here; such faces are detected the
+    way that suits a plain face (`detect_on_face`). Ceilings and bare walls tend to stay plain across a tour."""
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     height, width = grey.shape
     face_size = options.face_size or native_face_size(width, options.margin_deg)
@@ -151,7 +188,10 @@ def detect_features(image: np.ndarray, options: FeaturesOptions) -> Features:
     keep_masks = face_keep_masks(face_size, options.margin_deg, options.min_latitude_deg, options.max_latitude_deg)
     parts = []
     for f, face in enumerate(faces):
-        keypoints, desc = detect_on_face(face, options, keep_masks[f])
+        keypoints, desc, retried = detect_on_face(face, options, keep_masks[f],
+                                                  expect_retry=retry_faces is not None and f in retry_faces)
+        if retry_faces is not None:
+            (retry_faces.add if retried else retry_faces.discard)(f)
         if not keypoints:
             continue
         pts = np.array([k.pt for k in keypoints], dtype=np.float64)
