@@ -99,56 +99,43 @@ def owned_by_face(bearings: np.ndarray, face: int) -> np.ndarray:
 
 
 def detect_on_face(face: np.ndarray, options: FeaturesOptions, keep_mask: np.ndarray, *,
-                   expect_retry: bool = False) -> tuple[list, np.ndarray | None, bool]:
-    """SIFT keypoints and descriptors of one face, and whether the threshold was lowered. A face with fewer than
-    `min_features_per_face` keypoints (a plain wall) is detected again with the contrast threshold halved, down to
-    `min_contrast_threshold`: low-contrast texture is all a bare room offers, while textured faces keep the stricter
-    threshold.
+                   expect_short: bool = False) -> tuple[list, np.ndarray | None, bool]:
+    """SIFT keypoints and descriptors of one face, and whether it kept fewer than `min_features_per_face` at the
+    first threshold. A face with fewer keypoints than that (a plain wall) is detected again with the contrast
+    threshold halved, down to `min_contrast_threshold`: low-contrast texture is all a bare room offers, while
+    textured faces keep the stricter threshold.
 
-    Only the keypoints on the non-zero pixels of `keep_mask` (uint8, the face's size: `face_keep_masks`) are
-    returned, and only they get a descriptor (three quarters of SIFT's time goes to descriptors): the same keypoints
-    and descriptors as an unmasked run's, the threshold lowered on the unmasked count. `expect_retry` (a performance
-    hint) picks how: a face expected to keep its threshold is detected once with OpenCV's mask (applied after the
-    `max_features_per_face` strongest keypoints of the whole face are chosen, before the descriptors, from the same
-    pyramid); a face expected to need a lower one is detected without descriptors until its threshold is found,
-    then described from its keypoints (`_describe`)."""
+    `keep_mask` (uint8, the face's size: `face_keep_masks`) marks where a keypoint may be kept. A face expected to
+    keep enough (`expect_short`, a performance hint, is False) is detected with it as OpenCV's mask: applied after
+    the `max_features_per_face` strongest keypoints of the whole face are chosen and before their descriptors (three
+    quarters of SIFT's time), from the same pyramid, so the keypoints on the mask and their descriptors are exactly
+    those of an unmasked run; only when it keeps too few is the face detected again without it, for the unmasked
+    count that decides the threshold. A face expected to keep too few (plain, or with most of its keypoints in the
+    margins) is detected without the mask at each threshold, as that costs it least; the caller drops what lies
+    off the mask either way."""
     threshold, floor, wanted = options.contrast_threshold, options.min_contrast_threshold, options.min_features_per_face
-    sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=threshold)
-    retried = False
-    if not expect_retry:
-        keypoints, desc = sift.detectAndCompute(face, keep_mask)
-        if threshold / 2 < floor or len(keypoints) >= wanted or len(sift.detect(face, None)) >= wanted:
-            return keypoints, desc, False
-        threshold /= 2
-        retried = True
+    if not expect_short:
         sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=threshold)
+        keypoints, desc = sift.detectAndCompute(face, keep_mask)
+        if len(keypoints) >= wanted:
+            return keypoints, desc, False
+        if threshold / 2 < floor or len(sift.detect(face, None)) >= wanted:
+            return keypoints, desc, True
+        threshold /= 2
     while True:
-        keypoints = sift.detect(face, None)
+        sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=threshold)
+        keypoints, desc = sift.detectAndCompute(face, None)
         if len(keypoints) >= wanted or threshold / 2 < floor:
             break
         threshold /= 2
-        retried = True
-        sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=threshold)
-    keypoints, desc = _describe(sift, face, keypoints, keep_mask)
-    return keypoints, desc, retried
+    short = threshold < options.contrast_threshold or _on_mask(keypoints, keep_mask).sum() < wanted
+    return keypoints, desc, short
 
 
-def _describe(sift, face: np.ndarray, keypoints: list, keep_mask: np.ndarray) -> tuple[list, np.ndarray | None]:
-    """The keypoints on `keep_mask` (tested as OpenCV's mask tests them) with their descriptors, computed from a
-    pyramid built again. A keypoint of the upsampled octave is added and its descriptor dropped: OpenCV builds the
-    pyramid from the lowest octave among the keypoints it is given, and from the upsampled image, as detection did,
-    only with one of them (the descriptors are then the detection's, bit for bit)."""
-    if not keypoints:
-        return [], None
-    xy = np.array([k.pt for k in keypoints], dtype=np.float32)
-    on = keep_mask[(xy[:, 1] + np.float32(0.5)).astype(int), (xy[:, 0] + np.float32(0.5)).astype(int)] > 0
-    kept = [keypoints[k] for k in np.flatnonzero(on)]
-    if not kept:
-        return [], None
-    centre = 0.5 * face.shape[1], 0.5 * face.shape[0]
-    upsampled = cv2.KeyPoint(*centre, 2.0, -1, 0, 255 | 1 << 8)  # octave -1 (low byte), layer 1
-    _, desc = sift.compute(face, kept + [upsampled])
-    return kept, desc[:-1]
+def _on_mask(keypoints: list, mask: np.ndarray) -> np.ndarray:
+    """Which keypoints OpenCV's `mask` would keep: it tests pixel (int(y + 0.5), int(x + 0.5)) in float32."""
+    xy = np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2) + np.float32(0.5)
+    return mask[xy[:, 1].astype(int), xy[:, 0].astype(int)] > 0
 
 
 @lru_cache(maxsize=4)
@@ -175,12 +162,13 @@ def _within_latitudes(bearings: np.ndarray, min_latitude_deg: float, max_latitud
     return (lat >= np.radians(min_latitude_deg)) & (lat <= np.radians(max_latitude_deg))
 
 
-def detect_features(image: np.ndarray, options: FeaturesOptions, retry_faces: set[int] | None = None) -> Features:
+def detect_features(image: np.ndarray, options: FeaturesOptions, short_faces: set[int] | None = None) -> Features:
     """SIFT on the cube faces of an equirectangular image (grey or BGR uint8).
 
-    `retry_faces`, when given, is a hint carried from image to image (never changes the features): the indices of
-    the faces that needed a lower contrast threshold in the last image, updated here; such faces are detected the
-    way that suits a plain face (`detect_on_face`). Ceilings and bare walls tend to stay plain across a tour."""
+    `short_faces`, when given, is a hint carried from image to image (it never changes the features): the indices
+    of the faces that kept fewer than `min_features_per_face` keypoints at the first threshold in the last image,
+    updated here; they are detected the way that suits such a face (`detect_on_face`). Ceilings and bare walls tend
+    to stay plain across a tour."""
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     height, width = grey.shape
     face_size = options.face_size or native_face_size(width, options.margin_deg)
@@ -188,10 +176,10 @@ def detect_features(image: np.ndarray, options: FeaturesOptions, retry_faces: se
     keep_masks = face_keep_masks(face_size, options.margin_deg, options.min_latitude_deg, options.max_latitude_deg)
     parts = []
     for f, face in enumerate(faces):
-        keypoints, desc, retried = detect_on_face(face, options, keep_masks[f],
-                                                  expect_retry=retry_faces is not None and f in retry_faces)
-        if retry_faces is not None:
-            (retry_faces.add if retried else retry_faces.discard)(f)
+        keypoints, desc, short = detect_on_face(face, options, keep_masks[f],
+                                                expect_short=short_faces is not None and f in short_faces)
+        if short_faces is not None:
+            (short_faces.add if short else short_faces.discard)(f)
         if not keypoints:
             continue
         pts = np.array([k.pt for k in keypoints], dtype=np.float64)
