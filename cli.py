@@ -264,7 +264,7 @@ def bound_malloc_arenas() -> bool:
     """At most one glibc malloc arena per core (glibc's default: up to 8 per core). Each thread that allocates while
     another does gets an arena of its own, and an arena keeps what it frees for its own reuse: the stages' worker
     threads (matching blocks, the bundle adjustment's halves) left memory that later stages on other threads could
-    not use. At 48 views the peak went from 654 to 534 MB at the same CPU time (README, "Seventh speed pass").
+    not use. At 48 views the peak went from 654 to 493 MB at the same CPU time (README, "Seventh speed pass").
     Returns whether it applied (not glibc: nothing to do)."""
     try:
         mallopt = ctypes.CDLL(None).mallopt
