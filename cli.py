@@ -7,6 +7,7 @@ else is an internal error (exit code 1). `--debug` shows the traceback.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import logging
 import os
@@ -235,6 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    bound_malloc_arenas()
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     try:
@@ -253,6 +255,22 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except Exception as e:  # noqa: BLE001 — the boundary: anything else is our bug, reported in one line
         return _fail(args, f"internal error: {type(e).__name__}: {e} (rerun with --debug for the traceback)", 1)
+
+
+M_ARENA_MAX = -8  # glibc's mallopt parameter
+
+
+def bound_malloc_arenas() -> bool:
+    """At most one glibc malloc arena per core (glibc's default: up to 8 per core). Each thread that allocates while
+    another does gets an arena of its own, and an arena keeps what it frees for its own reuse: the stages' worker
+    threads (matching blocks, the bundle adjustment's halves) left memory that later stages on other threads could
+    not use. At 48 views the peak went from 654 to 493 MB at the same CPU time (README, "Seventh speed pass").
+    Returns whether it applied (not glibc: nothing to do)."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(M_ARENA_MAX, max(2, os.cpu_count() or 1)))
 
 
 def _fail(args, message: str, code: int) -> int:

@@ -10,7 +10,7 @@ from tqdm import tqdm
 
 from fullview.io.dataset import Dataset
 from fullview.io.workspace import FEATURES_VERSION, StageWriter
-from fullview.sfm.features import Features, detect_features
+from fullview.sfm.features import FACE_NAMES, Features, detect_features
 from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
@@ -25,20 +25,24 @@ def run(ctx: StageContext) -> dict:
     ctx.dataset.image_sizes  # noqa: B018 — every header read once here, not in each task (the dataset travels)
     # One task per image. Locally OpenCV releases the GIL inside SIFT, so two images at a time use both cores (more
     # would only hold more full-size panoramas in memory).
-    jobs = ctx.map(partial(extract_image, ctx.dataset, ctx.options, ctx.out), names, threads=2)
+    # The faces that kept too few SIFT keypoints in the last image, a hint shared by the tasks (on a cluster each task
+    # has its own); at first the ceiling only, the face most often plain (360_Flat's in every image; the rooms' none).
+    jobs = ctx.map(partial(extract_image, ctx.dataset, ctx.options, ctx.out, short_faces={FACE_NAMES.index("up")}),
+                   names, threads=2)
     counts = dict(tqdm(jobs, total=len(names), desc="features", unit="image"))
     log.info("features per image: min %d, median %d, max %d", min(counts.values()),
              int(np.median(list(counts.values()))), max(counts.values()))
     return {"images": len(counts), "min_features": min(counts.values()), "per_image": counts}
 
 
-def extract_image(dataset: Dataset, options, out: StageWriter, name: str) -> tuple[str, int]:
+def extract_image(dataset: Dataset, options, out: StageWriter, name: str, *, short_faces: set[int] | None = None
+                  ) -> tuple[str, int]:
     """Detect and save one image's features; returns (name, count). A task of its own: picklable arguments, and it
     writes only its own file into the transaction's folder (a retried task rewrites it whole)."""
     full_w, full_h = dataset.image_sizes[name]
     # Never upsample: a working width above the native width means "native".
     image = dataset.load_image(name, width=min(options.working_width or full_w, full_w))
-    feats = detect_features(image, options)
+    feats = detect_features(image, options, short_faces)
     scale = full_w / image.shape[1]
     feats = keep_unmasked(feats, dataset.load_mask(name), scale)
     colors = sample_colors(image, feats.pixels)  # detection pixels are working-image pixels

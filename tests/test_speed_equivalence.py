@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -390,3 +391,57 @@ def test_feature_files_are_hashed_by_their_writing_task_and_rehashed_when_change
     second.write_bytes(second.read_bytes() + b"changed")
     manifest = writer.commit_manifest({})
     assert hashed == [second] and manifest["outputs"][second.name]["sha256"] == sha256(second)
+
+
+def _features_described_in_full(image, options):
+    """The features as computed before SIFT's descriptors were limited to the kept keypoints: every face described
+    in full (its threshold lowered on plain faces), then the keypoints outside the face's own square and the
+    latitudes dropped."""
+    from fullview.sfm import features as ft
+    from fullview.sfm.camera import bearings_to_lonlat
+
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    size = options.face_size or ft.native_face_size(grey.shape[1], options.margin_deg)
+    faces, focal = ft.render_faces(grey, size, options.margin_deg)
+    bearings, descriptors = [], []
+    for f, face in enumerate(faces):
+        threshold = options.contrast_threshold
+        while True:
+            sift = cv2.SIFT_create(nfeatures=options.max_features_per_face, contrastThreshold=threshold)
+            keypoints, desc = sift.detectAndCompute(face, None)
+            if len(keypoints) >= options.min_features_per_face or threshold / 2 < options.min_contrast_threshold:
+                break
+            threshold /= 2
+        if keypoints:
+            b = ft.face_keypoints_to_bearings(np.array([k.pt for k in keypoints]) + ft.OPENCV_SIFT_TO_CONTINUOUS, f,
+                                              size, focal)
+            _, lat = bearings_to_lonlat(b)
+            keep = ft.owned_by_face(b, f) & (lat >= np.radians(options.min_latitude_deg)) & \
+                (lat <= np.radians(options.max_latitude_deg))
+            bearings.append(b[keep])
+            descriptors.append(desc[keep])
+    return np.concatenate(bearings), np.concatenate(descriptors)
+
+
+@pytest.mark.parametrize("contrast,wanted", [(6.0, 300), (60.0, 300), (60.0, 380)])
+def test_features_described_only_where_kept_equal_described_in_full(contrast, wanted):
+    """SIFT describes only the keypoints a face keeps (OpenCV's mask) on faces expected to keep enough, whichever way
+    the hint picks for each face: the same bearings and descriptors, bit for bit, on plain
+    panoramas (thresholds lowered), textured ones, and faces that keep too few of enough keypoints (380 of 400),
+    with the nadir cap cutting through the down face."""
+    from fullview.sfm import features as ft
+    from fullview.sfm.options import FeaturesOptions
+
+    rng = np.random.default_rng(5)
+    noise = cv2.GaussianBlur(rng.standard_normal((256, 512)), (0, 0), 1.5)
+    image = (128 + contrast * noise).clip(0, 255).astype(np.uint8)
+    options = FeaturesOptions(min_latitude_deg=-65.0, max_features_per_face=400, min_features_per_face=wanted)
+    bearings, descriptors = _features_described_in_full(image, options)
+    hints = []
+    for hint in (None, set(), set(range(6)), {0, 4}):
+        feats = ft.detect_features(image, options, hint)
+        assert np.array_equal(feats.bearings, bearings)
+        assert np.array_equal(feats.descriptors, np.sqrt(descriptors / descriptors.sum(axis=1, keepdims=True)))
+        hints.append(hint)
+    # the plain panorama and the high minimum keep too few on every face, the textured one on none: both ways taken
+    assert hints[1] == (set() if contrast > 10 and wanted == 300 else set(range(6)))
