@@ -342,11 +342,13 @@ def _one_level_plane_per_band(planes: list[WorldPlane], points: np.ndarray, tole
     (from above: a floor, a table top; from below: a ceiling) whose heights follow each other within
     ``LEVEL_MERGE_BANDS`` median tolerances are one surface found in pieces (``_merge_level_pieces``).
 
-    Why: on the home of seed 17 the floor came out as eight pieces 0.424-0.494 below the eye and the ceiling as four
-    (0.296-0.329), each piece's height the median of its own RANSAC inliers, with supports within 1% of each other.
-    Keeping the best supported one flipped between pieces 0.3123 and 0.3166 high with a 1e-5 change of the sparse
-    model, and the free-space check keeps the whole ceiling only above about 0.315: completeness 0.89 or 0.74. The
-    pieces' signs of the normal were counted as two sides, so two floors were kept and the nearer won every ray."""
+    Why: on the home of seed 17 (model units, heights along the up axis; the true floor -0.484, ceiling 0.316) the
+    floor came out as eight pieces between -0.494 and -0.424 and the ceiling as three or four between 0.294 and
+    0.329, each piece's height the median of its own RANSAC inliers, their supports within 1-2% of each other. Which
+    ceiling piece was the best supported flipped with a 1e-5 change of the sparse model (0.3123 or 0.3166), and the
+    free-space check kept the ceiling's whole rectangle only above about 0.315 (see ``_merge_level_pieces``):
+    completeness 0.74-0.75 or 0.88-0.89. The pieces' two signs of the normal counted as two sides, so two floors and
+    two ceilings were kept, and the nearer of each won every ray."""
     band = float(np.median(tolerance))
     groups: dict[int, list[tuple[float, int]]] = {}
     for i, plane in enumerate(planes):
