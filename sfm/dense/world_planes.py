@@ -363,20 +363,21 @@ def _one_level_plane_per_band(planes: list[WorldPlane], points: np.ndarray, tole
         for end in range(1, len(members) + 1):
             if end < len(members) and members[end][0] - members[end - 1][0] < LEVEL_MERGE_BANDS * band:
                 continue
-            pieces = [planes[i] for _, i in members[start:end]]
-            best = max(range(len(pieces)), key=lambda k: pieces[k].support)
-            merged = _merge_level_pieces(pieces, pieces[best], members[start][0], members[end - 1][0], facing,
-                                         points, tolerance, up, observers, options, band)
-            for k, (_, i) in enumerate(members[start:end]):
-                replaced[i] = merged if k == best else None
+            chain = [i for _, i in members[start:end]]
+            best = max(chain, key=lambda i: planes[i].support)
+            merged = _merge_level_pieces(planes[best], members[start][0], members[end - 1][0], facing, points,
+                                         tolerance, up, observers, options, band)
+            for i in chain:
+                replaced[i] = merged if i == best else None
             start = end
     return [replaced.get(i, p) for i, p in enumerate(planes) if replaced.get(i, p) is not None]
 
 
-def _merge_level_pieces(pieces: list[WorldPlane], best: WorldPlane, low: float, high: float, facing: int,
-                        points: np.ndarray, tolerance: np.ndarray, up: np.ndarray, observers: np.ndarray | None,
+def _merge_level_pieces(best: WorldPlane, low: float, high: float, facing: int, points: np.ndarray,
+                        tolerance: np.ndarray, up: np.ndarray, observers: np.ndarray | None,
                         options: WorldPlaneOptions, band: float) -> WorldPlane:
-    """One level plane for pieces at heights ``low``..``high`` seen from the side ``facing`` (+1: above): at the
+    """One level plane for the pieces at heights ``low``..``high`` seen from the side ``facing`` (+1: above), the
+    best supported of them ``best`` (its normal's sign, front and grid axes are kept): at the
     mode of the heights of the points in that slab (one band wider each way) seen from that side, found by medians
     in shrinking windows from the slab's median; its support and extent are those of the points within tolerance
     of it (as ``_snap_to_gravity``'s). The views judge whether it was invented (``_carve``) by the stereo more than
