@@ -261,9 +261,11 @@ class DensifyOptions:
     occlusion_aware_vote: bool = setting(True, "the world fill's view check of floor and ceiling pixels: another "
                                          "colour seen by a panorama whose world planes put a surface in front of "
                                          "the point (a floor next to a cupboard) is no vote against it")
-    one_level_plane_per_band: bool = setting(True, "world planes: of the level planes facing one way within 3 median "
-                                             "tolerances (one ceiling found in pieces a few cm apart) only the best "
-                                             "supported is kept (with world_plane_snap_deg > 0)")
+    one_level_plane_per_band: bool = setting(True, "world planes: the level planes seen from one side within 3 median "
+                                             "tolerances of each other (one ceiling found in pieces a few cm apart) "
+                                             "become one, at the mode of their points' heights, judged invented only "
+                                             "where the views see 2 view tolerances beyond it (with "
+                                             "world_plane_snap_deg > 0)")
     walls_floor_to_ceiling: bool = setting(True, "world planes: every column of a wall's extent runs from the floor "
                                            "to the ceiling plane (what the views see through is cut, and a pixel "
                                            "takes the wall only where its region or its brackets support it)")
