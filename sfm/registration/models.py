@@ -49,6 +49,10 @@ MERGE_ITERATIONS = 500  # RANSAC samples of the similarity between two models
 MERGE_START_FACTOR = 5.0  # common points agreeing with a candidate similarity: this many resection thresholds
 WEAK_PAIR_MAX_OFF_DEG = 5.0  # a weak pair's baseline must lie this close to its model's: on the bare 1024 px homes
 # (seeds 0, 1, 3, 4) the true ones lie within 3.2° (a part's guessed scale), the chance fits 4.5-8.6° off
+WEAK_PAIR_MAX_SHIFT = 0.25  # ... and its far camera within this many of the model's median used-pair baselines of
+# that direction: a guessed scale misplaces a camera by a share of its part's extent, whatever the pair's length, so
+# a long pair's few degrees are a shift no guess explains (11 bare homes: the true ones within 0.15, 2.88-4.33
+# baselines long; a chance fit between rooms 11.7 baselines apart, 2.43° off, shifted 0.50 and shrank a room 14x)
 MIN_LEAF_POINTS = 2  # model points that must agree on the distance of a camera attached along one pair (fewer: a
 # guess); two points that agree within the resection threshold along a ray are rarely chance
 GROWTH_BA_ITERATIONS = 30  # function evaluations of the bundle adjustment after each growth round
@@ -199,7 +203,9 @@ def _weak_pair_matches(state: ModelSet, links: PairLinks, pair_matches: dict[tup
     """Inlier matches (image, feature, image, feature) of the pairs too weak to use (unverified, or below
     `min_inliers`) that touch a rigid part whose scale averaging guessed (`unjoined_parts: keep`, no points fixed
     it), where their raw matches, under the model's rotations, give a baseline on `min_weak_pair_inliers` inliers
-    within `WEAK_PAIR_MAX_OFF_DEG` of the model's.
+    within `WEAK_PAIR_MAX_OFF_DEG` of the model's and whose far camera that direction moves sideways by at most
+    `WEAK_PAIR_MAX_SHIFT` of the model's median used-pair baseline (on a long pair a few degrees are a shift no
+    guessed scale explains, and its tracks alone may then set a room's scale in the bundle adjustment).
 
     Across a doorway a pair holds ten true matches among thirty or forty, which no 3- or 5-unknown fit tells from
     chance; once the model's rotations are known the baseline has two unknowns, and the model's own direction (off
@@ -215,6 +221,7 @@ def _weak_pair_matches(state: ModelSet, links: PairLinks, pair_matches: dict[tup
     i_all, j_all = links.pairs[:, 0], links.pairs[:, 1]
     candidates = ((links.weights <= 0) & (guessed[i_all] | guessed[j_all]) & (model_id[i_all] == model_id[j_all])
                   & (model_id[i_all] >= 0))
+    step = _model_steps(C, model_id, links.pairs[links.weights > 0])
     rows, added = [], []
     for k in np.flatnonzero(candidates):
         i, j = int(i_all[k]), int(j_all[k])
@@ -225,7 +232,9 @@ def _weak_pair_matches(state: ModelSet, links: PairLinks, pair_matches: dict[tup
         t, inliers = baseline_given_rotation(bearings[i][m[:, 0]], bearings[j][m[:, 1]], R_ji, threshold,
                                              seed=options.seed + int(k))
         off = float(angle_between_deg(t, R[j] @ (C[i] - C[j])))
-        if inliers.sum() < options.min_weak_pair_inliers or off > WEAK_PAIR_MAX_OFF_DEG:
+        shift = np.linalg.norm(C[i] - C[j]) * np.sin(np.radians(off)) / step[model_id[i]]
+        if (inliers.sum() < options.min_weak_pair_inliers or off > WEAK_PAIR_MAX_OFF_DEG
+                or shift > WEAK_PAIR_MAX_SHIFT):
             continue
         rows += [(i, int(f), j, int(g)) for f, g in m[inliers]]
         added.append((i, j, int(inliers.sum()), len(m), round(off, 2)))
@@ -233,6 +242,17 @@ def _weak_pair_matches(state: ModelSet, links: PairLinks, pair_matches: dict[tup
         log.info("%d weak pair(s) fit their model's rotations (i, j, inliers, matches, degrees from the model's "
                  "direction): %s", len(added), added)
     return rows
+
+
+def _model_steps(C: np.ndarray, model_id: np.ndarray, used_pairs: np.ndarray) -> np.ndarray:
+    """(M,) the median length of each model's used pairs (NaN for a model without one: nothing is compared to it)."""
+    steps = np.full(int(model_id.max(initial=-1)) + 1, np.nan)
+    of = model_id[used_pairs]
+    inside = used_pairs[(of[:, 0] == of[:, 1]) & (of[:, 0] >= 0)]
+    lengths = np.linalg.norm(C[inside[:, 1]] - C[inside[:, 0]], axis=1)
+    for m in np.unique(model_id[inside[:, 0]]):
+        steps[m] = np.median(lengths[model_id[inside[:, 0]] == m])
+    return steps
 
 
 def _behind_contradicted_bridges(reg, in_group: np.ndarray, pairs: np.ndarray, num_images: int) -> np.ndarray:
