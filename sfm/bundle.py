@@ -755,6 +755,10 @@ def gravity_prior_for_models(R_cam_from_world: np.ndarray, gravity_cam: np.ndarr
                         sigma_rad=sigma[camera], group=np.asarray(model_id)[camera])
 
 
+# The median angular error of 2-D isotropic Gaussian residuals is √(2 ln 2) σ.
+_MEDIAN_TO_SIGMA = 1.0 / np.sqrt(2.0 * np.log(2.0))
+
+
 def _tilt_free_cameras(prior: GravityPrior | None, fixed: np.ndarray, R: np.ndarray) -> dict[int, np.ndarray]:
     """Fixed cameras whose tilt the gravity prior decides, with the world up they see: each fixed camera with a
     measured gravity that is its group's only fixed camera. Its group's up direction stays where the prior put it
@@ -771,22 +775,6 @@ def _tilt_free_cameras(prior: GravityPrior | None, fixed: np.ndarray, R: np.ndar
             for k in rows if group[k] in single}
 
 
-# Residuals beyond this many times the median error are outliers, not noise, in the observation noise estimate.
-NOISE_CLIP_MEDIANS = 5.0
-
-
-def _observation_sigma(errors: np.ndarray, pt: np.ndarray) -> float:
-    """The bearings' noise (radians, per tangent component) from the angular errors of fitted points: their mean
-    square (within NOISE_CLIP_MEDIANS medians) over the residual degrees of freedom. Each track's point absorbed 3 of
-    its 2 per observation components (a two-view track keeps 1 of 4, and its residual lies along one direction), so
-    the errors' median alone gave 0.39 of the noise on two-view tracks (0.67 on three-view ones) and weighed the
-    gravity prior 2-7 times too little against the bearings."""
-    kept = errors <= NOISE_CLIP_MEDIANS * max(float(np.median(errors)), 1e-12)
-    components = 2 * len(errors)
-    residual_dof = max(components - 3 * np.count_nonzero(np.bincount(pt)), 1)
-    return float(np.sqrt(np.sum(errors[kept] ** 2) / residual_dof * len(errors) / max(kept.sum(), 1)))
-
-
 def _prior_terms(prior: GravityPrior | None, layout: _Layout, R, C, X, cam, pt, bearings) -> dict:
     """The _Problem fields of the gravity prior: its moving cameras, their world up, bases and weights."""
     if prior is None:
@@ -799,7 +787,7 @@ def _prior_terms(prior: GravityPrior | None, layout: _Layout, R, C, X, cam, pt, 
         raise ValueError("gravity_prior.sigma_rad must be finite and positive")
     y = np.einsum("kij,kj->ki", R[cam], X[pt] - C[cam])
     errors = np.arccos(np.clip(np.einsum("ki,ki->k", normalize(y), bearings), -1.0, 1.0))
-    sigma_obs = _observation_sigma(errors, pt)
+    sigma_obs = _MEDIAN_TO_SIGMA * float(np.median(errors))
     gravity = normalize(np.asarray(prior.gravity_cam, np.float64))
     return {"prior_camera": camera, "prior_up": normalize(np.asarray(prior.up_world, np.float64)),
             "prior_basis": tangent_basis(gravity), "prior_sqrt_w": sigma_obs / sigma,
