@@ -210,5 +210,8 @@ def test_the_school_courtyard_gets_its_ground(tmp_path):
                  *base, "--set", "densify.ground_max_tilt_deg=0"]) == 0
     before, after = _ground_share(level), _ground_share(tilted)
     assert len(after) == 4
-    # measured: 0.158 / 0.178 / 0.191 / 0.152 level, 0.232 / 0.400 / 0.376 / 0.265 tilted
-    assert np.median(after) > 1.3 * np.median(before), (before, after)
+    # measured on dense10's branch: 0.158 / 0.178 / 0.191 / 0.152 level, 0.232 / 0.400 / 0.376 / 0.265 tilted; on the
+    # merged main, whose level ground is one plane at the mode of its pieces' heights (dense9): 0.210 / 0.362 / 0.306
+    # / 0.214 level, 0.246 / 0.397 / 0.361 / 0.255 tilted. The refit adds ground on every panorama.
+    assert all(a > b + 0.01 for a, b in zip(after, before)), (before, after)
+    assert np.median(after) > 1.1 * np.median(before), (before, after)
