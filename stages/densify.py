@@ -353,19 +353,16 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
                                           ceiling_over_camera=config.ceiling_over_camera,
                                           ground_max_tilt_deg=config.ground_max_tilt_deg)
     points, ranges, observers = _model_points(views, sparse_points)
-    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt,
-                                             up=camera_up(np.array([v.R_cam_from_world for v in views])),
+    up = camera_up(np.array([v.R_cam_from_world for v in views]))
+    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt, up=up,
                                              observers=observers)
-    if config.ground_max_tilt_deg > 0:
-        up = camera_up(np.array([v.R_cam_from_world for v in views]))
-        tilted = world_planes.tilt_ground(
-            found, points, ranges, np.array([camera_center(v.R_cam_from_world, v.t_cam_from_world) for v in views]),
-            up, np.random.default_rng(config.seed), wopt)
-        for plane in (p for p in tilted if not any(p is q for q in found)):
-            log.info("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
-                     np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support,
-                     len(found) - len(tilted))
-        found = tilted
+    tilted = world_planes.tilt_ground(  # the same list when ground_max_tilt_deg is 0
+        found, points, ranges, np.array([camera_center(v.R_cam_from_world, v.t_cam_from_world) for v in views]),
+        up, np.random.default_rng(config.seed), wopt)
+    for plane in (p for p in tilted if not any(p is q for q in found)):
+        log.info("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
+                 np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support, len(found) - len(tilted))
+    found = tilted
     judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance) \
         if config.free_space_confirmed else views
     kept = world_planes.carve_extents(found, judges, wopt)
