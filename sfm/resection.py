@@ -32,7 +32,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from fullview.sfm.camera import normalize, tangent_basis
@@ -453,6 +452,10 @@ def refine_pose(R: np.ndarray, t: np.ndarray, bearings: np.ndarray, points: np.n
     def residuals(x):
         Rx, tx = pose(x)
         return _tangent_residuals(bearings, basis, points @ Rx.T + tx).ravel()
+
+    # Imported here: scipy.optimize costs 0.1-0.16 CPU s to import (linprog, HiGHS, scipy.fft) and most runs never
+    # resect (global registration places every camera of a well-connected tour).
+    from scipy.optimize import least_squares
 
     sol = least_squares(residuals, np.zeros(6), loss="soft_l1", f_scale=threshold_rad / 2, method="trf",
                         max_nfev=REFINE_MAX_EVALUATIONS)
