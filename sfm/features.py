@@ -9,8 +9,9 @@ the duplicates the overlapping margins create.
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import lru_cache, wraps
 
 import cv2
 import numpy as np
@@ -57,7 +58,21 @@ class Features:
                         scales=self.scales[keep], faces=self.faces[keep])
 
 
-@lru_cache(maxsize=4)
+def computed_once(func):
+    """`lru_cache(maxsize=4)` of `func` whose misses compute once: a caller that misses while another computes the
+    same value waits for it. (functools' cache lets both compute: the features stage's two image threads start
+    together, and each built the faces' remap maps and keep masks, 65 ms of CPU at 1024 px, 0.2 s at 2048.)"""
+    cached, lock = lru_cache(maxsize=4)(func), threading.Lock()
+
+    @wraps(func)
+    def once(*args):
+        with lock:  # held for a hit too: a dictionary look-up
+            return cached(*args)
+    once.cache_clear, once.cache_info = cached.cache_clear, cached.cache_info
+    return once
+
+
+@computed_once
 def face_maps(face_size: int, margin_deg: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray, float]:
     """cv2.remap maps of every face (6, S, S) and the face focal length in pixels (cached: same for every image)."""
     half_fov = np.radians(45.0 + margin_deg)
@@ -138,7 +153,7 @@ def _on_mask(keypoints: list, mask: np.ndarray) -> np.ndarray:
     return mask[xy[:, 1].astype(int), xy[:, 0].astype(int)] > 0
 
 
-@lru_cache(maxsize=4)
+@computed_once
 def face_keep_masks(face_size: int, margin_deg: float, min_latitude_deg: float, max_latitude_deg: float
                     ) -> np.ndarray:
     """(6, S, S) uint8: 255 on the face pixels where a keypoint may be kept (its own 90° square, within the

@@ -117,3 +117,36 @@ def test_plain_faces_are_detected_again_with_a_lower_contrast_threshold():
     a = ft.detect_features(busy, FeaturesOptions(min_features_per_face=10))
     b = ft.detect_features(busy, FeaturesOptions(min_features_per_face=0))
     assert np.array_equal(a.bearings, b.bearings)
+
+
+def test_two_threads_that_need_the_same_face_masks_build_them_once(monkeypatch):
+    # The features stage's two image threads start together and both need the faces' keep masks (and remap maps):
+    # the second waits for the first's instead of building its own (functools' cache let both build them).
+    import threading
+    import time
+
+    built = []
+    inner = ft.face_keypoints_to_bearings
+
+    def slow(points, face, *args):  # called once per face while the masks are built
+        built.append(face)
+        time.sleep(0.02)
+        return inner(points, face, *args)
+
+    monkeypatch.setattr(ft, "face_keypoints_to_bearings", slow)
+    args = (40, 5.0, -61.25, 90.0)  # a size and latitude no other test caches
+    start = threading.Barrier(2)
+    results = []
+
+    def worker():
+        start.wait()
+        results.append(ft.face_keep_masks(*args))
+
+    threads = [threading.Thread(target=worker) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(built) == list(range(6))  # six faces, built by one of the threads
+    assert results[0] is results[1]
+    ft.face_keep_masks.cache_clear()
