@@ -259,10 +259,11 @@ def ranked_loop_candidates(ranking: np.ndarray, reach: int) -> list[Pairs]:
 
 def loop_rounds(candidates: list[Pairs], patience: int, match_round: Callable[[Pairs], dict[tuple[int, int], bool]]
                 ) -> tuple[Pairs, int]:
-    """The loop candidates matched, and the number of rounds: each round matches, for every image still looking,
-    its next candidate not matched yet (`match_round(pairs) -> {pair: found enough}`, pairs sorted); an image stops
-    looking after `patience` of its candidates in a row (whoever proposed them) found too few. patience 0: every
-    candidate in one round.
+    """The loop candidates matched, and the number of rounds: an image stops looking after `patience` of its
+    candidates in a row (whoever proposed them) found too few; each round matches, for every image still looking, its
+    next candidates up to the one whose miss would stop it (`match_round(pairs) -> {pair: found enough}`, pairs
+    sorted, each pair once). So an image's candidates are matched up to and including its `patience`-th miss in a
+    row. patience 0: every candidate in one round.
 
     Why: a walk's far retrieval pairs are mostly chance look-alikes (none of the 50-view corridor's 161 verifies)
     and cost as much to match as any pair, while a place visited again keeps yielding: its candidates find many
@@ -282,8 +283,9 @@ def loop_rounds(candidates: list[Pairs], patience: int, match_round: Callable[[P
             while misses[i] < patience and position[i] < len(mine) and mine[position[i]] in found:
                 misses[i] = 0 if found[mine[position[i]]] else misses[i] + 1
                 position[i] += 1
-            if misses[i] < patience and position[i] < len(mine):
-                proposed.add(mine[position[i]])
+            # The next candidates up to the miss that would stop the image: it reaches each of them whatever they
+            # find, so they are matched in this round (a room, where nothing misses, needs fewer rounds).
+            proposed.update(p for p in mine[position[i]:position[i] + patience - misses[i]] if p not in found)
         if not proposed:
             return sorted(found), rounds
         found.update(match_round(sorted(proposed)))
