@@ -257,24 +257,32 @@ def ranked_loop_candidates(ranking: np.ndarray, reach: int) -> list[Pairs]:
     return [[(min(i, int(j)), max(i, int(j))) for j in row if abs(i - int(j)) > reach] for i, row in enumerate(ranking)]
 
 
-def loop_rounds(candidates: list[Pairs], patience: int, match_round: Callable[[Pairs], dict[tuple[int, int], bool]]
-                ) -> tuple[Pairs, int]:
+def first_loop_proposals(candidates: list[Pairs], patience: int) -> Pairs:
+    """The candidates `loop_rounds` matches whatever they find: each image's first `patience` (all with patience 0).
+    The matches stage matches them with the other pairs, before any outcome is known."""
+    return _sorted_pairs(p for c in candidates for p in (c if patience <= 0 else c[:patience]))
+
+
+def loop_rounds(candidates: list[Pairs], patience: int, match_round: Callable[[Pairs], dict[tuple[int, int], bool]],
+                found: dict[tuple[int, int], bool] | None = None) -> tuple[Pairs, int]:
     """The loop candidates matched, and the number of rounds: an image stops looking after `patience` of its
     candidates in a row (whoever proposed them) found too few; each round matches, for every image still looking, its
     next candidates up to the one whose miss would stop it (`match_round(pairs) -> {pair: found enough}`, pairs
     sorted, each pair once). So an image's candidates are matched up to and including its `patience`-th miss in a
-    row. patience 0: every candidate in one round.
+    row. patience 0: every candidate in one round. `found`: outcomes of candidates matched before (a round not
+    counted: `first_loop_proposals`, matched with the other pairs).
 
     Why: a walk's far retrieval pairs are mostly chance look-alikes (none of the 50-view corridor's 161 verifies)
     and cost as much to match as any pair, while a place visited again keeps yielding: its candidates find many
     matches, so its images keep looking, as do all images of a room, whose retrieval pairs all overlap. The outcome
     of a pair depends only on its matches, so the rounds, and the pairs they match, are deterministic."""
+    found = dict(found or {})
     if patience <= 0:
         every = _sorted_pairs(p for c in candidates for p in c)
-        if every:
-            match_round(every)
-        return every, int(bool(every))
-    found: dict[tuple[int, int], bool] = {}
+        rest = [p for p in every if p not in found]
+        if rest:
+            match_round(rest)
+        return every, int(bool(rest))
     position, misses = [0] * len(candidates), [0] * len(candidates)
     rounds = 0
     while True:

@@ -27,7 +27,7 @@ from fullview.io.workspace import Workspace
 from fullview.sfm.matching import (basis_from_moments, match_descriptors, pair_blocks, project_descriptors,
                                    second_moment)
 from fullview.sfm.options import MatchesOptions
-from fullview.sfm.pairs import loop_rounds, plan_pairs, uses_gps
+from fullview.sfm.pairs import first_loop_proposals, loop_rounds, plan_pairs, uses_gps
 from fullview.stages.protocol import StageContext
 
 log = logging.getLogger(__name__)
@@ -64,12 +64,15 @@ def run(ctx: StageContext) -> dict:
     matched: dict[tuple[int, int], np.ndarray] = {}
     with tqdm(total=len(plan.all_pairs), desc="matches", unit="pair") as bar:
         match = partial(_match_pairs, ctx, options, basis, matched, bar)
-        match(plan.pairs)
+        # The candidates matched whatever they find go with the other pairs (one round fewer of descriptor loads).
+        first = first_loop_proposals(plan.loop_candidates, options.loop_patience)
+        match(sorted([*plan.pairs, *first]))
         window_median = _window_median(matched, len(names), options.window)
         share = options.loop_min_share
         enough = lambda pair, m: len(m) >= share * min(window_median[list(pair)])  # noqa: E731
         loops, rounds = loop_rounds(plan.loop_candidates, options.loop_patience,
-                                    lambda pairs: {p: enough(p, m) for p, m in zip(pairs, match(pairs))})
+                                    lambda pairs: {p: enough(p, m) for p, m in zip(pairs, match(pairs))},
+                                    found={p: enough(p, matched[p]) for p in first})
         bar.total = len(matched)
         bar.refresh()
     pairs = sorted(matched)

@@ -72,6 +72,12 @@ def test_rounds_match_exactly_the_prefixes_up_to_the_patience_th_miss(seed):
     found = {p: bool(rng.random() < 0.3) for p in sorted(every)}
     matched, _ = P.loop_rounds(candidates, patience, _Matcher(found))
     assert set(matched) == _prefixes(candidates, patience, found)
+    # the first proposals matched beforehand (as the stage does, with the other pairs): the same pairs, each once
+    first = P.first_loop_proposals(candidates, patience)
+    assert set(first) <= set(matched)
+    later = _Matcher(found)
+    again, _ = P.loop_rounds(candidates, patience, later, found={p: found[p] for p in first})
+    assert again == matched and not set(first) & {p for c in later.calls for p in c}
     # all hits (a room): every candidate is matched
     assert P.loop_rounds(candidates, patience, _Matcher(dict.fromkeys(every, True)))[0] == sorted(every)
 
