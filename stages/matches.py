@@ -7,10 +7,12 @@ each image proposes its candidates in similarity order and stops after `matches.
 fewer than `matches.loop_min_share` of its window pairs' median matches. On a walk most far retrieval pairs are chance
 look-alikes that cannot verify; a place visited again, or a room's images, keep finding matches and keep looking.
 Which pairs a round proposes depends only on the matches of earlier rounds, so the artifact is deterministic, and
-the pairs not matched are simply not in it. Descriptors are streamed: retrieval reads each image's descriptors when it needs them,
-and pairs are matched in blocks (`sfm.matching.pair_blocks`), each block a task that loads only its images'
-descriptors (at most 2 x `BLOCK_IMAGES`), so the peak does not grow with the number of panoramas; the tasks run on
-the stage's fan-out (`StageContext.map`: local threads, or a Dask cluster under `fullview batch`).
+the pairs not matched are simply not in it.
+
+Descriptors are streamed: retrieval reads each image's descriptors when it needs them, and pairs are matched in
+blocks (`sfm.matching.pair_blocks`), each block a task that loads only its images' descriptors (at most
+2 x `BLOCK_IMAGES`), so the peak does not grow with the number of panoramas; the tasks run on the stage's fan-out
+(`StageContext.map`: local threads, or a Dask cluster under `fullview batch`).
 """
 
 from __future__ import annotations
