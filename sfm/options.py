@@ -67,6 +67,13 @@ class MatchesOptions:
                                   "with GPS)", ge=1, le=100_000, zero_means="no GPS pairs")
     gps_radius_m: float = setting(0.0, "auto: also match every image within this GPS distance (m)", ge=0.0,
                                   le=100_000.0, zero_means="off")
+    loop_patience: int = setting(2, "auto / sequential: retrieval pairs more than 2 x window capture steps apart (loop "
+                                 "candidates) are matched in each image's similarity order, and an image stops after "
+                                 "this many of its candidates in a row find too few matches (loop_min_share)",
+                                 ge=0, le=100_000, zero_means="every loop candidate matched")
+    loop_min_share: float = setting(0.1, "auto / sequential: a loop candidate finds enough matches with this share of "
+                                    "the median raw matches of its two images' window pairs (the lower)",
+                                    ge=0.0, le=1.0)
     ratio: float = setting(0.8, "Lowe's ratio test on descriptor distances", gt=0.0, le=1.0)
     mutual: bool = setting(True, "keep only mutual nearest neighbours")
     descriptor_dims: int = setting(32, "nearest neighbours are searched on the descriptors' first principal "

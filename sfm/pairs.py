@@ -13,6 +13,8 @@ by cosine similarity. No shipped vocabulary: trained per dataset it costs second
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
@@ -175,9 +177,38 @@ def uses_gps(num_images: int, options: MatchesOptions) -> bool:
     return (options.pairs == "auto" and num_images >= options.auto_exhaustive_below and options.gps_neighbours > 0)
 
 
+@dataclass(frozen=True, kw_only=True)
+class PairPlan:
+    """What the matches stage matches: `pairs` at once, then the loop candidates round by round (`loop_rounds`)."""
+    pairs: Pairs  # matched at once: the window, retrieval pairs near in capture order, GPS (sorted)
+    loop_candidates: list[Pairs]  # per image, its retrieval pairs far in capture order, most similar first
+    summary: dict  # where the pairs came from
+
+    @property
+    def all_pairs(self) -> Pairs:
+        """Every pair that may be matched (the candidates whether or not their round comes)."""
+        return _sorted_pairs([*self.pairs, *(p for c in self.loop_candidates for p in c)])
+
+
 def select_pairs(descriptors: list[np.ndarray], options: MatchesOptions,
                  gps: np.ndarray | None = None) -> tuple[Pairs, dict]:
-    """The pair list `options.pairs` asks for, and a summary of where the pairs came from.
+    """Every pair the `options.pairs` mode may match (`plan_pairs`' pairs and loop candidates) and a summary of where
+    the pairs came from."""
+    plan = plan_pairs(descriptors, options, gps)
+    return plan.all_pairs, plan.summary
+
+
+def loop_reach(options: MatchesOptions) -> int:
+    """Capture steps beyond which a retrieval pair is a loop candidate (0: none are; only with a window, and with
+    loop_patience on). Why twice the window: pairs up to there are the window's own continuation (an image's
+    partners' partners), which still overlap on a walk (the 50-view corridor: 9 of the 30 retrieval pairs 4-6 steps
+    apart verify, none of the 161 beyond); a pair farther apart can only be a place visited again."""
+    uses_window = options.pairs in ("sequential", "auto")
+    return 2 * options.window if uses_window and options.loop_patience > 0 else 0
+
+
+def plan_pairs(descriptors: list[np.ndarray], options: MatchesOptions, gps: np.ndarray | None = None) -> PairPlan:
+    """The pairs `options.pairs` asks for, split into those matched at once and the loop candidates.
 
     descriptors: every image's (M_i, D) descriptors, in capture order; gps: (N, 3) latitude, longitude, altitude per
     image (NaN where the image has none) or None."""
@@ -185,12 +216,15 @@ def select_pairs(descriptors: list[np.ndarray], options: MatchesOptions,
     n, mode, o = len(descriptors), options.pairs, options
     window, neighbours, gps_k, gps_radius = o.window, o.retrieval_neighbours, o.gps_neighbours, o.gps_radius_m
     vocabulary = (o.vocabulary_size, o.vocabulary_seed, o.vocabulary_sample)
+    reach = loop_reach(o)
     if mode == "exhaustive" or (mode == "auto" and n < o.auto_exhaustive_below):
         pairs = exhaustive(n)
-        return pairs, {"mode": "exhaustive", "exhaustive": len(pairs)}
+        return PairPlan(pairs=pairs, loop_candidates=[[] for _ in range(n)],
+                        summary={"mode": "exhaustive", "exhaustive": len(pairs)})
     if mode not in ("sequential", "retrieval", "auto"):
         raise ValueError(f"unknown pair mode {mode!r}")
     sources: dict[str, Pairs] = {}
+    candidates: list[Pairs] = [[] for _ in range(n)]
     if mode in ("sequential", "auto"):
         sources["sequential"] = sequential(n, window)
     if neighbours > 0:
@@ -199,10 +233,68 @@ def select_pairs(descriptors: list[np.ndarray], options: MatchesOptions,
             sources["loops"] = loop_closures(g, window, neighbours)
         else:
             sources["retrieval"] = retrieval(g, neighbours)
+        if reach:
+            candidates = ranked_loop_candidates(similarity_ranking(g)[:, :neighbours], reach)
     if gps is not None and uses_gps(n, o):
         sources["gps"] = position_neighbours(gps_to_local(gps), gps_k, gps_radius)
-    pairs = _sorted_pairs(p for s in sources.values() for p in s)
+    everything = _sorted_pairs(p for s in sources.values() for p in s)
+    # A loop candidate another source also proposes (GPS) is matched at once.
+    direct = {p for name, s in sources.items() if name not in ("retrieval", "loops") for p in s}
+    direct |= {p for p in everything if p[1] - p[0] <= reach} if reach else set(everything)
+    candidates = [[p for p in c if p not in direct] for c in candidates]
+    pairs = [p for p in everything if p in direct]
     summary = {"mode": mode, **{k: len(v) for k, v in sources.items()}}
-    log.info("pairs: %d of %d possible (%s)", len(pairs), n * (n - 1) // 2,
+    if reach:
+        summary["loop_candidates"] = len(everything) - len(pairs)
+    log.info("pairs: %d of %d possible (%s)", len(everything), n * (n - 1) // 2,
              ", ".join(f"{k} {v}" for k, v in summary.items() if k != "mode"))
-    return pairs, summary
+    return PairPlan(pairs=pairs, loop_candidates=candidates, summary=summary)
+
+
+def ranked_loop_candidates(ranking: np.ndarray, reach: int) -> list[Pairs]:
+    """Per image, the pairs with its ranked images (N, K: most similar first) more than `reach` capture steps away,
+    in that order."""
+    return [[(min(i, int(j)), max(i, int(j))) for j in row if abs(i - int(j)) > reach] for i, row in enumerate(ranking)]
+
+
+def first_loop_proposals(candidates: list[Pairs], patience: int) -> Pairs:
+    """The candidates `loop_rounds` matches whatever they find: each image's first `patience` (all with patience 0).
+    The matches stage matches them with the other pairs, before any outcome is known."""
+    return _sorted_pairs(p for c in candidates for p in (c if patience <= 0 else c[:patience]))
+
+
+def loop_rounds(candidates: list[Pairs], patience: int, match_round: Callable[[Pairs], dict[tuple[int, int], bool]],
+                found: dict[tuple[int, int], bool] | None = None) -> tuple[Pairs, int]:
+    """The loop candidates matched, and the number of rounds: an image stops looking after `patience` of its
+    candidates in a row (whoever proposed them) found too few; each round matches, for every image still looking, its
+    next candidates up to the one whose miss would stop it (`match_round(pairs) -> {pair: found enough}`, pairs
+    sorted, each pair once). So an image's candidates are matched up to and including its `patience`-th miss in a
+    row. patience 0: every candidate in one round. `found`: outcomes of candidates matched before (a round not
+    counted: `first_loop_proposals`, matched with the other pairs).
+
+    Why: a walk's far retrieval pairs are mostly chance look-alikes (none of the 50-view corridor's 161 verifies)
+    and cost as much to match as any pair, while a place visited again keeps yielding: its candidates find many
+    matches, so its images keep looking, as do all images of a room, whose retrieval pairs all overlap. The outcome
+    of a pair depends only on its matches, so the rounds, and the pairs they match, are deterministic."""
+    found = dict(found or {})
+    if patience <= 0:
+        every = _sorted_pairs(p for c in candidates for p in c)
+        rest = [p for p in every if p not in found]
+        if rest:
+            match_round(rest)
+        return every, int(bool(rest))
+    position, misses = [0] * len(candidates), [0] * len(candidates)
+    rounds = 0
+    while True:
+        proposed = set()
+        for i, mine in enumerate(candidates):
+            while misses[i] < patience and position[i] < len(mine) and mine[position[i]] in found:
+                misses[i] = 0 if found[mine[position[i]]] else misses[i] + 1
+                position[i] += 1
+            # The next candidates up to the miss that would stop the image: it reaches each of them whatever they
+            # find, so they are matched in this round (a room, where nothing misses, needs fewer rounds).
+            proposed.update(p for p in mine[position[i]:position[i] + patience - misses[i]] if p not in found)
+        if not proposed:
+            return sorted(found), rounds
+        found.update(match_round(sorted(proposed)))
+        rounds += 1
