@@ -763,8 +763,8 @@ def gravity_error_factor(R_cam_from_world: np.ndarray, prior: GravityPrior) -> f
     """How many times its stated standard error each measured gravity lies from the model's up direction, per
     tangent component: √(Σ (θ_i / σ_i)² / (2M − 2G)) over the prior's M cameras in G groups (each group's up, the
     precision-weighted mean of its gravities, takes 2 degrees of freedom). About 1 when the standard errors are right
-    (the synthetic homes: 0.8-1.0), 1.3-1.7 on 360_school and 360_Flat, whose vertical lines are not independent
-    segments. 1 when there is no redundancy."""
+    (the synthetic homes against their true poses: 0.7-1.0), 1.3-1.8 on 360_school and 360_Flat, whose vertical
+    lines are not independent segments. 1 when there is no redundancy."""
     R = np.asarray(R_cam_from_world, dtype=np.float64)[prior.camera]
     group = np.asarray(prior.group)
     groups, index = np.unique(group, return_inverse=True)
