@@ -420,7 +420,8 @@ def vertical_direction_std(normals: np.ndarray, weights: np.ndarray, v: np.ndarr
     """Standard error (radians, along the worst direction) of the weighted least-squares direction v through the
     great circles with these unit normals: the residual spread s² = Σ w (n·v)² / (m − 2) (weights scaled to mean 1)
     over the information the circles give in the plane orthogonal to v, s² (Bᵀ Σ w n nᵀ B)⁻¹. Segments of one edge
-    are not independent, so this is a lower bound; downstream weights add the spread between images."""
+    are not independent, so this is a lower bound; the bundle adjustment widens it by the spread of the images'
+    gravities about its adjusted up direction (`bundle.gravity_error_factor`)."""
     w = np.asarray(weights, dtype=np.float64) / np.mean(weights)
     n = np.asarray(normals, dtype=np.float64)
     if len(n) < 3:

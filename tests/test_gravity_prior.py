@@ -15,7 +15,9 @@ from fullview.sfm.bundle import (
     _SchurSystem,
     _WeightedResiduals,
     bundle_adjust,
+    gravity_error_factor,
     gravity_prior_for_models,
+    with_gravity_error,
 )
 from fullview.sfm.camera import normalize, tangent_basis
 
@@ -123,3 +125,91 @@ def test_gravity_prior_for_models_one_up_per_model_outliers_and_unknowns_left_ou
     assert gravity_prior_for_models(R, np.full((n, 3), np.nan), sigma, model_id) is None
     assert gravity_prior_for_models(R, np.zeros((n, 3)), np.full(n, np.inf), model_id) is None  # as the filter
     # stores unknown gravity
+
+
+@pytest.mark.parametrize("views", [2, 3])
+def test_the_observation_noise_the_prior_is_weighed_against_is_not_understated_by_the_fitted_points(views):
+    """The prior's weight is σ_obs / σ_g, with σ_obs from the residuals of triangulated points. A two-view track's
+    point absorbs 3 of its 4 residual components, so the residuals' median alone gave 0.39 of the true noise (0.67
+    with three views): the prior 2-7 times too weak against the bearings. Counted with the residual degrees of
+    freedom it is the noise."""
+    rng = np.random.default_rng(5)
+    noise = np.radians(0.05)
+    centers = np.stack([2.0 * np.arange(views), np.zeros(views), 0.3 * (-1.0) ** np.arange(views)], 1)
+    R = _yaw(rng.uniform(-np.pi, np.pi, views))
+    t = -np.einsum("nij,nj->ni", R, centers)
+    points = rng.uniform([-2.0, -1.5, 2.0], [2.0 * views, 1.5, 5.0], (3000, 3))
+    cam, pt = np.tile(np.arange(views), len(points)), np.repeat(np.arange(len(points)), views)
+    y = np.einsum("kij,kj->ki", R[cam], points[pt] - centers[cam])
+    bearings = normalize(normalize(y) + rng.normal(scale=noise, size=y.shape))
+    fitted = bundle_adjust(R_cam_from_world=R, t_cam_from_world=t, points=points, obs_camera=cam, obs_point=pt,
+                           obs_bearings=bearings, fixed_cameras=tuple(range(views)), loss="soft_l1",
+                           loss_scale_rad=1.0, max_nfev=20)
+    prior = GravityPrior(camera=np.arange(views), gravity_cam=np.einsum("nij,j->ni", R, UP),
+                         up_world=np.tile(UP, (views, 1)), group=np.zeros(views, np.int64),
+                         sigma_rad=np.full(views, 1.0))
+    terms = _prior_terms(prior, None, R, centers, fitted.points, cam, pt, bearings)
+    np.testing.assert_allclose(terms["prior_sqrt_w"], noise, rtol=0.1)  # σ_obs / σ_g with σ_g = 1
+
+
+def _noisy_gravities(rng, R, up_world, sigma_true):
+    """Each camera's gravity in its frame, off the true one by isotropic tangent noise of sigma_true per component."""
+    true = np.einsum("nij,nj->ni", R, up_world)
+    basis = tangent_basis(true)
+    return normalize(true + np.einsum("nk,nki->ni", rng.normal(size=(len(R), 2)) * sigma_true[:, None], basis))
+
+
+@pytest.mark.parametrize("understated", [1.0, 1.7, 4.0])
+def test_gravity_error_factor_recovers_how_much_the_standard_errors_are_understated(understated):
+    """Two models (one with a tilted world), gravities off by their true standard errors (0.1-0.4°, one per
+    camera) but stated `understated` times smaller: the factor is that ratio, and the widened prior states them."""
+    rng = np.random.default_rng(11)
+    n = 400
+    model_id = np.repeat([0, 1], n // 2)
+    R = _yaw(rng.uniform(-np.pi, np.pi, n))
+    up_world = np.tile(UP, (n, 1))
+    up_world[model_id == 1] = Rotation.from_rotvec([0.2, 0.0, 0.1]).apply(UP)
+    sigma_true = np.radians(rng.uniform(0.1, 0.4, n))  # stated above MIN_GRAVITY_SIGMA_RAD
+    gravity = _noisy_gravities(rng, R, up_world, sigma_true)
+    prior = gravity_prior_for_models(R, gravity, sigma_true / understated, model_id)
+    factor = gravity_error_factor(R, prior)
+    np.testing.assert_allclose(factor, understated, rtol=0.08)
+    np.testing.assert_allclose(with_gravity_error(prior, factor).sigma_rad, prior.sigma_rad * factor)
+
+
+def test_a_stated_standard_error_is_widened_never_narrowed():
+    rng = np.random.default_rng(2)
+    R = _yaw(rng.uniform(-np.pi, np.pi, 6))
+    sigma = np.radians(np.full(6, 0.2))
+    prior = gravity_prior_for_models(R, _noisy_gravities(rng, R, np.tile(UP, (6, 1)), sigma / 4), sigma,
+                                     np.zeros(6, int))
+    assert gravity_error_factor(R, prior) < 0.6
+    np.testing.assert_array_equal(with_gravity_error(prior, gravity_error_factor(R, prior)).sigma_rad, sigma)
+    one = gravity_prior_for_models(R[:1], np.einsum("ij,j->i", R[0], UP)[None], sigma[:1], np.zeros(1, int))
+    assert gravity_error_factor(R[:1], one) == 1.0  # no redundancy: the stated error stands
+
+
+def test_a_prior_stated_too_confident_is_widened_and_holds_the_tilt_as_the_right_one_does():
+    """A chain of 15 cameras whose gravities are 0.3° off but stated as 0.075°: held to them, each camera follows its
+    own error (0.049-0.058° of tilt on average, seeds 0-2). The pose round's spread measures the understatement
+    (2.5-4×), and the prior widened by it holds the tilt as well as the right standard errors (0.021-0.034°)."""
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        R, t, points, cam, pt, bearings = _chain(rng, num_cameras=15, points_per_camera=40)
+        sigma_true = np.full(len(R), np.radians(0.3))
+        gravity = _noisy_gravities(rng, R, np.tile(UP, (len(R), 1)), sigma_true)
+        kwargs = dict(t_cam_from_world=t, points=points, obs_camera=cam, obs_point=pt, obs_bearings=bearings,
+                      loss="linear", max_nfev=60)
+        stated = bundle_adjust(R_cam_from_world=R, **kwargs,
+                               gravity_prior=gravity_prior_for_models(R, gravity, sigma_true / 4, np.zeros(15, int)))
+        R_pose = stated.R_cam_from_world
+        prior = gravity_prior_for_models(R_pose, gravity, sigma_true / 4, np.zeros(15, int))
+        factor = gravity_error_factor(R_pose, prior)
+        assert 2.0 < factor < 5.0, (seed, factor)
+        widened = bundle_adjust(R_cam_from_world=R_pose, **{**kwargs, "t_cam_from_world": stated.t_cam_from_world,
+                                                            "points": stated.points},
+                                gravity_prior=with_gravity_error(prior, factor))
+        right = bundle_adjust(R_cam_from_world=R, **kwargs,
+                              gravity_prior=gravity_prior_for_models(R, gravity, sigma_true, np.zeros(15, int)))
+        tilt = [_tilt_deg(x.R_cam_from_world)[1:].mean() for x in (stated, widened, right)]
+        assert tilt[1] < 0.75 * tilt[0] and tilt[1] < 1.25 * tilt[2], (seed, tilt)
