@@ -551,8 +551,9 @@ def _one_wall_plane_per_offset(planes: list[WorldPlane], points: np.ndarray, tol
     for quarter, members in sorted(pieces.items()):
         # each piece climbs to the mode of the offsets near it; the pieces that reach one mode are one wall (not a
         # chain of pieces: a chain of many pieces a band apart reaches from a wall to a cupboard in front of it)
-        modes = sorted((_wall_offset(flat, seen_from, azimuth, quarter, o - WALL_MERGE_BANDS * band,
-                                     o + WALL_MERGE_BANDS * band, band), i) for o, i in members)
+        side = _WallSide(flat, seen_from, tolerance, azimuth + quarter * np.pi / 2)
+        modes = sorted((side.offset(o - WALL_MERGE_BANDS * band, o + WALL_MERGE_BANDS * band, band), i)
+                       for o, i in members)
         start = 0
         for end in range(1, len(modes) + 1):
             if end < len(modes) and modes[end][0] - modes[end - 1][0] < band:
@@ -572,16 +573,17 @@ def _one_wall_plane_per_offset(planes: list[WorldPlane], points: np.ndarray, tol
         else:
             joined[(quarter, offset)] = list(members)
     merged: dict[int, WorldPlane | None] = {}
+    sides = {q: _WallSide(flat, seen_from, tolerance, azimuth + q * np.pi / 2) for q in {q for q, _ in joined}}
     for (quarter, offset), members in joined.items():
         a = azimuth + quarter * np.pi / 2
         normal = np.cos(a) * e1 + np.sin(a) * e2
-        inliers = (observers @ normal > points @ normal) & (np.abs(points @ normal - offset) <= tolerance)
-        if inliers.sum() < 3:
+        inliers = sides[quarter].near(offset, 1.0)
+        if len(inliers) < 3:
             continue
         origin, axes, extent, fallback = _extent(points[inliers], normal, offset, options.cell,
                                                  options.extent_closing_cells, options.extent_hull, options.extent, up)
         wall = WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell, extent=extent,
-                          support=int(inliers.sum()), fallback=fallback, front=1,
+                          support=len(inliers), fallback=fallback, front=1,
                           drop_tolerance=LEVEL_DROP_TOLERANCES * options.view_tolerance)
         first = max(members, key=lambda i: planes[i].support)
         for i in members:
@@ -589,16 +591,30 @@ def _one_wall_plane_per_offset(planes: list[WorldPlane], points: np.ndarray, tol
     return [merged.get(i, p) for i, p in enumerate(planes) if merged.get(i, p) is not None]
 
 
-def _wall_offset(flat: np.ndarray, seen_from: np.ndarray, azimuth: float, quarter: int, low: float, high: float,
-                 band: float) -> float:
-    """The mode of the offsets (along the wall direction ``azimuth`` turned by ``quarter`` right angles) of the
-    points seen from that side with offsets in ``low``..``high`` (horizontal coordinates ``flat`` (N, 2), their
-    observers' ``seen_from``); the middle of the slab if it holds fewer than three."""
-    a = azimuth + quarter * np.pi / 2
-    n = np.array([np.cos(a), np.sin(a)])
-    d = flat @ n
-    values = d[(seen_from @ n > d) & (d >= low) & (d <= high)]
-    return _mode_of(values, band) if len(values) >= 3 else 0.5 * (low + high)
+class _WallSide:
+    """The points seen from the side of one horizontal wall normal (``azimuth``), sorted by their offset along it
+    (``flat`` (N, 2): the points' horizontal coordinates, ``seen_from``: their observers'): a wall's points are a
+    slab of them, found by bisection (the walls of a model are many, its points many more)."""
+
+    def __init__(self, flat: np.ndarray, seen_from: np.ndarray, tolerance: np.ndarray, azimuth: float):
+        normal = np.array([np.cos(azimuth), np.sin(azimuth)])
+        d = flat @ normal
+        front = np.flatnonzero(seen_from @ normal > d)
+        self.index = front[np.argsort(d[front], kind="stable")]  # point rows, by offset
+        self.d, self.tolerance = d[self.index], tolerance[self.index]
+        self.widest = float(self.tolerance.max()) if len(self.index) else 0.0
+
+    def offset(self, low: float, high: float, band: float) -> float:
+        """The mode of the offsets in ``low``..``high`` (``_mode_of``); the middle if fewer than three lie there."""
+        values = self.d[np.searchsorted(self.d, low, "left"):np.searchsorted(self.d, high, "right")]
+        return _mode_of(values, band) if len(values) >= 3 else 0.5 * (low + high)
+
+    def near(self, offset: float, shrink: float) -> np.ndarray:
+        """Rows of the points within ``shrink`` times their tolerance of the plane at ``offset``."""
+        lo = np.searchsorted(self.d, offset - shrink * self.widest, "left")
+        hi = np.searchsorted(self.d, offset + shrink * self.widest, "right")
+        ok = np.abs(self.d[lo:hi] - offset) <= shrink * self.tolerance[lo:hi]
+        return self.index[lo:hi][ok]
 
 
 def _fit_wall_azimuth(flat: np.ndarray, seen_from: np.ndarray, tolerance: np.ndarray, azimuth: float,
@@ -612,13 +628,16 @@ def _fit_wall_azimuth(flat: np.ndarray, seen_from: np.ndarray, tolerance: np.nda
     def normal_of(azimuth: float, quarter: int) -> np.ndarray:
         return np.array([np.cos(azimuth + quarter * np.pi / 2), np.sin(azimuth + quarter * np.pi / 2)])
 
+    def sides_at(azimuth: float) -> dict[int, _WallSide]:
+        return {q: _WallSide(flat, seen_from, tolerance, azimuth + q * np.pi / 2) for q in set(quarters)}
+
+    sides = sides_at(azimuth)
     for shrink in WALL_AZIMUTH_BANDS:
         scatter, centroids = np.zeros((2, 2)), []
         for quarter, offset in zip(quarters, offsets):
-            d = flat @ normal_of(azimuth, quarter)
-            near = (seen_from @ normal_of(azimuth, quarter) > d) & (np.abs(d - offset) <= shrink * tolerance)
-            centroids.append(flat[near].mean(axis=0) if near.sum() >= 3 else None)
-            if near.sum() < 3:
+            near = sides[quarter].near(offset, shrink)
+            centroids.append(flat[near].mean(axis=0) if len(near) >= 3 else None)
+            if len(near) < 3:
                 continue
             c, s = np.cos(-quarter * np.pi / 2), np.sin(-quarter * np.pi / 2)
             turned = flat[near] @ np.array([[c, -s], [s, c]]).T  # this wall's normal turned onto the first
@@ -633,8 +652,8 @@ def _fit_wall_azimuth(flat: np.ndarray, seen_from: np.ndarray, tolerance: np.nda
         offsets = [o if m is None else o + m @ (normal_of(turned_to, q) - normal_of(azimuth, q))
                    for q, o, m in zip(quarters, offsets, centroids)]
         step, azimuth = abs(turned_to - azimuth), turned_to
-        offsets = [_wall_offset(flat, seen_from, azimuth, q, o - shrink * band, o + shrink * band, band)
-                   for q, o in zip(quarters, offsets)]
+        sides = sides_at(azimuth)
+        offsets = [sides[q].offset(o - shrink * band, o + shrink * band, band) for q, o in zip(quarters, offsets)]
         if shrink == WALL_AZIMUTH_BANDS[-1] and step < WALL_AZIMUTH_STAYS:
             break
     return azimuth, offsets
