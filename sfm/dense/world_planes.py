@@ -9,7 +9,9 @@ has no single plane, but every pixel of it still lies on one of the world's plan
    point on the line where two surfaces meet still supports the extent of both. A plane's **extent** is a grid in
    its own coordinates: the cells holding its supporting points, closed over small gaps (``extent_closing_cells``)
    and with the holes they enclose filled (a plain wall is supported only along its border). An opening that
-   reaches the border (a doorway) is not enclosed and stays outside the extent.
+   reaches the border (a doorway) is not enclosed and stays outside the extent. With gravity, the pieces of one
+   wall become one plane and the four wall directions are fitted together on all the walls' points
+   (``_one_wall_plane_per_offset``).
 2. ``carve_extents``: every extent cell is looked at from every panorama; a cell that panoramas' stereo sees
    through more often than on it (a window, a doorway bridged by the closing) is removed, and a plane seen through
    on more than half of the cells some view has a range for was invented (e.g. through two parallel lines across a
@@ -85,8 +87,8 @@ class WorldPlaneOptions:
     # wall direction (or its perpendicular) turned onto it (_snap_to_gravity); 0: fitted normals kept
     one_level_per_band: bool = True  # with snap_deg > 0: the level planes of one side within LEVEL_MERGE_BANDS
     # median tolerances of each other become one, at the mode of their points' heights (_one_level_plane_per_band)
-    one_wall_per_offset: bool = True  # with snap_deg > 0 and observers: the snapped walls facing one way within
-    # WALL_MERGE_BANDS median tolerances of each other become one, the wall direction fitted on all walls' points
+    one_wall_per_offset: bool = True  # with snap_deg > 0 and observers: the snapped wall pieces facing one way that
+    # reach one mode of their points' offsets become one wall, the wall direction fitted on all walls' points
     # (_one_wall_plane_per_offset)
     wall_brackets: bool = True  # label_pixels: a pixel no plane of its image region takes may take the nearest
     # wall that brackets it in its image column or row (_wall_brackets)
@@ -516,8 +518,8 @@ def _merge_level_pieces(best: WorldPlane, low: float, high: float, facing: int, 
 def _one_wall_plane_per_offset(planes: list[WorldPlane], points: np.ndarray, tolerance: np.ndarray, up: np.ndarray,
                                observers: np.ndarray, options: WorldPlaneOptions) -> list[WorldPlane]:
     """The planes with the walls snapped to the dominant direction (``_snap_to_gravity``) replaced by one plane per
-    wall: the snapped walls seen from one side whose offsets follow each other within ``WALL_MERGE_BANDS`` median
-    tolerances are one wall found in pieces. The four wall directions are turned together to the direction that
+    wall: each snapped wall piece climbs to the mode of the offsets of the points seen from its side within
+    ``WALL_MERGE_BANDS`` median tolerances of it, and the pieces that reach one mode are one wall. The four wall directions are turned together to the direction that
     fits all the walls' points best (``_fit_wall_azimuth``); each wall then lies at the mode of its points' offsets
     (``_mode_of``), with the support and extent of the points within tolerance of it, seen from its side, judged
     invented by the views as a band's level plane is (``LEVEL_DROP_TOLERANCES``). Walls of their own direction
@@ -527,8 +529,8 @@ def _one_wall_plane_per_offset(planes: list[WorldPlane], points: np.ndarray, tol
     whose offsets spread over 1.3 τ (τ = 1% of the scene), and every wall was turned 0.58° from the truth, the
     dominant direction being the mode of the pieces' fitted normals: a 15 m wall turned 0.58° is 7 cm (half a τ)
     off at its ends, so each piece fitted its own stretch of the wall, and the nearest piece along a ray, a few cm
-    in front of the wall, took the pixels the wall should have. On home 3 the direction turned by 0.9° under a
-    1e-5 perturbation of the sparse model (which piece was the best supported changed)."""
+    in front of the wall, took the pixels the wall should have. And the direction moved with the pieces: under
+    1e-5 perturbations of the views it was -22.31°, -21.15° or -23.24° on home 5 (now -21.94° to -21.91°)."""
     upright = [p for p in planes if abs(p.normal @ up) < 1e-9]
     azimuth = dominant_wall_azimuth(np.array([p.normal for p in upright]).reshape(-1, 3),
                                     np.array([p.support for p in upright], np.float64), up)
