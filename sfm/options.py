@@ -273,6 +273,12 @@ class DensifyOptions:
                                              "become one, at the mode of their points' heights, judged invented only "
                                              "where the views see 2 view tolerances beyond it (with "
                                              "world_plane_snap_deg > 0)")
+    one_wall_plane_per_offset: bool = setting(True, "world planes: the wall pieces snapped to the dominant "
+                                              "direction and seen from one side that reach one mode of their "
+                                              "points' offsets (searched within 3 median tolerances; one wall found "
+                                              "in pieces a few cm apart) become one plane there, the wall direction "
+                                              "fitted on all walls' points, judged invented as a merged level plane "
+                                              "(with world_plane_snap_deg > 0)")
     walls_floor_to_ceiling: bool = setting(True, "world planes: every column of a wall's extent runs from the floor "
                                            "to the ceiling plane (what the views see through is cut, and a pixel "
                                            "takes the wall only where its region or its brackets support it)")

@@ -348,6 +348,7 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
                                           snap_deg=config.world_plane_snap_deg, free_ceiling=config.free_ceiling,
                                           sweep_walls=config.sweep_walls,
                                           one_level_per_band=config.one_level_plane_per_band,
+                                          one_wall_per_offset=config.one_wall_plane_per_offset,
                                           walls_floor_to_ceiling=config.walls_floor_to_ceiling,
                                           wall_brackets=config.wall_brackets,
                                           ceiling_over_camera=config.ceiling_over_camera,

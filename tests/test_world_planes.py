@@ -310,3 +310,113 @@ def test_a_level_plane_of_a_band_is_dropped_only_when_the_views_see_well_beyond_
     merged = world_planes._one_level_plane_per_band([_level(-1.3, 900, 1.0, 1)], points, 0.015 * ranges, UP,
                                                     observers, options)
     assert merged[0].drop_tolerance == margin
+
+
+def _turned(points, degrees):
+    """Points turned about the vertical (UP) by ``degrees``."""
+    a = np.radians(degrees)
+    rot = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    return points @ rot.T
+
+
+def _long_room(turn_deg, seed=0, step_at=None):
+    """Stereo-like points of the walls of a long room, x in [-6, 6], z in [-2, 2], floor y = 1.2, ceiling y = -1.3,
+    each wall a grid with 5 mm noise, seen from cameras along z = 0; turned about the vertical by ``turn_deg``.
+    ``step_at``: the z = 2 wall steps 10 cm back (to z = 2.1) for x > step_at, an alcove a wall's thickness deep.
+    Returns (points, ranges from the nearest camera, that camera's centre, cameras)."""
+    rng = np.random.default_rng(seed)
+    along, height = np.arange(-6, 6, 0.04), np.arange(-1.3, 1.2, 0.04)
+    u, h = (a.ravel() for a in np.meshgrid(along, height))
+    far = np.where(u > step_at, 2.1, 2.0) if step_at is not None else np.full(len(u), 2.0)
+    across, hh = (a.ravel() for a in np.meshgrid(np.arange(-2, 2, 0.04), height))
+    walls = [np.column_stack([u, h, far]), np.column_stack([u, h, np.full(len(u), -2.0)]),
+             np.column_stack([np.full(len(across), 6.0), hh, across]),
+             np.column_stack([np.full(len(across), -6.0), hh, across])]
+    points = np.vstack(walls)
+    points = points + rng.normal(scale=0.005, size=points.shape)
+    cameras = np.column_stack([np.arange(-5, 5.5, 1.0), np.zeros(11), np.zeros(11)])
+    points, cameras = _turned(points, turn_deg), _turned(cameras, turn_deg)
+    distances = np.linalg.norm(points[:, None] - cameras[None], axis=2)
+    nearest = np.argmin(distances, axis=1)
+    return points, distances.min(axis=1), cameras[nearest], cameras
+
+
+def _wall_piece(normal_deg, offset, support, cell=CELL):
+    """A snapped wall piece seen from the side of its normal, (1, 0, 0) turned by ``normal_deg`` about the vertical
+    (90: -z, -90: +z)."""
+    normal = _turned(np.array([[1.0, 0.0, 0.0]]), normal_deg)[0]
+    return world_planes.WorldPlane(normal=normal, offset=offset, origin=np.zeros(3), axes=np.eye(3)[:2], cell=cell,
+                                   extent=np.ones((2, 2), bool), support=support, front=1)
+
+
+def _pieces_of_the_room(mode_deg, far_offsets, supports):
+    """The room's walls as RANSAC and the sweep find them, snapped to a dominant direction ``mode_deg`` off the
+    truth: the z = 2 wall (seen from -z) in pieces at ``far_offsets`` (along its outward normal), the other three
+    walls one piece each."""
+    pieces = [_wall_piece(mode_deg + 90.0, o, s) for o, s in zip(far_offsets, supports)]  # outward normal -z
+    pieces += [_wall_piece(mode_deg - 90.0, -2.0, 900), _wall_piece(mode_deg + 180.0, -6.0, 500),
+               _wall_piece(mode_deg, -6.0, 500)]
+    return pieces
+
+
+def _walls_facing(planes, outward, turn_deg):
+    """(offset, normal) of the planes whose outward normal is within 2° of ``outward`` turned by ``turn_deg``."""
+    direction = _turned(np.asarray(outward, float)[None], turn_deg)[0]
+    return [(p.offset * p.front, p.front * p.normal) for p in planes
+            if p.front and (p.front * p.normal) @ direction > np.cos(np.radians(2.0))]
+
+
+def test_the_pieces_of_a_wall_become_one_plane_along_the_direction_of_all_walls_points():
+    # the room is turned 0.4° about the vertical; the pieces were snapped to a dominant direction 0.9° off it (the
+    # mode of short pieces' fitted normals, as on home 3), the long z = 2 wall found as six pieces 1-3 cm apart
+    turn = 0.4
+    points, ranges, observers, _ = _long_room(turn)
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=CELL)
+    offsets = [-2.03, -2.01, -1.99, -1.98, -2.02, -2.0]
+
+    def merged(supports, pts=points):
+        pieces = _pieces_of_the_room(turn + 0.9, offsets, supports)
+        return world_planes._one_wall_plane_per_offset(pieces, pts, 0.015 * ranges, UP, observers, options)
+
+    out = merged([1000, 990, 985, 980, 995, 992])
+    far = _walls_facing(out, [0.0, 0.0, -1.0], turn)
+    assert len(far) == 1  # one plane for the six pieces
+    offset, normal = far[0]
+    true_normal = _turned(np.array([[0.0, 0.0, -1.0]]), turn)[0]
+    assert np.degrees(np.arccos(min(1.0, normal @ true_normal))) < 0.05  # the walls' points, not the pieces' 0.9°
+    assert abs(offset + 2.0) < 0.003
+    assert out[[p.front * p.normal @ true_normal > 0.99 for p in out].index(True)].drop_tolerance > 0
+    for outward in ([0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]):  # the other walls turned with it
+        assert len(_walls_facing(out, outward, turn)) == 1
+    # which piece is the best supported, or a tiny change of the points, does not move it
+    for supports in ([980, 990, 1000, 985, 995, 992], [980, 990, 985, 1000, 995, 992]):
+        assert _walls_facing(merged(supports), [0.0, 0.0, -1.0], turn)[0][0] == offset
+    shaken = points + np.random.default_rng(1).normal(scale=1e-6, size=points.shape)
+    offset2, normal2 = _walls_facing(merged([1000, 990, 985, 980, 995, 992], shaken), [0.0, 0.0, -1.0], turn)[0]
+    assert abs(offset2 - offset) < 1e-4 and np.degrees(np.arccos(min(1.0, normal2 @ normal))) < 1e-3
+
+
+def test_two_parallel_walls_a_wall_thickness_apart_are_not_merged():
+    # the z = 2 wall steps back 10 cm for x > 0 (3 median tolerances at these ranges): two surfaces seen from the
+    # same side; and the two faces of one thin wall are seen from opposite sides
+    points, ranges, observers, _ = _long_room(0.0, step_at=0.0)
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=CELL)
+    tolerance = 0.015 * ranges
+    assert 0.1 > 3 * np.median(tolerance)
+    out = world_planes._one_wall_plane_per_offset(_pieces_of_the_room(0.0, [-2.0, -2.01, -2.1, -2.09],
+                                                                      [900, 800, 700, 600]),
+                                                  points, tolerance, UP, observers, options)
+    far = sorted(o for o, _ in _walls_facing(out, [0.0, 0.0, -1.0], 0.0))
+    assert len(far) == 2 and abs(far[0] + 2.1) < 0.005 and abs(far[1] + 2.0) < 0.005
+    # the other face of the z = -2 wall (seen from z < -2) is a wall of its own
+    back = points[:, 2] < -1.9
+    behind = observers.copy()
+    behind[back] = observers[back] * [1, 1, 0] + [0, 0, -4.0]
+    pieces = _pieces_of_the_room(0.0, [-2.0], [900])
+    pieces.append(world_planes.WorldPlane(normal=np.array([0.0, 0.0, 1.0]), offset=-2.0, origin=np.zeros(3),
+                                          axes=np.eye(3)[:2], cell=CELL, extent=np.ones((2, 2), bool), support=400,
+                                          front=-1))
+    out = world_planes._one_wall_plane_per_offset(pieces, np.vstack([points, points[back] + [0, 0, -0.1]]),
+                                                  np.concatenate([tolerance, tolerance[back]]), UP,
+                                                  np.vstack([observers, behind[back]]), options)
+    assert len(_walls_facing(out, [0.0, 0.0, 1.0], 0.0)) == 1 and len(_walls_facing(out, [0.0, 0.0, -1.0], 0.0)) == 2

@@ -9,7 +9,9 @@ has no single plane, but every pixel of it still lies on one of the world's plan
    point on the line where two surfaces meet still supports the extent of both. A plane's **extent** is a grid in
    its own coordinates: the cells holding its supporting points, closed over small gaps (``extent_closing_cells``)
    and with the holes they enclose filled (a plain wall is supported only along its border). An opening that
-   reaches the border (a doorway) is not enclosed and stays outside the extent.
+   reaches the border (a doorway) is not enclosed and stays outside the extent. With gravity, the pieces of one
+   wall become one plane and the four wall directions are fitted together on all the walls' points
+   (``_one_wall_plane_per_offset``).
 2. ``carve_extents``: every extent cell is looked at from every panorama; a cell that panoramas' stereo sees
    through more often than on it (a window, a doorway bridged by the closing) is removed, and a plane seen through
    on more than half of the cells some view has a range for was invented (e.g. through two parallel lines across a
@@ -49,6 +51,10 @@ LEVEL_MERGE_BANDS = 3  # _one_level_plane_per_band: level planes of one side wit
 LEVEL_MODE_WINDOWS = (2.0, 1.0, 0.5)  # _merge_level_pieces: half-widths (x median tolerance) of the mode's windows
 LEVEL_MODE_ROUNDS = 10  # ... medians per window at most (until the height stays)
 LEVEL_DROP_TOLERANCES = 2  # a band's level plane is invented where the views see this many view tolerances beyond it
+WALL_MERGE_BANDS = 3  # _one_wall_plane_per_offset: snapped walls facing one way within this many median tolerances
+WALL_AZIMUTH_BANDS = (3.0, 2.0) + (1.0,) * 8  # ... rounds of the common wall direction's fit, inlier band (x
+# tolerance); the rounds in the last band stop when the direction stays within WALL_AZIMUTH_STAYS radians
+WALL_AZIMUTH_STAYS = 1e-6
 SWEEP_SUPPORT_FACTOR = 2  # a swept wall needs this many times min_support points (its lines, seen from its side)
 BEHIND_CELLS = 2  # _walls_floor_to_ceiling: floor (ceiling) points this many cells behind a wall's face ...
 BEHIND_POINTS = 3  # ... at least this many in a column: the floor (ceiling) goes on behind the wall there
@@ -81,6 +87,9 @@ class WorldPlaneOptions:
     # wall direction (or its perpendicular) turned onto it (_snap_to_gravity); 0: fitted normals kept
     one_level_per_band: bool = True  # with snap_deg > 0: the level planes of one side within LEVEL_MERGE_BANDS
     # median tolerances of each other become one, at the mode of their points' heights (_one_level_plane_per_band)
+    one_wall_per_offset: bool = True  # with snap_deg > 0 and observers: the snapped wall pieces facing one way that
+    # reach one mode of their points' offsets become one wall, the wall direction fitted on all walls' points
+    # (_one_wall_plane_per_offset)
     wall_brackets: bool = True  # label_pixels: a pixel no plane of its image region takes may take the nearest
     # wall that brackets it in its image column or row (_wall_brackets)
     ground_band: float = 0.5  # tilt_ground: its candidates lie within this share of the camera height of the ground
@@ -277,8 +286,15 @@ def detect_world_planes(points: np.ndarray, ranges: np.ndarray, rng: np.random.G
         if options.one_level_per_band:
             planes = _one_level_plane_per_band(planes, points, tolerance, np.asarray(up, np.float64) /
                                                np.linalg.norm(up), observers, options)
+        merge_walls = options.one_wall_per_offset and observers is not None
+        if merge_walls:  # the sweep then runs along the direction fitted on all the walls' points
+            planes = _one_wall_plane_per_offset(planes, points, tolerance, np.asarray(up, np.float64) /
+                                                np.linalg.norm(up), observers, options)
         if options.sweep_walls and observers is not None:
             planes = planes + _sweep_walls(planes, points, tolerance, np.asarray(up, np.float64), observers, options)
+            if merge_walls:  # a swept wall a few bands off a wall's mode: a line of its stereo, too far
+                planes = _one_wall_plane_per_offset(planes, points, tolerance, np.asarray(up, np.float64) /
+                                                    np.linalg.norm(up), observers, options)
         if options.walls_floor_to_ceiling and observers is not None:
             _walls_floor_to_ceiling(planes, np.asarray(up, np.float64), observers, points, tolerance)
     return planes
@@ -487,15 +503,7 @@ def _merge_level_pieces(best: WorldPlane, low: float, high: float, facing: int, 
     values = heights[slab]
     if len(values) < 3:
         return best
-    height = float(np.median(values))
-    for window in LEVEL_MODE_WINDOWS:
-        for _ in range(LEVEL_MODE_ROUNDS):
-            near = values[np.abs(values - height) <= window * band]
-            if len(near) < 3:
-                break
-            previous, height = height, float(np.median(near))
-            if previous == height:
-                break
+    height = _mode_of(values, band)
     sign = 1.0 if best.normal @ up > 0 else -1.0
     normal, offset = sign * up, sign * height
     inliers = np.abs(points @ normal - offset) <= tolerance
@@ -505,6 +513,167 @@ def _merge_level_pieces(best: WorldPlane, low: float, high: float, facing: int, 
     return WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell, extent=extent,
                       support=int(inliers.sum()), fallback=fallback, front=best.front, level=True,
                       drop_tolerance=LEVEL_DROP_TOLERANCES * options.view_tolerance)
+
+
+def _one_wall_plane_per_offset(planes: list[WorldPlane], points: np.ndarray, tolerance: np.ndarray, up: np.ndarray,
+                               observers: np.ndarray, options: WorldPlaneOptions) -> list[WorldPlane]:
+    """The planes with the walls snapped to the dominant direction (``_snap_to_gravity``) replaced by one plane per
+    wall: each snapped wall piece climbs to the mode of the offsets of the points seen from its side within
+    ``WALL_MERGE_BANDS`` median tolerances of it, and the pieces that reach one mode are one wall. The four wall directions are turned together to the direction that
+    fits all the walls' points best (``_fit_wall_azimuth``); each wall then lies at the mode of its points' offsets
+    (``_mode_of``), with the support and extent of the points within tolerance of it, seen from its side, judged
+    invented by the views as a band's level plane is (``LEVEL_DROP_TOLERANCES``). Walls of their own direction
+    (not snapped) are kept as they are.
+
+    Why: on the home of seed 5 (four rooms in a row, 15 m long) each long outer wall came out as 10-12 pieces
+    whose offsets spread over 1.3 τ (τ = 1% of the scene), and every wall was turned 0.58° from the truth, the
+    dominant direction being the mode of the pieces' fitted normals: a 15 m wall turned 0.58° is 7 cm (half a τ)
+    off at its ends, so each piece fitted its own stretch of the wall, and the nearest piece along a ray, a few cm
+    in front of the wall, took the pixels the wall should have. And the direction moved with the pieces: under
+    1e-5 perturbations of the views it was -22.31°, -21.15° or -23.24° on home 5 (now -21.94° to -21.91°)."""
+    upright = [p for p in planes if abs(p.normal @ up) < 1e-9]
+    azimuth = dominant_wall_azimuth(np.array([p.normal for p in upright]).reshape(-1, 3),
+                                    np.array([p.support for p in upright], np.float64), up)
+    if azimuth is None:
+        return planes
+    e1, e2 = _horizontal_basis(up)
+    band = float(np.median(tolerance))
+    pieces: dict[int, list[tuple[float, int]]] = {}  # quarter of the side they are seen from: (offset, index)
+    for i, plane in enumerate(planes):
+        if plane.level or not plane.front or abs(plane.normal @ up) > 1e-9:
+            continue
+        outward = plane.front * plane.normal
+        turn = (np.arctan2(outward @ e2, outward @ e1) - azimuth) / (np.pi / 2)
+        if abs(turn - np.round(turn)) > 1e-6:
+            continue  # a wall of its own direction
+        pieces.setdefault(int(np.round(turn)) % 4, []).append((plane.front * plane.offset, i))
+    flat = np.column_stack([points @ e1, points @ e2])
+    seen_from = np.column_stack([observers @ e1, observers @ e2])
+    walls: list[tuple[int, float, list[int]]] = []  # (quarter, offset, piece indices)
+    for quarter, members in sorted(pieces.items()):
+        # each piece climbs to the mode of the offsets near it; the pieces that reach one mode are one wall (not a
+        # chain of pieces: a chain of many pieces a band apart reaches from a wall to a cupboard in front of it)
+        side = _WallSide(flat, seen_from, tolerance, azimuth + quarter * np.pi / 2)
+        modes = sorted((side.offset(o - WALL_MERGE_BANDS * band, o + WALL_MERGE_BANDS * band, band), i)
+                       for o, i in members)
+        start = 0
+        for end in range(1, len(modes) + 1):
+            if end < len(modes) and modes[end][0] - modes[end - 1][0] < band:
+                continue
+            walls.append((quarter, float(np.median([m for m, _ in modes[start:end]])),
+                          [i for _, i in modes[start:end]]))
+            start = end
+    if not walls:
+        return planes
+    azimuth, offsets = _fit_wall_azimuth(flat, seen_from, tolerance, azimuth, [w[0] for w in walls],
+                                         [w[1] for w in walls], band)
+    joined: dict[tuple[int, float], list[int]] = {}  # walls that the fit brought within a band: one
+    for (quarter, _, members), offset in sorted(zip(walls, offsets), key=lambda w: (w[0][0], w[1])):
+        last = next(reversed(joined), None)
+        if last is not None and last[0] == quarter and offset - last[1] < band:
+            joined[last] += members
+        else:
+            joined[(quarter, offset)] = list(members)
+    merged: dict[int, WorldPlane | None] = {}
+    sides = {q: _WallSide(flat, seen_from, tolerance, azimuth + q * np.pi / 2) for q in {q for q, _ in joined}}
+    for (quarter, offset), members in joined.items():
+        a = azimuth + quarter * np.pi / 2
+        normal = np.cos(a) * e1 + np.sin(a) * e2
+        inliers = sides[quarter].near(offset, 1.0)
+        if len(inliers) < 3:
+            continue
+        origin, axes, extent, fallback = _extent(points[inliers], normal, offset, options.cell,
+                                                 options.extent_closing_cells, options.extent_hull, options.extent, up)
+        wall = WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell, extent=extent,
+                          support=len(inliers), fallback=fallback, front=1,
+                          drop_tolerance=LEVEL_DROP_TOLERANCES * options.view_tolerance)
+        first = max(members, key=lambda i: planes[i].support)
+        for i in members:
+            merged[i] = wall if i == first else None
+    return [merged.get(i, p) for i, p in enumerate(planes) if merged.get(i, p) is not None]
+
+
+class _WallSide:
+    """The points seen from the side of one horizontal wall normal (``azimuth``), sorted by their offset along it
+    (``flat`` (N, 2): the points' horizontal coordinates, ``seen_from``: their observers'): a wall's points are a
+    slab of them, found by bisection (the walls of a model are many, its points many more)."""
+
+    def __init__(self, flat: np.ndarray, seen_from: np.ndarray, tolerance: np.ndarray, azimuth: float):
+        normal = np.array([np.cos(azimuth), np.sin(azimuth)])
+        d = flat @ normal
+        front = np.flatnonzero(seen_from @ normal > d)
+        self.index = front[np.argsort(d[front], kind="stable")]  # point rows, by offset
+        self.d, self.tolerance = d[self.index], tolerance[self.index]
+        self.widest = float(self.tolerance.max()) if len(self.index) else 0.0
+
+    def offset(self, low: float, high: float, band: float) -> float:
+        """The mode of the offsets in ``low``..``high`` (``_mode_of``); the middle if fewer than three lie there."""
+        values = self.d[np.searchsorted(self.d, low, "left"):np.searchsorted(self.d, high, "right")]
+        return _mode_of(values, band) if len(values) >= 3 else 0.5 * (low + high)
+
+    def near(self, offset: float, shrink: float) -> np.ndarray:
+        """Rows of the points within ``shrink`` times their tolerance of the plane at ``offset``."""
+        lo = np.searchsorted(self.d, offset - shrink * self.widest, "left")
+        hi = np.searchsorted(self.d, offset + shrink * self.widest, "right")
+        ok = np.abs(self.d[lo:hi] - offset) <= shrink * self.tolerance[lo:hi]
+        return self.index[lo:hi][ok]
+
+
+def _fit_wall_azimuth(flat: np.ndarray, seen_from: np.ndarray, tolerance: np.ndarray, azimuth: float,
+                      quarters: list[int], offsets: list[float], band: float) -> tuple[float, list[float]]:
+    """The wall direction (radians, modulo 90°) that fits the points of all the walls (``quarters``, ``offsets``)
+    best, and the walls' offsets along it: least squares over every wall's points within a band of it (each wall
+    its own offset, all at right angles), i.e. the smallest eigenvector of the sum of their horizontal scatter
+    matrices, each turned back by its wall's right angles (``WALL_AZIMUTH_BANDS``: the rounds' inlier bands; the
+    offsets are the modes again after each round). One long wall fixes the direction better than the mode of
+    short pieces' fitted normals, and its fit moves continuously with the points."""
+    def normal_of(azimuth: float, quarter: int) -> np.ndarray:
+        return np.array([np.cos(azimuth + quarter * np.pi / 2), np.sin(azimuth + quarter * np.pi / 2)])
+
+    def sides_at(azimuth: float) -> dict[int, _WallSide]:
+        return {q: _WallSide(flat, seen_from, tolerance, azimuth + q * np.pi / 2) for q in set(quarters)}
+
+    sides = sides_at(azimuth)
+    for shrink in WALL_AZIMUTH_BANDS:
+        scatter, centroids = np.zeros((2, 2)), []
+        for quarter, offset in zip(quarters, offsets):
+            near = sides[quarter].near(offset, shrink)
+            centroids.append(flat[near].mean(axis=0) if len(near) >= 3 else None)
+            if len(near) < 3:
+                continue
+            c, s = np.cos(-quarter * np.pi / 2), np.sin(-quarter * np.pi / 2)
+            turned = flat[near] @ np.array([[c, -s], [s, c]]).T  # this wall's normal turned onto the first
+            turned -= turned.mean(axis=0)
+            scatter += turned.T @ turned
+        if not scatter.any():
+            break
+        normal = np.linalg.eigh(scatter)[1][:, 0]
+        fitted = np.arctan2(normal[1], normal[0])
+        turned_to = azimuth + (fitted - azimuth + np.pi / 2) % np.pi - np.pi / 2  # the same line, nearest turn
+        # each wall turns about its points' centroid (not the model's origin), then takes the mode near there
+        offsets = [o if m is None else o + m @ (normal_of(turned_to, q) - normal_of(azimuth, q))
+                   for q, o, m in zip(quarters, offsets, centroids)]
+        step, azimuth = abs(turned_to - azimuth), turned_to
+        sides = sides_at(azimuth)
+        offsets = [sides[q].offset(o - shrink * band, o + shrink * band, band) for q, o in zip(quarters, offsets)]
+        if shrink == WALL_AZIMUTH_BANDS[-1] and step < WALL_AZIMUTH_STAYS:
+            break
+    return azimuth, offsets
+
+
+def _mode_of(values: np.ndarray, band: float) -> float:
+    """The mode of ``values`` (at least one): medians in shrinking windows (``LEVEL_MODE_WINDOWS`` x ``band``) from
+    their median, each until it stays (at most ``LEVEL_MODE_ROUNDS``)."""
+    mode = float(np.median(values))
+    for window in LEVEL_MODE_WINDOWS:
+        for _ in range(LEVEL_MODE_ROUNDS):
+            near = values[np.abs(values - mode) <= window * band]
+            if len(near) < 3:
+                break
+            previous, mode = mode, float(np.median(near))
+            if previous == mode:
+                break
+    return mode
 
 
 def _horizontal_basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
