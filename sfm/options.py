@@ -244,6 +244,9 @@ class DensifyOptions:
     ceiling_over_camera: bool = setting(True, "with free_ceiling, a level plane above a camera is its ceiling only "
                                         "where its extent spans over the camera (outdoors a ledge or a roof beside "
                                         "the camera is no ceiling, and the sky stays empty)")
+    free_floor: bool = setting(True, "a pixel no other rule fills may take the level world plane below its camera "
+                               "(its floor, spanning under it) where that is the first plane its ray meets, in a room "
+                               "(a ceiling spans over the camera too), without its region's stereo support")
     ground_max_tilt_deg: float = setting(10.0, "world planes: the ground (best supported level plane below the "
                                          "cameras) is refitted with a tilt up to this where that explains 1.5x its "
                                          "points (outdoor ground slopes)", ge=0.0, le=30.0, zero_means="always level")

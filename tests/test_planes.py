@@ -340,6 +340,54 @@ def test_the_ceiling_needs_no_support_from_the_region_the_floor_does(free_ceilin
     assert not allowed[big, 1]
 
 
+def _upright_plane(x, z_range, y_range, options):
+    """A wall piece at x (normal +x, seen from -x) over z_range and y_range, as the model's planes hold one."""
+    support = np.stack(np.meshgrid([x], np.linspace(*y_range, 21), np.linspace(*z_range, 41)), -1).reshape(-1, 3)
+    normal = np.array([1.0, 0.0, 0.0])
+    origin, axes, extent, _ = world_planes._extent(support, normal, x, options.cell, 3, False)
+    return world_planes.WorldPlane(normal=normal, offset=x, origin=origin, axes=axes, cell=options.cell,
+                                   extent=extent, support=len(support), front=-1)
+
+
+@pytest.mark.parametrize("free_floor", [True, False])
+def test_a_floor_no_region_supports_is_filled_where_it_is_the_first_plane_met(free_floor):
+    # the plain grey room whose only stereo is the +z wall (above): the floor explains none of its one big region's
+    # evidence. With free_floor the floor fills the pixels nothing else takes, exactly, but not behind a cupboard
+    # (a plane of the model no region allows) standing on it, nor outdoors (no ceiling spans over the camera)
+    rng, face, _ = _render(CENTERS[0])
+    image = np.full(rng.shape + (3,), 128, np.uint8)
+    view = planes.view_of(np.eye(3), -CENTERS[0], np.where(face == 5, rng, np.nan).astype(np.float32),
+                          np.ones(rng.shape, bool), image, WIDTH)
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1, free_floor=free_floor)
+    ceiling, floor = _level_plane(ROOM[0, 1], options), _level_plane(ROOM[1, 1], options)
+    cupboard = _upright_plane(1.0, (-1.0, 1.0), (0.2, ROOM[1, 1]), options)
+    regions = planes.image_regions(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), planes.PlaneOptions(),
+                                   np.isfinite(view.range_map))
+    fillable = ~np.isfinite(view.range_map)
+    h, w = view.range_map.shape
+    bearings = pixel_grid_bearings(w, h)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_cupboard = 1.0 / bearings[..., 0]
+        hit = bearings * t_cupboard[..., None]
+    def crossing(margin):  # floor pixels whose ray crosses the cupboard's face (a cell's margin inside or outside)
+        return (t_cupboard > 0) & (np.abs(hit[..., 2]) < 1.0 + margin) & (hit[..., 1] > 0.2 - margin) \
+            & (hit[..., 1] < ROOM[1, 1] + margin) & (face == 3)
+    behind = crossing(-options.cell)
+    open_floor = (face == 3) & ~crossing(options.cell) & fillable
+    for room in ([ceiling, floor, cupboard], [floor, cupboard]):
+        allowed = world_planes.region_candidates(view, room, regions, options)
+        fill, label = world_planes.label_pixels(view, room, fillable, options, regions, allowed)
+        on_floor = label == 1 + next(k for k, p in enumerate(room) if p is floor)
+        indoors = len(room) == 3
+        if free_floor and indoors:
+            assert on_floor[open_floor].mean() > 0.8
+            err = np.abs(fill[on_floor] - rng[on_floor]) / rng[on_floor]
+            assert np.max(err) < 1e-4
+            assert not on_floor[behind].any() and behind.sum() > 100
+        else:
+            assert on_floor.mean() < 0.01
+
+
 def test_a_colour_the_model_says_is_hidden_is_no_vote_against_a_point():
     # a floor point next to a cupboard: two of the three neighbours stand behind the cupboard, have no stereo there
     # and see its colour; the third sees the floor's. Without the model's occluders the point loses 1:2; with
