@@ -322,14 +322,20 @@ def _level_plane(y, options):
                                    extent=extent, support=len(support), level=True)
 
 
+def _plain_room_seen_on_one_wall():
+    """(view, image, true range, face index) from the first camera of a plain grey room whose only stereo is the +z
+    wall."""
+    rng, face, _ = _render(CENTERS[0])
+    image = np.full(rng.shape + (3,), 128, np.uint8)
+    return planes.view_of(np.eye(3), -CENTERS[0], np.where(face == 5, rng, np.nan).astype(np.float32),
+                          np.ones(rng.shape, bool), image, WIDTH), image, rng, face
+
+
 @pytest.mark.parametrize("free_ceiling", [True, False])
 def test_the_ceiling_needs_no_support_from_the_region_the_floor_does(free_ceiling):
     # a plain grey room whose only stereo is the +z wall: one big image region around it, whose evidence neither
     # level plane explains; the ceiling (level, above the camera) may still fill it, the floor may not
-    rng, face, _ = _render(CENTERS[0])
-    image = np.full(rng.shape + (3,), 128, np.uint8)
-    view = planes.view_of(np.eye(3), -CENTERS[0], np.where(face == 5, rng, np.nan).astype(np.float32),
-                          np.ones(rng.shape, bool), image, WIDTH)
+    view, image, _, _ = _plain_room_seen_on_one_wall()
     options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1, free_ceiling=free_ceiling)
     ceiling, floor = _level_plane(ROOM[0, 1], options), _level_plane(ROOM[1, 1], options)
     regions = planes.image_regions(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), planes.PlaneOptions(),
@@ -354,10 +360,7 @@ def test_a_floor_no_region_supports_is_filled_where_it_is_the_first_plane_met(fr
     # the plain grey room whose only stereo is the +z wall (above): the floor explains none of its one big region's
     # evidence. With free_floor the floor fills the pixels nothing else takes, exactly, but not behind a cupboard
     # (a plane of the model no region allows) standing on it, nor outdoors (no ceiling spans over the camera)
-    rng, face, _ = _render(CENTERS[0])
-    image = np.full(rng.shape + (3,), 128, np.uint8)
-    view = planes.view_of(np.eye(3), -CENTERS[0], np.where(face == 5, rng, np.nan).astype(np.float32),
-                          np.ones(rng.shape, bool), image, WIDTH)
+    view, image, rng, face = _plain_room_seen_on_one_wall()
     options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1, free_floor=free_floor)
     ceiling, floor = _level_plane(ROOM[0, 1], options), _level_plane(ROOM[1, 1], options)
     cupboard = _upright_plane(1.0, (-1.0, 1.0), (0.2, ROOM[1, 1]), options)
