@@ -521,11 +521,11 @@ def _one_wall_plane_per_offset(planes: list[WorldPlane], points: np.ndarray, tol
                                observers: np.ndarray, options: WorldPlaneOptions) -> list[WorldPlane]:
     """The planes with the walls snapped to the dominant direction (``_snap_to_gravity``) replaced by one plane per
     wall: each snapped wall piece climbs to the mode of the offsets of the points seen from its side within
-    ``WALL_MERGE_BANDS`` median tolerances of it, and the pieces that reach one mode are one wall. The four wall directions are turned together to the direction that
-    fits all the walls' points best (``_fit_wall_azimuth``); each wall then lies at the mode of its points' offsets
-    (``_mode_of``), with the support and extent of the points within tolerance of it, seen from its side, judged
-    invented by the views as a band's level plane is (``LEVEL_DROP_TOLERANCES``). Walls of their own direction
-    (not snapped) are kept as they are.
+    ``WALL_MERGE_BANDS`` median tolerances of it, and the pieces that reach one mode are one wall. The four wall
+    directions are turned together to the direction that fits all the walls' points best (``_fit_wall_azimuth``);
+    each wall then lies at the mode of its points' offsets (``_mode_of``), with the support and extent of the
+    points within tolerance of it, seen from its side, judged invented by the views as a band's level plane is
+    (``LEVEL_DROP_TOLERANCES``). Walls of their own direction (not snapped) are kept as they are.
 
     Why: on the home of seed 5 (four rooms in a row, 15 m long) each long outer wall came out as 10-12 pieces
     whose offsets spread over 1.3 τ (τ = 1% of the scene), and every wall was turned 0.58° from the truth, the
