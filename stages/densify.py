@@ -21,8 +21,8 @@
    points support (a wall's columns carried to the floor and the ceiling, ``densify.walls_floor_to_ceiling``) minus
    what the views' confirmed stereo sees through (``densify.free_space_confirmed``); a pixel still empty gets the
    nearest such plane its ray meets, among those its image region's stereo depths support (a ceiling that spans over
-   the camera needs none, ``densify.free_ceiling``, ``densify.ceiling_over_camera``; a wall may instead be bracketed by the ranges next to the pixel in its image column or
-   row, ``densify.wall_brackets``; in a room, a pixel still empty may take the floor under the camera where that is
+   the camera needs none, ``densify.free_ceiling``, ``densify.ceiling_over_camera``; a wall may instead be
+   bracketed by the ranges next to the pixel in its image column or row, ``densify.wall_brackets``; in a room, a pixel still empty may take the floor under the camera where that is
    the first plane its ray meets, ``densify.free_floor``), kept under the same view checks (by confirmed stereo) and
    confirmation as 3b.
    The maps are saved as ``depth/<stem>.npz``
@@ -402,16 +402,9 @@ def _model_points(views: list[planes.View], sparse_points: np.ndarray
     """The stereo points of all views (every other pixel of the reduced grid) and the sparse points, voxel
     down-sampled at 0.5% of the median range: (points (N, 3), range (N,) from the camera that measured each, that
     camera's centre (N, 3); for a sparse point its nearest camera; both averaged over a voxel)."""
-    points, ranges, observers = [], [], []
-    centers = np.array([-v.R_cam_from_world.T @ v.t_cam_from_world for v in views])
-    for view, center in zip(views, centers):
-        h, w = view.range_map.shape
-        rng = view.range_map[::2, ::2]
-        ok = np.isfinite(rng)
-        points.append(center + planes.reduced_bearings_world(view.R_cam_from_world, w, h)[::2, ::2][ok]
-                      * rng[ok][:, None])
-        ranges.append(rng[ok])
-        observers.append(np.broadcast_to(center, (int(ok.sum()), 3)))
+    stereo, stereo_ranges, stereo_observers = planes.stereo_points(views, step=2)
+    centers = np.array([camera_center(v.R_cam_from_world, v.t_cam_from_world) for v in views])
+    points, ranges, observers = [stereo], [stereo_ranges], [stereo_observers]
     sparse = np.asarray(sparse_points, np.float64).reshape(-1, 3)
     points.append(sparse)
     distances = np.linalg.norm(sparse[:, None] - centers[None], axis=2)

@@ -64,19 +64,8 @@ def _views():
     return views, truth, surfaces
 
 
-def _model_points(views):
-    points, ranges, observers = [], [], []
-    for v in views:
-        ok = np.isfinite(v.range_map)
-        c = -v.t_cam_from_world
-        points.append(c + pixel_grid_bearings(WIDTH, WIDTH // 2)[ok] * v.range_map[ok][:, None])
-        ranges.append(v.range_map[ok])
-        observers.append(np.broadcast_to(c, (int(ok.sum()), 3)))
-    return np.concatenate(points), np.concatenate(ranges), np.concatenate(observers)
-
-
 def _world_fill(views, options, tilt: bool):
-    points, ranges, observers = _model_points(views)
+    points, ranges, observers = planes.stereo_points(views)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(0), options, up=UP,
                                              observers=observers)
     if tilt:
@@ -95,7 +84,7 @@ OPTIONS = world_planes.WorldPlaneOptions(distance=0.015, cell=0.25)
 
 def test_a_sloping_ground_is_refitted_with_its_tilt():
     views, _, _ = _views()
-    points, ranges, observers = _model_points(views)
+    points, ranges, observers = planes.stereo_points(views)
     found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(0), OPTIONS, up=UP,
                                              observers=observers)
     level = [p for p in found if p.level and p.normal @ CENTERS[0] < p.offset * np.sign(p.normal[1])]

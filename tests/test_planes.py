@@ -170,17 +170,13 @@ def _world_views(render, stereo=_edges_only):
     return views, truth
 
 
-def _world_fill(views, options=None):
-    """Every view's world-plane fill, confirmed by the others as the stage does."""
+def _world_fill(views, options=None, seen_from=False):
+    """Every view's world-plane fill, confirmed by the others as the stage does; with ``seen_from`` each stereo
+    point's camera is known (one-sided planes, walls carried to the lines)."""
     options = options or world_planes.WorldPlaneOptions(distance=0.015, cell=0.1)
-    points, ranges = [], []
-    for v in views:
-        ok = np.isfinite(v.range_map)
-        c = -v.t_cam_from_world
-        points.append(c + pixel_grid_bearings(WIDTH, WIDTH // 2)[ok] * v.range_map[ok][:, None])
-        ranges.append(v.range_map[ok])
-    found = world_planes.detect_world_planes(np.concatenate(points), np.concatenate(ranges),
-                                             np.random.default_rng(0), options, up=np.array([0.0, -1.0, 0.0]))
+    points, ranges, observers = planes.stereo_points(views)
+    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(0), options,
+                                             up=np.array([0.0, -1.0, 0.0]), observers=observers if seen_from else None)
     kept = world_planes.carve_extents(found, views, options)
     popt = planes.PlaneOptions(min_region_pixels=50)
     fills = [world_planes.fill_from_world_planes(v, kept, [o for o in views if o is not v], options, popt)
@@ -438,27 +434,6 @@ def _without_wall_ceiling_line(rng: np.ndarray, face: np.ndarray) -> np.ndarray:
     return stereo
 
 
-def _world_fill_seen_from(views, options):
-    """``_world_fill`` with each stereo point's camera known (one-sided planes, walls carried to the lines)."""
-    points, ranges, observers = [], [], []
-    for v in views:
-        ok = np.isfinite(v.range_map)
-        c = -v.t_cam_from_world
-        points.append(c + pixel_grid_bearings(WIDTH, WIDTH // 2)[ok] * v.range_map[ok][:, None])
-        ranges.append(v.range_map[ok])
-        observers.append(np.broadcast_to(c, (int(ok.sum()), 3)))
-    found = world_planes.detect_world_planes(np.concatenate(points), np.concatenate(ranges),
-                                             np.random.default_rng(0), options, up=np.array([0.0, -1.0, 0.0]),
-                                             observers=np.concatenate(observers))
-    kept = world_planes.carve_extents(found, views, options)
-    popt = planes.PlaneOptions(min_region_pixels=50)
-    fills = [world_planes.fill_from_world_planes(v, kept, [o for o in views if o is not v], options, popt)
-             for v in views]
-    return [(f, planes.confirmed_by_views(v, f, lab, [o for o in views if o is not v],
-                                          [g for o, (g, _) in zip(views, fills) if o is not v], popt))
-            for v, (f, lab) in zip(views, fills)]
-
-
 def test_a_wall_seen_only_along_its_floor_line_is_filled_up_to_the_ceiling(monkeypatch):
     # the +z wall has the ceiling's colour (its image region leaks into the ceiling) and no stereo at its ceiling
     # line: its columns hold only the floor line. Carried up to the ceiling plane, and taken where the pixel's row
@@ -471,7 +446,7 @@ def test_a_wall_seen_only_along_its_floor_line_is_filled_up_to_the_ceiling(monke
         options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1, walls_floor_to_ceiling=ext,
                                                  wall_brackets=brackets)
         shares = []
-        for center, (fill, ok), rng in zip(CENTERS, _world_fill_seen_from(views, options), truth):
+        for center, (fill, ok), rng in zip(CENTERS, zip(*_world_fill(views, options, seen_from=True)[2:]), truth):
             wall = _render(center)[1] == 5
             good = ok & (np.abs(fill - rng) <= 0.01 * rng)
             assert np.all(np.abs(fill[ok & wall] - rng[ok & wall]) <= 0.01 * rng[ok & wall])
@@ -488,7 +463,7 @@ def test_a_wall_is_not_carried_down_across_a_doorway_the_floor_goes_on_through()
     # (through the doorway). The doorway's pixels get the floor beyond or nothing, never the wall
     views, truth = _world_views(_render_with_door, _without_wall_ceiling_line)
     options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1)
-    for center, (fill, ok), rng in zip(CENTERS, _world_fill_seen_from(views, options), truth):
+    for center, (fill, ok), rng in zip(CENTERS, zip(*_world_fill(views, options, seen_from=True)[2:]), truth):
         _, face, _, door = _render_with_door(center)
         assert np.all(np.abs(fill[ok & door] - rng[ok & door]) <= 0.01 * rng[ok & door])
         assert ok[(face == 5) & ~door].mean() > 0.6

@@ -112,6 +112,22 @@ def pixel_points(view: View, ranges: np.ndarray, rows: np.ndarray, cols: np.ndar
     return center + reduced_bearings_world(view.R_cam_from_world, w, h)[rows, cols] * ranges[rows, cols, None]
 
 
+def stereo_points(views: list[View], step: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every ``step``-th pixel (both directions) with a range of each view's reduced grid as world points: (points
+    (N, 3), range (N,) from the camera that measured each, that camera's centre (N, 3))."""
+    points, ranges, observers = [], [], []
+    for view in views:
+        h, w = view.range_map.shape
+        rng = view.range_map[::step, ::step]
+        ok = np.isfinite(rng)
+        center = camera_center(view.R_cam_from_world, view.t_cam_from_world)
+        points.append(center + reduced_bearings_world(view.R_cam_from_world, w, h)[::step, ::step][ok]
+                      * rng[ok][:, None])
+        ranges.append(rng[ok])
+        observers.append(np.broadcast_to(center, (int(ok.sum()), 3)))
+    return np.concatenate(points), np.concatenate(ranges), np.concatenate(observers)
+
+
 def project_into(view: View, points: np.ndarray, shape: tuple[int, int]
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(row, col, range) of world points in ``view``'s reduced grid of ``shape`` (h, w): the nearest pixel
