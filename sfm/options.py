@@ -166,9 +166,13 @@ class TriangulationOptions:
     gravity_prior: bool = setting(True, "bundle adjustment holds each image's tilt to its gravity from vertical "
                                   "lines (filter.upright: vanishing), weighted by its precision")
     free_block_min_pairs: int = setting(3, "after the final adjustment, blocks of cameras that share no track with "
-                                        "the rest (meeting at one camera) and hold this many verified pairs get the "
-                                        "median pair baseline of the block with the most pairs", ge=0, le=1_000_000,
+                                        "the rest (meeting at one camera) and hold this many verified pairs are scaled "
+                                        "to the block with the most pairs (free_block_scale)", ge=0, le=1_000_000,
                                         zero_means="keep registration's scales")
+    free_block_scale: str = setting("camera_height", "what such a block's scale is set by: its cameras' median "
+                                    "height above the floor equal to the root block's (a tripod keeps it; the "
+                                    "baseline where either block's floor is not seen), or the median pair baseline",
+                                    choices=("camera_height", "baseline"))
     RULES: ClassVar[list[Rule]] = []
 
 

@@ -3,8 +3,9 @@
 Two rounds: triangulate with the registration's poses and keep tracks under a loose error bound, bundle-adjust
 the poses on each image's longest of them, then re-triangulate every track with the refined poses, apply the
 configured bounds and bundle-adjust again. Blocks of cameras that no track joins to the rest (rooms meeting at one
-doorway camera) are then put at one median pair baseline (`triangulation.free_block_min_pairs`): the adjustment's
-cost is the same for any scale of such a block, so it kept registration's guesses.
+doorway camera) are then put at the root block's camera height above the floor, or one median pair baseline where a
+floor is not seen (`triangulation.free_block_min_pairs`, `free_block_scale`): the adjustment's cost is the same for
+any scale of such a block, so it kept registration's guesses.
 Every model of the registration is adjusted in its own frame (one problem, its first camera fixed per model: tracks
 never span two models, since only pairs inside one model are consistent) and written as ``models/<k>/``.
 """
@@ -16,7 +17,7 @@ import numpy as np
 
 from fullview.io.exports import SparseModel, split_models, write_colmap_model
 from fullview.sfm.bundle import bundle_adjust, gravity_error_factor, gravity_prior_for_models, with_gravity_error
-from fullview.sfm.registration.free_blocks import camera_links, free_block_similarities
+from fullview.sfm.registration.free_blocks import camera_heights, camera_links, free_block_similarities
 from fullview.sfm.tracks import Tracks, build_tracks
 from fullview.sfm.options import TriangulationOptions
 from fullview.sfm.triangulation import (filter_tracks, gather_bearings, longest_tracks_per_image,
@@ -61,8 +62,9 @@ def run(ctx: StageContext) -> dict:
     min_angle = np.radians(config.min_triangulation_angle_deg)
 
     # The filter's gravity per image (absent from workspaces it wrote before it stored them: no prior).
-    gravity = (verified.extra.get("gravity"), verified.extra.get("gravity_std_rad")) if config.gravity_prior else None
-    gravity = gravity if gravity is not None and gravity[0] is not None and gravity[1] is not None else None
+    measured = (verified.extra.get("gravity"), verified.extra.get("gravity_std_rad"))
+    measured = measured if measured[0] is not None and measured[1] is not None else None
+    gravity = measured if config.gravity_prior else None
     keep = _triangulate_and_filter(tracks, bearings, R, t, LOOSE_FACTOR * max_err, min_angle)
     tracks_kept, points = tracks.subset(keep[0]), keep[1]
     if config.bundle_adjust and tracks_kept.num_tracks:
@@ -82,23 +84,41 @@ def run(ctx: StageContext) -> dict:
         final, points, errors = final.subset(good), points[good], errors[good[final.track_ids]]
         if config.free_block_min_pairs:
             pairs = np.asarray(verified.pairs, np.int64).reshape(-1, 2)[reg["pair_inlier_mask"]]
-            R, t, points = _rescale_free_blocks(final, R, t, points, pairs, config.free_block_min_pairs)
+            down = _model_down(R, model_id, measured) if config.free_block_scale == "camera_height" else None
+            R, t, points = _rescale_free_blocks(final, R, t, points, pairs, config.free_block_min_pairs, down)
     else:  # the errors of the points just triangulated (with an adjustment, its own errors replace them)
         errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     return _write(ctx, obs, model_id, R, t, final, points, errors, geometry_pairs=len(extra))
 
 
-def _rescale_free_blocks(tracks: Tracks, R, t, points, pairs, min_pairs: int):
-    """Blocks of cameras that no track joins put at one median verified-pair baseline (`free_blocks`): the
-    adjustment's cost is the same for any scale of such a block about its junction camera, so it kept the parts'
-    guesses."""
+def _model_down(R, model_id, gravity) -> np.ndarray | None:
+    """(N, 3) each camera's model's down direction in world coordinates: the mean of its images' measured gravity
+    carried to the world (None without gravity; nan rows for a model with none)."""
+    if gravity is None:
+        return None
+    g, std = gravity
+    measured = np.isfinite(std) & (np.linalg.norm(g, axis=1) > 0) & (model_id >= 0)
+    world = np.einsum("nji,nj->ni", R, g)
+    down = np.full((len(R), 3), np.nan)
+    for k in np.unique(model_id[measured]):
+        mean = world[measured & (model_id == k)].sum(axis=0)
+        down[model_id == k] = mean / np.linalg.norm(mean)
+    return down
+
+
+def _rescale_free_blocks(tracks: Tracks, R, t, points, pairs, min_pairs: int, down=None):
+    """Blocks of cameras that no track joins put at the root block's median camera height above the floor, or
+    where a floor is not seen (or `down` is None) its median verified-pair baseline (`free_blocks`): the adjustment's
+    cost is the same for any scale of such a block about its junction camera, so it kept the parts' guesses."""
     centers = -np.einsum("nba,nb->na", R, t)
+    heights = None if down is None else camera_heights(centers, down, points, tracks.track_ids, tracks.image_ids)
     scale, shift, depth = free_block_similarities(centers, camera_links(tracks.track_ids, tracks.image_ids), pairs,
-                                                  min_pairs)
+                                                  min_pairs, heights)
     if np.all(scale == 1.0):
         return R, t, points
     moved = centers * scale[:, None] + shift
-    log.info("blocks no track joins re-scaled to one median baseline: cameras %s, scales %s",
+    log.info("blocks no track joins re-scaled to one camera height (%d cameras measure one) or median baseline: "
+             "cameras %s, scales %s", 0 if heights is None else int(np.isfinite(heights).sum()),
              np.flatnonzero(scale != 1.0).tolist(), np.round(np.unique(scale[scale != 1.0]), 3).tolist())
     # each track's points move with its deepest camera (the block it lies in)
     order = np.lexsort((depth[tracks.image_ids], tracks.track_ids))
