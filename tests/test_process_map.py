@@ -50,10 +50,14 @@ def test_runner_counts_the_workers_cpu_time():
 
 
 def test_filter_stage_in_workers_equals_threads(tiny_dataset, make_pipeline, monkeypatch):
+    forks = []
+    monkeypatch.setattr(filter_stage, "FORK_MIN_PAIRS", 1)
+    monkeypatch.setattr(filter_stage, "process_map", lambda *a, **k: forks.append(1) or protocol.process_map(*a, **k))
     pipe = make_pipeline(tiny_dataset)
     pipe.run(until="filter")
+    assert forks
     forked = pipe.ws.folder("filter") / "inliers.npz"
     forked_bytes = forked.read_bytes()
-    monkeypatch.setattr(filter_stage, "process_map", protocol.thread_map)
+    monkeypatch.setattr(filter_stage, "FORK_MIN_PAIRS", 10**9)
     assert pipe.run(start="filter", until="filter") == ["filter"]
     assert forked.read_bytes() == forked_bytes
