@@ -60,15 +60,15 @@ def run(ctx: StageContext) -> dict:
     names = ctx.dataset.image_names
     gps = ctx.dataset.gps_positions() if uses_gps(len(names), options) else None
     with ThreadPoolExecutor(1) as side:
-        # The images' second moments on the executor (the other core idled while one loop read and multiplied them),
-        # summed in image order: the basis of `descriptor_basis`, bit for bit. They do not depend on the pair plan,
-        # so they are computed while it is made (retrieval's serial parts left a core idle on a walk).
-        basis = (side.submit(basis_from_moments, ctx.map(partial(image_moment, ctx.ws.root, names),
-                                                         range(len(names))), options.descriptor_dims)
-                 if options.descriptor_dims else None)
-        # retrieval's per-image work on local threads (its tasks are lambdas over the stored descriptors)
-        plan = plan_pairs(StoredDescriptors(ctx.ws, names), options, gps, map=thread_map)
-        basis = basis.result() if basis is not None else None
+        # The pair plan is made on a side thread (retrieval's per-image work on local threads: its tasks are lambdas
+        # over the stored descriptors) while the stage's fan-out computes the images' second moments, which do not
+        # depend on it: retrieval's serial parts left a core idle on a walk. The fan-out stays on this thread (a
+        # cluster's map needs the worker's own task thread). The moments are summed in image order: the basis of
+        # `descriptor_basis`, bit for bit.
+        plan = side.submit(plan_pairs, StoredDescriptors(ctx.ws, names), options, gps, map=thread_map)
+        basis = (basis_from_moments(ctx.map(partial(image_moment, ctx.ws.root, names), range(len(names))),
+                                    options.descriptor_dims) if options.descriptor_dims else None)
+        plan = plan.result()
     matched: dict[tuple[int, int], np.ndarray] = {}
     with tqdm(total=len(plan.all_pairs), desc="matches", unit="pair") as bar:
         match = partial(_match_pairs, ctx, options, basis, matched, bar)
