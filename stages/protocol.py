@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator, Protocol
@@ -29,12 +30,12 @@ def process_map(fn: Callable[[Any], Any], items: Iterable[Any], *, processes: in
     """`thread_map` on forked worker processes, for work whose Python between numpy calls holds the GIL: two threads
     of it contend for the GIL and use the two cores only 1.4 times (the filter's verification). The workers are
     forked, so `fn` and what it refers to are inherited, not pickled; only the items and the results travel (both
-    must pickle). Falls back to threads where forking is unavailable or not allowed (a daemonic process, such as a
-    Dask worker). The runner counts the workers' CPU time with the stage's."""
+    must pickle). Falls back to threads where forking is not allowed (a daemonic process, such as a Dask worker) or
+    not safe (only Linux: macOS's system libraries do not survive a fork, Windows has none). The runner counts the
+    workers' CPU time with the stage's."""
     items = list(items)
     workers = min(processes or os.cpu_count() or 1, os.cpu_count() or 1, len(items))
-    if (workers < 2 or multiprocessing.current_process().daemon
-            or "fork" not in multiprocessing.get_all_start_methods()):
+    if workers < 2 or multiprocessing.current_process().daemon or not sys.platform.startswith("linux"):
         yield from thread_map(fn, items, threads=processes)
         return
     # Several tasks per message on long lists (the pipe's cost per task ~0.1 ms), but many more tasks than workers, so
