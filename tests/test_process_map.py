@@ -61,3 +61,30 @@ def test_filter_stage_in_workers_equals_threads(tiny_dataset, make_pipeline, mon
     monkeypatch.setattr(filter_stage, "FORK_MIN_PAIRS", 10**9)
     assert pipe.run(start="filter", until="filter") == ["filter"]
     assert forked.read_bytes() == forked_bytes
+
+
+def test_npz_headers_are_never_parsed_by_two_threads_at_once(tmp_path, monkeypatch):
+    """CPython 3.11's AST constructor is not thread-safe (python/cpython#106905) and numpy parses every .npy header
+    with ast.literal_eval: the stages' threads that load features at once must take turns."""
+    import ast
+    import threading
+
+    from fullview.io.artifacts import load_npz, save_npz
+    from fullview.stages.protocol import thread_map
+    paths = [save_npz(tmp_path / f"{k}.npz", 1, a=np.arange(k + 3)) for k in range(8)]
+    inside, overlaps, lock, parse = [0], [0], threading.Lock(), ast.literal_eval
+
+    def slow_parse(text):
+        with lock:
+            inside[0] += 1
+            overlaps[0] += inside[0] > 1
+        time.sleep(0.005)  # widen the window a racing thread would hit
+        try:
+            return parse(text)
+        finally:
+            with lock:
+                inside[0] -= 1
+    monkeypatch.setattr(ast, "literal_eval", slow_parse)
+    loaded = list(thread_map(lambda p: load_npz(p, 1)["a"], paths * 4, threads=4))
+    assert [len(a) for a in loaded] == [k + 3 for k in range(8)] * 4
+    assert overlaps[0] == 0
