@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import threading
 import zipfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -61,14 +62,21 @@ def save_npz(path: Path, version: int, **arrays: np.ndarray) -> Path:
     return Path(path)
 
 
+# numpy parses every .npy header with ast.literal_eval, and CPython 3.11 keeps the AST constructor's recursion depth
+# per interpreter, not per thread: two threads parsing at once can fail with "SystemError: AST constructor recursion
+# depth mismatch" (python/cpython#106905). Stages load features on several threads at once, so npz reads take turns.
+_NPZ_READ_LOCK = threading.Lock()
+
+
 def load_npz(path: Path, version: int, keys: tuple[str, ...] = (), *, only: bool = False) -> dict[str, np.ndarray]:
     """Load an npz written by `save_npz`, checking its version and required keys; with `only`, just those keys are
-    read (an npz member is read when asked for: the features' descriptors are 90% of their file)."""
+    read (an npz member is read when asked for: the features' descriptors are 90% of their file). One thread reads
+    at a time (`_NPZ_READ_LOCK`)."""
     path = Path(path)
     if not path.exists():
         raise ArtifactError(f"missing artifact {path}")
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with _NPZ_READ_LOCK, np.load(path, allow_pickle=False) as data:
             found = int(data[FORMAT_KEY]) if FORMAT_KEY in data else None
             if found != version:
                 raise ArtifactError(f"{path}: format version {found}, expected {version}; rerun its stage")

@@ -13,7 +13,7 @@ by cosine similarity. No shipped vocabulary: trained per dataset it costs second
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from itertools import combinations
 
@@ -25,8 +25,12 @@ from fullview.sfm.options import MatchesOptions
 log = logging.getLogger(__name__)
 
 Pairs = list[tuple[int, int]]
+# map(fn, items) -> results in the order of items: builtin map, or a stage's fan-out (threads) for per-image work
+Mapper = Callable[[Callable, Iterable], Iterator]
 EARTH_RADIUS_M = 6_371_008.8  # mean Earth radius (IUGG)
 KMEANS_ITERATIONS = 15  # Lloyd iterations of the vocabulary (converged well enough for retrieval by then)
+ASSIGN_ROWS = 8192  # sample rows assigned to words per task: the same chunks whatever runs them, so the same words
+SAMPLE_AHEAD = 8  # images whose descriptors the vocabulary's sample reads at a time (on `map`): bounded memory
 
 
 def _sorted_pairs(pairs) -> Pairs:
@@ -52,11 +56,16 @@ def pair_list(num_images: int, mode: str = "exhaustive", window: int = MatchesOp
 
 
 # ------------------------------------------------------------------------------------------------ retrieval
-def _sample_descriptors(descriptors: list[np.ndarray], per_image: int, rng: np.random.Generator) -> np.ndarray:
+def _sample_descriptors(descriptors: Sequence[np.ndarray], per_image: int, rng: np.random.Generator,
+                        map: Mapper = map) -> np.ndarray:
+    """Up to `per_image` descriptors of every image, drawn in image order (`descriptors[k]` read `SAMPLE_AHEAD`
+    images at a time on `map`)."""
     parts = []
-    for d in descriptors:
-        take = rng.choice(len(d), size=min(per_image, len(d)), replace=False) if len(d) else np.zeros(0, int)
-        parts.append(np.asarray(d, np.float32)[np.sort(take)])
+    for start in range(0, len(descriptors), SAMPLE_AHEAD):
+        block = range(start, min(start + SAMPLE_AHEAD, len(descriptors)))
+        for d in list(map(descriptors.__getitem__, block)):
+            take = rng.choice(len(d), size=min(per_image, len(d)), replace=False) if len(d) else np.zeros(0, int)
+            parts.append(np.asarray(d, np.float32)[np.sort(take)])
     return np.concatenate(parts) if parts else np.zeros((0, 128), np.float32)
 
 
@@ -65,16 +74,24 @@ def _nearest_word(x: np.ndarray, words: np.ndarray) -> np.ndarray:
     return np.argmax(x @ words.T - 0.5 * np.einsum("ij,ij->i", words, words)[None, :], axis=1)
 
 
-def train_vocabulary(descriptors: list[np.ndarray], size: int, seed: int, per_image: int) -> np.ndarray:
+def _nearest_words(x: np.ndarray, words: np.ndarray, map: Mapper = map) -> np.ndarray:
+    """`_nearest_word` of every row of x, `ASSIGN_ROWS` rows per task on `map`: the k-means iterations' products are
+    most of the vocabulary's cost, and the chunks do not depend on who runs them."""
+    starts = range(0, len(x), ASSIGN_ROWS)
+    return np.concatenate(list(map(lambda s: _nearest_word(x[s:s + ASSIGN_ROWS], words), starts)))
+
+
+def train_vocabulary(descriptors: Sequence[np.ndarray], size: int, seed: int, per_image: int,
+                     map: Mapper = map) -> np.ndarray:
     """(size, D) k-means words from up to `per_image` descriptors of every image (seeded sample and start)."""
     rng = np.random.default_rng(seed)
-    sample = _sample_descriptors(descriptors, per_image, rng)
+    sample = _sample_descriptors(descriptors, per_image, rng, map)
     if len(sample) == 0:
-        return np.zeros((0, descriptors[0].shape[1] if descriptors else 128), np.float32)
+        return np.zeros((0, descriptors[0].shape[1] if len(descriptors) else 128), np.float32)
     size = min(size, len(sample))
     words = sample[np.sort(rng.choice(len(sample), size=size, replace=False))].copy()
     for _ in range(KMEANS_ITERATIONS):
-        assign = _nearest_word(sample, words)
+        assign = _nearest_words(sample, words, map)
         counts = np.bincount(assign, minlength=size).astype(np.float32)
         sums = _word_sums(sample, assign, size)
         filled = counts > 0  # an empty word keeps its place (rare with a sample this much larger)
@@ -101,10 +118,13 @@ def vlad(descriptors: np.ndarray, words: np.ndarray) -> np.ndarray:
     return (v / max(float(np.linalg.norm(v)), 1e-12)).astype(np.float32)
 
 
-def global_descriptors(descriptors: list[np.ndarray], size: int, seed: int, per_image: int) -> np.ndarray:
-    """(N, size * D) VLAD vectors of all images with a vocabulary trained on them."""
-    words = train_vocabulary(descriptors, size, seed, per_image)
-    return np.stack([vlad(d, words) for d in descriptors]) if descriptors else np.zeros((0, 0), np.float32)
+def global_descriptors(descriptors: Sequence[np.ndarray], size: int, seed: int, per_image: int,
+                       map: Mapper = map) -> np.ndarray:
+    """(N, size * D) VLAD vectors of all images with a vocabulary trained on them; the per-image vectors (and the
+    reads of `descriptors[k]`, which may load from disk) and the vocabulary's assignments on `map`."""
+    words = train_vocabulary(descriptors, size, seed, per_image, map)
+    vectors = list(map(lambda k: vlad(descriptors[k], words), range(len(descriptors))))
+    return np.stack(vectors) if vectors else np.zeros((0, 0), np.float32)
 
 
 def similarity_ranking(global_desc: np.ndarray) -> np.ndarray:
@@ -207,11 +227,12 @@ def loop_reach(options: MatchesOptions) -> int:
     return 2 * options.window if uses_window and options.loop_patience > 0 else 0
 
 
-def plan_pairs(descriptors: list[np.ndarray], options: MatchesOptions, gps: np.ndarray | None = None) -> PairPlan:
+def plan_pairs(descriptors: Sequence[np.ndarray], options: MatchesOptions, gps: np.ndarray | None = None,
+               map: Mapper = map) -> PairPlan:
     """The pairs `options.pairs` asks for, split into those matched at once and the loop candidates.
 
     descriptors: every image's (M_i, D) descriptors, in capture order; gps: (N, 3) latitude, longitude, altitude per
-    image (NaN where the image has none) or None."""
+    image (NaN where the image has none) or None; map: how retrieval's per-image work fans out (the same result)."""
     # every option is read whatever the mode (the settings test checks each key reaches its stage)
     n, mode, o = len(descriptors), options.pairs, options
     window, neighbours, gps_k, gps_radius = o.window, o.retrieval_neighbours, o.gps_neighbours, o.gps_radius_m
@@ -228,7 +249,7 @@ def plan_pairs(descriptors: list[np.ndarray], options: MatchesOptions, gps: np.n
     if mode in ("sequential", "auto"):
         sources["sequential"] = sequential(n, window)
     if neighbours > 0:
-        g = global_descriptors(descriptors, *vocabulary)
+        g = global_descriptors(descriptors, *vocabulary, map=map)
         if mode == "sequential":
             sources["loops"] = loop_closures(g, window, neighbours)
         else:

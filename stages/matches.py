@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
 
@@ -30,7 +31,7 @@ from fullview.sfm.matching import (basis_from_moments, match_descriptors, pair_b
                                    second_moment)
 from fullview.sfm.options import MatchesOptions
 from fullview.sfm.pairs import first_loop_proposals, loop_rounds, plan_pairs, uses_gps
-from fullview.stages.protocol import StageContext
+from fullview.stages.protocol import StageContext, thread_map
 
 log = logging.getLogger(__name__)
 
@@ -58,11 +59,16 @@ def run(ctx: StageContext) -> dict:
     options = ctx.options
     names = ctx.dataset.image_names
     gps = ctx.dataset.gps_positions() if uses_gps(len(names), options) else None
-    plan = plan_pairs(StoredDescriptors(ctx.ws, names), options, gps)
-    # The images' second moments on the executor (the other core idled while one loop read and multiplied them),
-    # summed in image order: the basis of `descriptor_basis`, bit for bit.
-    basis = (basis_from_moments(ctx.map(partial(image_moment, ctx.ws.root, names), range(len(names))),
-                                options.descriptor_dims) if options.descriptor_dims else None)
+    with ThreadPoolExecutor(1) as side:
+        # The pair plan is made on a side thread (retrieval's per-image work on local threads: its tasks are lambdas
+        # over the stored descriptors) while the stage's fan-out computes the images' second moments, which do not
+        # depend on it: retrieval's serial parts left a core idle on a walk. The fan-out stays on this thread (a
+        # cluster's map needs the worker's own task thread). The moments are summed in image order: the basis of
+        # `descriptor_basis`, bit for bit.
+        plan = side.submit(plan_pairs, StoredDescriptors(ctx.ws, names), options, gps, map=thread_map)
+        basis = (basis_from_moments(ctx.map(partial(image_moment, ctx.ws.root, names), range(len(names))),
+                                    options.descriptor_dims) if options.descriptor_dims else None)
+        plan = plan.result()
     matched: dict[tuple[int, int], np.ndarray] = {}
     with tqdm(total=len(plan.all_pairs), desc="matches", unit="pair") as bar:
         match = partial(_match_pairs, ctx, options, basis, matched, bar)

@@ -267,7 +267,7 @@ class Pipeline:
         log.info("%-13s running", stage)
         record = self.fingerprint_record(stage)  # what the run is built from, taken before it reads anything
         fingerprint = self.fingerprint(stage)
-        t0, cpu0 = time.perf_counter(), time.process_time()
+        t0, cpu0 = time.perf_counter(), cpu_seconds()
         # Single-threaded BLAS: our solvers make many small calls, which OpenBLAS threads only slow down (4-10x on
         # a loaded 2-core machine); stages parallelise over pairs or images themselves where it pays.
         with self.ws.locked(command=f"fullview run ({stage})"), self.ws.transaction(stage) as out, \
@@ -279,12 +279,26 @@ class Pipeline:
                 "fingerprint": fingerprint,
                 "wall_time_s": round(time.perf_counter() - t0, 3),
                 # every thread of this process (a stage's own fan-out); on a shared machine it moves less than wall
-                "cpu_time_s": round(time.process_time() - cpu0, 3),
-                "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+                "cpu_time_s": round(cpu_seconds() - cpu0, 3),
+                "peak_rss_mb": peak_rss_mb(),
                 "summary": summary,
             })
         log.info("%-13s done in %.1f s %s", stage, manifest["wall_time_s"], _short(summary))
         return manifest
+
+
+def cpu_seconds() -> float:
+    """CPU seconds of every thread of this process and of its reaped child processes (a stage's forked workers,
+    `protocol.process_map`)."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+def peak_rss_mb() -> float:
+    """The largest resident set of this process or of any reaped child process so far (MB). A forked worker's
+    counts the parent's pages it shares and touches, so this is the peak of one process, not of their sum."""
+    peaks = (resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    return round(max(peaks) / 1024, 1)
 
 
 _BLAS_CONTROLLER: tuple[int, ThreadpoolController] | None = None

@@ -100,9 +100,47 @@ def test_exif_gps_is_read(tmp_path: Path):
     assert exif_gps(tmp_path / "b.jpg") is None
 
 
+def _png_chunks(data: bytes) -> list[bytes]:
+    chunks, at = [], 8
+    while at < len(data):
+        length = int.from_bytes(data[at:at + 4], "big")
+        chunks.append(data[at:at + 12 + length])
+        at += 12 + length
+    return chunks
+
+
+def test_png_gps_is_read_wherever_its_exif_chunk_is_and_a_png_without_is_not_decoded(tmp_path: Path, monkeypatch):
+    image = PIL.Image.new("RGB", (64, 32))
+    exif = image.getexif()
+    exif.get_ifd(0x8825).update({1: "S", 2: (10.0, 15.0, 0.0), 3: "E", 4: (20.0, 0.0, 0.0), 6: 3.0})
+    image.save(tmp_path / "a.png", exif=exif.tobytes())
+    chunks = _png_chunks((tmp_path / "a.png").read_bytes())
+    assert [c[4:8] for c in chunks].count(b"eXIf") == 1
+    # the eXIf chunk after the image data (allowed by the PNG spec): PIL decodes the image to find it
+    late = [c for c in chunks if c[4:8] not in (b"eXIf", b"IEND")]
+    late += [c for c in chunks if c[4:8] == b"eXIf"] + [chunks[-1]]
+    (tmp_path / "late.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"".join(late))
+    PIL.Image.new("RGB", (64, 32)).save(tmp_path / "b.png")
+    for name in ("a.png", "late.png"):
+        assert exif_gps(tmp_path / name) == pytest.approx((-10.25, 20.0, 3.0))
+    monkeypatch.setattr(PIL.Image, "open", lambda *a, **k: pytest.fail("a PNG without EXIF chunks was opened"))
+    assert exif_gps(tmp_path / "b.png") is None
+
+
 def test_geometry_pairs_propose_unmatched_neighbours_of_registered_cameras():
     centers = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [0.5, 0, 0]])
     registered = np.array([True, True, True, True, False])
     proposed = P.geometry_pairs(centers, registered, existing=[(0, 1)], neighbours=1)
     assert proposed == [(1, 2), (2, 3)]  # (0, 1) is matched already; 4 is not registered (ties: lower index)
     assert P.geometry_pairs(centers, registered, existing=[], neighbours=2) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)]
+
+
+def test_retrieval_on_threads_in_row_chunks_equals_one_loop(monkeypatch):
+    from fullview.stages.protocol import thread_map
+    desc = _walk_descriptors(list(range(0, 40, 3)))
+    serial = P.global_descriptors(desc, 16, 0, 200)
+    monkeypatch.setattr(P, "ASSIGN_ROWS", 97)  # the sample's rows in many chunks, the last one short
+    assert np.array_equal(P.global_descriptors(desc, 16, 0, 200, map=thread_map), serial)
+    options = MatchesOptions(pairs="auto", auto_exhaustive_below=2, window=2, retrieval_neighbours=4,
+                             vocabulary_size=16, vocabulary_sample=200)
+    assert P.plan_pairs(desc, options, map=thread_map) == P.plan_pairs(desc, options)
