@@ -247,6 +247,9 @@ class DensifyOptions:
     free_floor: bool = setting(True, "a pixel no other rule fills may take the level world plane below its camera "
                                "(its floor, spanning under it) where that is the first plane its ray meets, in a room "
                                "(a ceiling spans over the camera too), without its region's stereo support")
+    free_walls: bool = setting(True, "a pixel no other rule fills (not even free_floor) may take the first world plane "
+                               "its ray meets where that is a wall (upright), in a room, without its region's stereo "
+                               "support; the view checks still apply")
     ground_max_tilt_deg: float = setting(10.0, "world planes: the ground (best supported level plane below the "
                                          "cameras) is refitted with a tilt up to this where that explains 1.5x its "
                                          "points (outdoor ground slopes)", ge=0.0, le=30.0, zero_means="always level")
