@@ -274,6 +274,9 @@ class DensifyOptions:
     occlusion_aware_vote: bool = setting(True, "the world fill's view check of floor and ceiling pixels: another "
                                          "colour seen by a panorama whose world planes put a surface in front of "
                                          "the point (a floor next to a cupboard) is no vote against it")
+    occlusion_aware_wall_vote: bool = setting(True, "with occlusion_aware_vote, the same for wall pixels: with whole "
+                                              "walls and free_walls the model's nearest plane is mostly the wall "
+                                              "seen, and the colour of a surface it puts in front is no vote")
     one_level_plane_per_band: bool = setting(True, "world planes: the level planes seen from one side within 3 median "
                                              "tolerances of each other (one ceiling found in pieces a few cm apart) "
                                              "become one, at the mode of their points' heights, judged invented only "

@@ -88,6 +88,8 @@ class WorldPlaneOptions:
     # the first plane its ray meets, in a room (a ceiling spans over the camera too): _free_floor
     free_walls: bool = True  # label_pixels: a pixel nothing else takes (not even the free floor) may take the first
     # plane its ray meets where that is a wall (upright), in a room: _free_walls
+    occluders_on_walls: bool = True  # fill_from_world_planes: the occluders void votes against wall pixels too (else
+    # against floor and ceiling pixels only)
     snap_deg: float = 6.0  # with up known: level planes exactly level, upright ones within this angle of the dominant
     # wall direction (or its perpendicular) turned onto it (_snap_to_gravity); 0: fitted normals kept
     one_level_per_band: bool = True  # with snap_deg > 0: the level planes of one side within LEVEL_MERGE_BANDS
@@ -1137,13 +1139,16 @@ def fill_from_world_planes(ref: View, planes: list[WorldPlane], others: list[Vie
     points = pixel_points(ref, fill, rows, cols)
     gains = [exposure_gain(ref, o) for o in others]
     colors = ref.color[rows, cols]
-    # the occluders only for the floor and the ceiling (level planes): on walls they also let through the pixels
-    # labelled with a wall behind the right one (home 3: wrong wall fills 5.7% -> 7.2% of the wall pixels)
-    level = np.array([False] + [p.level for p in planes])[label[rows, cols]] if occluders is not None \
-        else np.zeros(len(rows), bool)
+    # the occluders for the floor and the ceiling (level planes), and with ``occluders_on_walls`` for the walls: with
+    # walls as pieces they let through the pixels labelled with a wall behind the right one (home 3: wrong wall fills
+    # 5.7% -> 7.2% of the wall pixels); with whole walls and free walls the views' votes against right wall pixels
+    # that the model says are hidden are most of what the check drops (home 13: 2.4x the wrong ones)
+    occludable = np.array([False] + [p.level or options.occluders_on_walls for p in planes])[label[rows, cols]] \
+        if occluders is not None else np.zeros(len(rows), bool)
     keep = np.zeros(len(rows), bool)
-    keep[~level] = check_against_views(points[~level], colors[~level], others, gains, view_options)
-    keep[level] = check_against_views(points[level], colors[level], others, gains, view_options, occluders)
+    keep[~occludable] = check_against_views(points[~occludable], colors[~occludable], others, gains, view_options)
+    keep[occludable] = check_against_views(points[occludable], colors[occludable], others, gains, view_options,
+                                           occluders)
     fill[rows[~keep], cols[~keep]] = np.nan
     label[rows[~keep], cols[~keep]] = 0
     return fill, label
