@@ -251,6 +251,9 @@ class DensifyOptions:
     free_floor: bool = setting(True, "a pixel no other rule fills may take the level world plane below its camera "
                                "(its floor, spanning under it) where that is the first plane its ray meets, in a room "
                                "(a ceiling spans over the camera too), without its region's stereo support")
+    free_walls: bool = setting(True, "a pixel no other rule fills (not even free_floor) may take the first world plane "
+                               "its ray meets where that is a wall (upright), in a room, without its region's stereo "
+                               "support; the view checks still apply")
     ground_max_tilt_deg: float = setting(10.0, "world planes: the ground (best supported level plane below the "
                                          "cameras) is refitted with a tilt up to this where that explains 1.5x its "
                                          "points (outdoor ground slopes)", ge=0.0, le=30.0, zero_means="always level")
@@ -275,6 +278,9 @@ class DensifyOptions:
     occlusion_aware_vote: bool = setting(True, "the world fill's view check of floor and ceiling pixels: another "
                                          "colour seen by a panorama whose world planes put a surface in front of "
                                          "the point (a floor next to a cupboard) is no vote against it")
+    occlusion_aware_wall_vote: bool = setting(True, "with occlusion_aware_vote, the same for wall pixels: with whole "
+                                              "walls and free_walls the model's nearest plane is mostly the wall "
+                                              "seen, and the colour of a surface it puts in front is no vote")
     one_level_plane_per_band: bool = setting(True, "world planes: the level planes seen from one side within 3 median "
                                              "tolerances of each other (one ceiling found in pieces a few cm apart) "
                                              "become one, at the mode of their points' heights, judged invented only "

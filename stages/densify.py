@@ -22,9 +22,10 @@
    what the views' confirmed stereo sees through (``densify.free_space_confirmed``); a pixel still empty gets the
    nearest such plane its ray meets, among those its image region's stereo depths support (a ceiling that spans over
    the camera needs none, ``densify.free_ceiling``, ``densify.ceiling_over_camera``; a wall may instead be
-   bracketed by the ranges next to the pixel in its image column or row, ``densify.wall_brackets``; in a room, a pixel still empty may take the floor under the camera where that is
-   the first plane its ray meets, ``densify.free_floor``), kept under the same view checks (by confirmed stereo) and
-   confirmation as 3b.
+   bracketed by the ranges next to the pixel in its image column or row, ``densify.wall_brackets``; in a room, a
+   pixel still empty may take the floor under the camera where that is the first plane its ray meets,
+   ``densify.free_floor``, or the first plane its ray meets where that is a wall, ``densify.free_walls``), kept under
+   the same view checks (by confirmed stereo) and confirmation as 3b.
    The maps are saved as ``depth/<stem>.npz``
    (``range``, ``valid``) and a colour-mapped ``depth/<stem>.png``.
 4. Fusion: every panorama's points are kept where the nearest other panoramas agree, voxel down-sampled per
@@ -354,7 +355,8 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
                                           walls_floor_to_ceiling=config.walls_floor_to_ceiling,
                                           wall_brackets=config.wall_brackets,
                                           ceiling_over_camera=config.ceiling_over_camera,
-                                          free_floor=config.free_floor,
+                                          free_floor=config.free_floor, free_walls=config.free_walls,
+                                          occluders_on_walls=config.occlusion_aware_wall_vote,
                                           ground_max_tilt_deg=config.ground_max_tilt_deg)
     points, ranges, observers = _model_points(views, sparse_points)
     up = camera_up(np.array([v.R_cam_from_world for v in views]))

@@ -22,8 +22,9 @@ has no single plane, but every pixel of it still lies on one of the world's plan
    plane's extent (from inside a room that is the surface it sees), among the planes that explain at least a
    quarter of the stereo depths around its image region (Canny edges and stereo pixels bound the regions, as in
    ``planes``; a region may leak, it then holds several planes' evidence); a pixel no such plane takes may take
-   the nearest wall that the ranges next to it in its image column or row lie on (``_wall_brackets``); small islands
-   of one label are dropped.
+   the nearest wall that the ranges next to it in its image column or row lie on (``_wall_brackets``); in a room, a
+   pixel still empty may take the first plane its ray meets where that is the floor (``_free_floor``) or a wall
+   (``_free_walls``); small islands of one label are dropped.
 4. ``fill_from_world_planes`` keeps a filled point where ``planes.check_against_views`` does (no nearby view sees
    through it; its colour is seen by another view); the stage then confirms it per tile by the other panoramas'
    results (``planes.confirmed_by_views``), as for the region fill.
@@ -85,6 +86,10 @@ class WorldPlaneOptions:
     ceiling_over_camera: bool = True  # ... only if its extent spans over the camera (outdoors: no ceiling at all)
     free_floor: bool = True  # label_pixels: a pixel nothing else takes may take the floor under the camera where it is
     # the first plane its ray meets, in a room (a ceiling spans over the camera too): _free_floor
+    free_walls: bool = True  # label_pixels: a pixel nothing else takes (not even the free floor) may take the first
+    # plane its ray meets where that is a wall (upright), in a room: _free_walls
+    occluders_on_walls: bool = True  # fill_from_world_planes: the occluders void votes against wall pixels too (else
+    # against floor and ceiling pixels only)
     snap_deg: float = 6.0  # with up known: level planes exactly level, upright ones within this angle of the dominant
     # wall direction (or its perpendicular) turned onto it (_snap_to_gravity); 0: fitted normals kept
     one_level_per_band: bool = True  # with snap_deg > 0: the level planes of one side within LEVEL_MERGE_BANDS
@@ -956,6 +961,9 @@ def label_pixels(ref: View, planes: list[WorldPlane], fillable: np.ndarray, opti
     if regions is not None and options.free_floor:
         _free_floor(planes, np.flatnonzero(taken == 0), bearings, center, camera_up(ref.R_cam_from_world[None]),
                     nearest, taken, options)
+    if regions is not None and options.free_walls:
+        _free_walls(planes, np.flatnonzero(taken == 0), bearings, center, camera_up(ref.R_cam_from_world[None]),
+                    nearest, taken, options)
     best[pix], label[pix] = nearest, taken
     label = _drop_islands(label.reshape(h, w), options.min_island_pixels)
     out = np.where(label > 0, best.reshape(h, w), np.nan).astype(np.float32)
@@ -981,6 +989,32 @@ def _take_nearest(plane: WorldPlane, k: int, sel: np.ndarray, bearings: np.ndarr
     taken[sel[inside]] = k + 1
 
 
+def _floor_in_room(planes: list[WorldPlane], center: np.ndarray, up: np.ndarray) -> list[int]:
+    """Indices of the level planes below ``center`` spanning under it (its floor), if a level plane above spans over
+    it too (a room: outdoors the ground keeps the region rule); else []."""
+    level = [k for k, p in enumerate(planes) if p.level and abs(float(p.normal @ up)) > 0.5 and p.spans_over(center)]
+    below = [k for k in level if (planes[k].offset - planes[k].normal @ center) / float(planes[k].normal @ up) < 0]
+    return below if len(below) < len(level) else []
+
+
+def _free_walls(planes: list[WorldPlane], free: np.ndarray, bearings: np.ndarray, center: np.ndarray, up: np.ndarray,
+                nearest: np.ndarray, taken: np.ndarray, options: WorldPlaneOptions) -> None:
+    """Label (in place) the pixels ``free`` (indices into ``bearings``, ``nearest``, ``taken``) with the first of all
+    the planes their ray meets inside its extent where that plane is a wall (upright), only in a room (as
+    ``_free_floor``). A plain wall's image region often holds no stereo on the wall at all (its stereo lies on the
+    ceiling and floor lines of a leaking region, or 3-13% off the wall, home 5), so neither the region rule nor the
+    brackets take it; from inside a room the first plane met is the surface seen. A cupboard that is a plane of the
+    model is met first and its face is taken; the view checks then judge every filled pixel as the others'."""
+    if not len(free) or not _floor_in_room(planes, center, up):
+        return
+    first, which = np.full(len(free), np.inf, np.float32), np.zeros(len(free), np.int32)
+    sel = np.arange(len(free))
+    for k, plane in enumerate(planes):
+        _take_nearest(plane, k, sel, bearings[free], center, first, which, options)
+    wall = np.array([False] + [not p.level for p in planes])[which]
+    nearest[free[wall]], taken[free[wall]] = first[wall], which[wall]
+
+
 def _free_floor(planes: list[WorldPlane], free: np.ndarray, bearings: np.ndarray, center: np.ndarray, up: np.ndarray,
                 nearest: np.ndarray, taken: np.ndarray, options: WorldPlaneOptions) -> None:
     """Label (in place) the pixels ``free`` (indices into ``bearings``, ``nearest``, ``taken``) whose ray meets the
@@ -990,9 +1024,8 @@ def _free_floor(planes: list[WorldPlane], free: np.ndarray, bearings: np.ndarray
     and one plain region runs from the floor up the walls, so the region rule refused the floor of whole rooms (home
     7: 91% of a panorama's floor). A cupboard whose plain face is no plane of its region would be filled with the
     floor behind it: where the cupboard is a plane of the model, the ray meets it first and the pixel stays empty."""
-    level = [k for k, p in enumerate(planes) if p.level and abs(float(p.normal @ up)) > 0.5 and p.spans_over(center)]
-    below = [k for k in level if (planes[k].offset - planes[k].normal @ center) / float(planes[k].normal @ up) < 0]
-    if not len(free) or not below or len(below) == len(level):
+    below = _floor_in_room(planes, center, up)
+    if not len(free) or not below:
         return
     sel = np.arange(len(free))
     first, which = np.full(len(free), np.inf, np.float32), np.zeros(len(free), np.int32)
@@ -1106,13 +1139,16 @@ def fill_from_world_planes(ref: View, planes: list[WorldPlane], others: list[Vie
     points = pixel_points(ref, fill, rows, cols)
     gains = [exposure_gain(ref, o) for o in others]
     colors = ref.color[rows, cols]
-    # the occluders only for the floor and the ceiling (level planes): on walls they also let through the pixels
-    # labelled with a wall behind the right one (home 3: wrong wall fills 5.7% -> 7.2% of the wall pixels)
-    level = np.array([False] + [p.level for p in planes])[label[rows, cols]] if occluders is not None \
-        else np.zeros(len(rows), bool)
+    # the occluders for the floor and the ceiling (level planes), and with ``occluders_on_walls`` for the walls: with
+    # walls as pieces they let through the pixels labelled with a wall behind the right one (home 3: wrong wall fills
+    # 5.7% -> 7.2% of the wall pixels); with whole walls and free walls the views' votes against right wall pixels
+    # that the model says are hidden are most of what the check drops (home 13: 2.4x the wrong ones)
+    occludable = np.array([False] + [p.level or options.occluders_on_walls for p in planes])[label[rows, cols]] \
+        if occluders is not None else np.zeros(len(rows), bool)
     keep = np.zeros(len(rows), bool)
-    keep[~level] = check_against_views(points[~level], colors[~level], others, gains, view_options)
-    keep[level] = check_against_views(points[level], colors[level], others, gains, view_options, occluders)
+    keep[~occludable] = check_against_views(points[~occludable], colors[~occludable], others, gains, view_options)
+    keep[occludable] = check_against_views(points[occludable], colors[occludable], others, gains, view_options,
+                                           occluders)
     fill[rows[~keep], cols[~keep]] = np.nan
     label[rows[~keep], cols[~keep]] = 0
     return fill, label
