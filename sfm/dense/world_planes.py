@@ -910,7 +910,7 @@ def _carve_locally(plane: WorldPlane, views: list[View], options: WorldPlaneOpti
     carved[rows, cols] = through > on
     seen_on = np.zeros(union.shape, bool)
     seen_on[rows, cols] = judged & (through <= on)
-    plane.extent = (plane.fallback | (plane.extent & _evidenced(seen_on, carved, options))) & ~carved
+    plane.extent = (plane.fallback | (plane.extent & (seen_on | _evidenced(seen_on, carved, options)))) & ~carved
     plane.fallback = None
     return True
 
