@@ -15,7 +15,9 @@ has no single plane, but every pixel of it still lies on one of the world's plan
 2. ``carve_extents``: every extent cell is looked at from every panorama; a cell that panoramas' stereo sees
    through more often than on it (a window, a doorway bridged by the closing) is removed, and a plane seen through
    on more than half of the cells some view has a range for was invented (e.g. through two parallel lines across a
-   room) and is dropped.
+   room) and is dropped. A wall is judged invented on its support's own extent, and each column its generous
+   extent adds keeps its cells no view judged only where the columns around it hold votes on the wall and not
+   mostly votes through it (``_carve_locally``): no whole-wall switch on one threshold.
    With gravity, a wall's columns are carried to the floor and ceiling planes where these do not go on behind it
    (``_walls_floor_to_ceiling``: a plain wall's stereo often holds only one of its two horizontal lines).
 3. ``region_candidates`` and ``label_pixels``: each empty pixel gets the nearest plane its ray meets inside that
@@ -833,8 +835,9 @@ def confirmed_views(views: list[View], neighbours: list[list[int]], tolerance: f
 
 
 def carve_extents(planes: list[WorldPlane], views: list[View], options: WorldPlaneOptions) -> list[WorldPlane]:
-    """Remove the extent cells that a view's stereo sees through; drop planes seen through on most of their
-    of the cells some view has a range for (invented planes). Returns the planes kept (extents modified in place)."""
+    """Remove the extent cells that a view's stereo sees through; drop planes seen through on most of the cells
+    some view has a range for (invented planes). A wall with a generous extent is judged cell by cell
+    (``_carve_locally``, with ``local_extent``). Returns the planes kept (extents modified in place)."""
     kept = []
     for plane in planes:
         if plane.fallback is not None and options.local_extent and not plane.level:
