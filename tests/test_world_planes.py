@@ -466,3 +466,17 @@ def test_a_wall_beside_an_opening_keeps_about_the_same_extent_when_one_more_colu
     for n in (4, 5):
         assert not kept[n, True][:, 20:20 + n].any()  # the opening
         assert kept[n, True][:, :20].all() and kept[n, True][:, 32:].all()  # the support, the plain wall further on
+
+
+def test_a_wall_narrower_than_the_window_of_votes_is_judged_by_all_its_columns():
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=CELL)
+    seen_on, carved = np.zeros((10, 5), bool), np.zeros((10, 5), bool)
+    seen_on[0, 0] = True
+    assert world_planes._evidenced(seen_on, carved, options).all()
+    carved[:, 4] = True
+    assert not world_planes._evidenced(seen_on, carved, options).any()
+    wide_on, wide_carved = np.zeros((10, 40), bool), np.zeros((10, 40), bool)
+    wide_on[0, 0] = True
+    wide_carved[:, 39] = True  # seen through 30 columns away: outside the window of the first columns
+    evidenced = world_planes._evidenced(wide_on, wide_carved, options)
+    assert evidenced[:, :9].all() and not evidenced[:, 9:].any()

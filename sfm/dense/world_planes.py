@@ -925,9 +925,10 @@ def _evidenced(seen_on: np.ndarray, carved: np.ndarray, options: WorldPlaneOptio
     column (``_gravity_extent``, ``_walls_floor_to_ceiling``), and a plain wall's votes lie on its floor and ceiling
     lines: a column is judged with its neighbours as one. A cell no view has judged needs votes on the wall next to
     it; one more vote moves only the columns whose window holds it."""
-    size = 2 * options.extent_evidence_cells + 1
-    on = np.convolve(seen_on.sum(axis=0), np.ones(size), mode="same")
-    through = np.convolve(carved.sum(axis=0), np.ones(size), mode="same")
+    k, cols = options.extent_evidence_cells, seen_on.shape[1]
+    window = np.ones(2 * k + 1)  # the full convolution's centred part: "same" gives the window's length if longer
+    on = np.convolve(seen_on.sum(axis=0), window)[k:k + cols]
+    through = np.convolve(carved.sum(axis=0), window)[k:k + cols]
     return np.broadcast_to((on > 0) & (through <= options.max_seen_through * (on + through)), seen_on.shape)
 
 
