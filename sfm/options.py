@@ -295,6 +295,10 @@ class DensifyOptions:
     walls_floor_to_ceiling: bool = setting(True, "world planes: every column of a wall's extent runs from the floor "
                                            "to the ceiling plane (what the views see through is cut, and a pixel "
                                            "takes the wall only where its region or its brackets support it)")
+    wall_extent_by_votes: bool = setting(True, "world planes: a wall is judged invented on its support's own extent, "
+                                         "and each column its generous extent adds (floor to ceiling) by the free-"
+                                         "space votes of the columns around it; false: the whole generous extent "
+                                         "against max_seen_through, else the support's extent alone")
     wall_brackets: bool = setting(True, "world fill: a wall may also take a pixel whose nearest ranges above and "
                                   "below it in its image column, or left and right in its row, lie on the wall "
                                   "(its floor and ceiling lines, its corners), whatever its image region's evidence")

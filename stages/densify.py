@@ -357,6 +357,7 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
                                           ceiling_over_camera=config.ceiling_over_camera,
                                           free_floor=config.free_floor, free_walls=config.free_walls,
                                           occluders_on_walls=config.occlusion_aware_wall_vote,
+                                          local_extent=config.wall_extent_by_votes,
                                           ground_max_tilt_deg=config.ground_max_tilt_deg)
     points, ranges, observers = _model_points(views, sparse_points)
     up = camera_up(np.array([v.R_cam_from_world for v in views]))

@@ -4,9 +4,11 @@ The room scenes (plain box, doorway, a plane seen through) are in tests/test_pla
 the gravity extents and the one-sided planes rely on, on exact synthetic points.
 """
 
+from dataclasses import replace
+
 import numpy as np
 
-from fullview.sfm.dense import world_planes
+from fullview.sfm.dense import planes, world_planes
 
 UP = np.array([0.0, -1.0, 0.0])  # y down, as the pipeline's cameras
 CELL = 0.1
@@ -420,3 +422,61 @@ def test_two_parallel_walls_a_wall_thickness_apart_are_not_merged():
                                                   np.concatenate([tolerance, tolerance[back]]), UP,
                                                   np.vstack([observers, behind[back]]), options)
     assert len(_walls_facing(out, [0.0, 0.0, 1.0], 0.0)) == 1 and len(_walls_facing(out, [0.0, 0.0, -1.0], 0.0)) == 2
+
+
+def _wall_beside_an_opening(opening_columns: int) -> tuple[world_planes.WorldPlane, list]:
+    """A wall z = 3 (x in [-2, 2], y from 1.2 up to -1.3: 40 x 25 cells) whose generous extent is its whole grid and
+    whose support's extent (``fallback``) its left 20 columns, and one view at the origin. The view's ranges: on the
+    wall along its floor and ceiling rows and its two corner columns (a plain wall's stereo); beyond the wall (the
+    room behind) in the ``opening_columns`` columns right of the support (an opening the generous extent bridged);
+    none elsewhere (plain)."""
+    rows, cols = 25, 40
+    plane = world_planes.WorldPlane(normal=np.array([0.0, 0.0, 1.0]), offset=3.0, origin=np.array([-2.0, 1.2, 3.0]),
+                                    axes=np.array([[1.0, 0, 0], [0, -1.0, 0]]), cell=CELL,
+                                    extent=np.ones((rows, cols), bool), support=1000, front=-1)
+    plane.fallback = np.zeros((rows, cols), bool)
+    plane.fallback[:, :20] = True
+    h, w = 512, 1024
+    bearings = planes.reduced_bearings_world(np.eye(3), w, h).reshape(-1, 3).astype(np.float64)
+    with np.errstate(divide="ignore"):
+        r = np.where(bearings[:, 2] > 0.1, 3.0 / bearings[:, 2], np.nan)
+    row, col, inside = plane.cells_of(np.nan_to_num(bearings * r[:, None]))
+    on = inside & ((row == 0) | (row == rows - 1) | (col == 0) | (col == cols - 1))
+    opening = inside & (col >= 20) & (col < 20 + opening_columns)
+    ranges = np.where(opening, 1.3 * r, np.where(on, r, np.nan)).astype(np.float32).reshape(h, w)
+    view = planes.View(R_cam_from_world=np.eye(3), t_cam_from_world=np.zeros(3), range_map=ranges,
+                       observable=np.ones((h, w), bool), color=np.zeros((h, w, 3), np.float32))
+    return plane, [view]
+
+
+def test_a_wall_beside_an_opening_keeps_about_the_same_extent_when_one_more_column_is_seen_through():
+    # 4 and 5 columns of the opening seen through: 46% and 52% of the judged cells of the generous extent, either
+    # side of max_seen_through. Judged as a whole, the wall kept its plain right part in the one and fell back to
+    # its support in the other (the 360_Flat cliff); judged column by column with the votes around, one more
+    # column seen through moves about one column, and no cell of the opening is kept either way
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=CELL)
+    kept = {}
+    for n in (4, 5):
+        for local in (True, False):
+            plane, views = _wall_beside_an_opening(n)
+            assert world_planes.carve_extents([plane], views, replace(options, local_extent=local)) == [plane]
+            kept[n, local] = plane.extent.copy()
+    assert abs(int(kept[4, False].sum()) - int(kept[5, False].sum())) >= 10 * 25  # the old rule's cliff
+    assert abs(int(kept[4, True].sum()) - int(kept[5, True].sum())) <= 2 * 25
+    for n in (4, 5):
+        assert not kept[n, True][:, 20:20 + n].any()  # the opening
+        assert kept[n, True][:, :20].all() and kept[n, True][:, 32:].all()  # the support, the plain wall further on
+
+
+def test_a_wall_narrower_than_the_window_of_votes_is_judged_by_all_its_columns():
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=CELL)
+    seen_on, carved = np.zeros((10, 5), bool), np.zeros((10, 5), bool)
+    seen_on[0, 0] = True
+    assert world_planes._evidenced(seen_on, carved, options).all()
+    carved[:, 4] = True
+    assert not world_planes._evidenced(seen_on, carved, options).any()
+    wide_on, wide_carved = np.zeros((10, 40), bool), np.zeros((10, 40), bool)
+    wide_on[0, 0] = True
+    wide_carved[:, 39] = True  # seen through 30 columns away: outside the window of the first columns
+    evidenced = world_planes._evidenced(wide_on, wide_carved, options)
+    assert evidenced[:, :9].all() and not evidenced[:, 9:].any()

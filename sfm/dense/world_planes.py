@@ -15,7 +15,9 @@ has no single plane, but every pixel of it still lies on one of the world's plan
 2. ``carve_extents``: every extent cell is looked at from every panorama; a cell that panoramas' stereo sees
    through more often than on it (a window, a doorway bridged by the closing) is removed, and a plane seen through
    on more than half of the cells some view has a range for was invented (e.g. through two parallel lines across a
-   room) and is dropped.
+   room) and is dropped. A wall is judged invented on its support's own extent, and each column its generous
+   extent adds keeps its cells no view judged only where the columns around it hold votes on the wall and not
+   mostly votes through it (``_carve_locally``): no whole-wall switch on one threshold.
    With gravity, a wall's columns are carried to the floor and ceiling planes where these do not go on behind it
    (``_walls_floor_to_ceiling``: a plain wall's stereo often holds only one of its two horizontal lines).
 3. ``region_candidates`` and ``label_pixels``: each empty pixel gets the nearest plane its ray meets inside that
@@ -77,6 +79,9 @@ class WorldPlaneOptions:
     min_evidence_cells: int = 20  # a plane is judged by the free-space check only with this many cells seen
     view_tolerance: float = 0.03  # relative range margin of "sees through" and of "occluded"
     max_seen_through: float = 0.5  # a plane whose extent is seen through more than this share is dropped
+    local_extent: bool = True  # a plane with a generous extent: judged on its support's extent, each added cell by
+    # the votes around it (_carve_locally); else the whole generous extent or, seen through, the support's alone
+    extent_evidence_cells: int = 8  # _evidenced: half-side of the window of votes an added cell is judged by
     min_incidence_deg: float = 8.0  # rays meeting a plane at a grazing angle are not filled
     min_region_support: int = 10  # stereo depths around an image region a plane must explain to be taken there
     min_region_share: float = 0.25  # ... and this share of them
@@ -835,11 +840,15 @@ def confirmed_views(views: list[View], neighbours: list[list[int]], tolerance: f
 
 
 def carve_extents(planes: list[WorldPlane], views: list[View], options: WorldPlaneOptions) -> list[WorldPlane]:
-    """Remove the extent cells that a view's stereo sees through; drop planes seen through on most of their
-    of the cells some view has a range for (invented planes). Returns the planes kept (extents modified in place)."""
+    """Remove the extent cells that a view's stereo sees through; drop planes seen through on most of the cells
+    some view has a range for (invented planes). A wall with a generous extent is judged cell by cell
+    (``_carve_locally``, with ``local_extent``). Returns the planes kept (extents modified in place)."""
     kept = []
     for plane in planes:
-        if _carve(plane, views, options):
+        if plane.fallback is not None and options.local_extent and not plane.level:
+            if _carve_locally(plane, views, options):
+                kept.append(plane)
+        elif _carve(plane, views, options):
             kept.append(plane)
         elif plane.fallback is not None:
             # the views see through most of the generous extent (a slightly tilted floor far from its support, a
@@ -856,9 +865,22 @@ def _carve(plane: WorldPlane, views: list[View], options: WorldPlaneOptions) -> 
     (rows, cols), centers = plane.cell_centers()
     if not len(rows):
         return False
-    through = np.zeros(len(rows), np.int32)
-    on = np.zeros(len(rows), np.int32)
-    beyond = np.zeros(len(rows), np.int32)  # seen through by more than the plane's drop_tolerance
+    through, on, invented = _cell_votes(plane, centers, views, options)
+    carved = through > on
+    judged = (through + on) > 0
+    if judged.sum() >= options.min_evidence_cells and invented.sum() > options.max_seen_through * judged.sum():
+        return False
+    plane.extent[rows[carved], cols[carved]] = False
+    return True
+
+
+def _cell_votes(plane: WorldPlane, centers: np.ndarray, views: list[View], options: WorldPlaneOptions
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per cell centre (N, 3) of the plane: (views seeing through it, views seeing a range on it, whether it counts
+    as seen through when judging if the plane was invented: beyond ``drop_tolerance`` if the plane has one)."""
+    through = np.zeros(len(centers), np.int32)
+    on = np.zeros(len(centers), np.int32)
+    beyond = np.zeros(len(centers), np.int32)  # seen through by more than the plane's drop_tolerance
     for view in views:
         row, col, r_pred = project_into(view, centers, view.range_map.shape)
         r_obs = view.range_map[row, col]
@@ -868,13 +890,51 @@ def _carve(plane: WorldPlane, views: list[View], options: WorldPlaneOptions) -> 
             on += seen & (np.abs(r_obs - r_pred) <= options.view_tolerance * r_pred)
             if plane.drop_tolerance > 0:
                 beyond += seen & (r_obs > (1 + plane.drop_tolerance) * r_pred)
-    carved = through > on
+    invented = (beyond > on) if plane.drop_tolerance > 0 else through > on  # the cells are carved as for every plane
+    return through, on, invented
+
+
+def _carve_locally(plane: WorldPlane, views: list[View], options: WorldPlaneOptions) -> bool:
+    """Judge a plane that has a generous extent and its support's own extent (``fallback``) cell by cell: whether it
+    was invented on the support's extent (what its points hold), and each cell the generous extent adds by the
+    evidence around it (``_evidenced``). False if invented (extents unchanged then); else the extent becomes the
+    support's extent and the evidenced added cells, less every cell the views see through.
+
+    Why: the old rule judged the whole generous extent against ``max_seen_through`` and, above it, fell back to the
+    support's extent: one threshold decided a whole wall's added cells. On 360_Flat the wall with the arched opening
+    into the corridor, judged 0.477 seen through in one run and 0.552 in another with the poses 1e-4° apart, filled
+    the opening (the corridor beyond, 10% of a panorama, at the range of the wall) in the one and not in the other.
+    Here a cell of the opening goes with the views' votes around it, wherever the plane's total lands."""
+    union = plane.extent | plane.fallback
+    rows, cols = np.nonzero(union)
+    uv = np.stack([cols + 0.5, rows + 0.5], axis=1) * plane.cell
+    through, on, invented = _cell_votes(plane, plane.origin + uv @ plane.axes, views, options)
+    support = plane.fallback[rows, cols]
     judged = (through + on) > 0
-    invented = (beyond > on) if plane.drop_tolerance > 0 else carved  # the cells are carved as for every plane
-    if judged.sum() >= options.min_evidence_cells and invented.sum() > options.max_seen_through * judged.sum():
+    if judged[support].sum() >= options.min_evidence_cells \
+            and invented[support].sum() > options.max_seen_through * judged[support].sum():
         return False
-    plane.extent[rows[carved], cols[carved]] = False
+    carved = np.zeros(union.shape, bool)
+    carved[rows, cols] = through > on
+    seen_on = np.zeros(union.shape, bool)
+    seen_on[rows, cols] = judged & (through <= on)
+    plane.extent = (plane.fallback | (plane.extent & (seen_on | _evidenced(seen_on, carved, options)))) & ~carved
+    plane.fallback = None
     return True
+
+
+def _evidenced(seen_on: np.ndarray, carved: np.ndarray, options: WorldPlaneOptions) -> np.ndarray:
+    """(rows, cols) bool: the cells of a wall's grid (rows along the vertical) whose columns, with the
+    ``extent_evidence_cells`` columns each side, hold cells the views see on the wall, and no more than
+    ``max_seen_through`` of the judged cells there seen through. A wall's generous extent is carried column by
+    column (``_gravity_extent``, ``_walls_floor_to_ceiling``), and a plain wall's votes lie on its floor and ceiling
+    lines: a column is judged with its neighbours as one. A cell no view has judged needs votes on the wall next to
+    it; one more vote moves only the columns whose window holds it."""
+    k, cols = options.extent_evidence_cells, seen_on.shape[1]
+    window = np.ones(2 * k + 1)  # the full convolution's centred part: "same" gives the window's length if longer
+    on = np.convolve(seen_on.sum(axis=0), window)[k:k + cols]
+    through = np.convolve(carved.sum(axis=0), window)[k:k + cols]
+    return np.broadcast_to((on > 0) & (through <= options.max_seen_through * (on + through)), seen_on.shape)
 
 
 # ------------------------------------------------------------------------------------------------ per pixel
