@@ -33,10 +33,11 @@
 
 Panoramas are never upsampled: the working width is at most the native width.
 
-Threads: pairs run two at a time, the per-panorama steps (region fill, world fill, confirmation, fusion, saving)
-on a pool of local threads, the world planes are found while the region fill runs, and BLAS keeps one thread; every
-result is gathered in a fixed order, so the outputs are the same bytes on any number of threads
-(``tests/test_densify_stage.py``). ``phases_s`` in the summary gives each phase's wall and CPU seconds.
+Threads: pairs run two at a time, the per-panorama steps (region fill, world fill, confirmation, fusion) on a pool
+of local threads, the world planes are found on a side thread while the stereo check and the region fill run, the
+maps are saved on one while the fusion runs, and BLAS keeps one thread; every result is gathered in a fixed order, so
+the outputs are the same bytes on any number of threads (``tests/test_densify_stage.py``). ``phases_s`` in the
+summary gives each phase's wall and CPU seconds (the process's: a side thread's count in the phase it ends in).
 """
 
 from __future__ import annotations
@@ -125,15 +126,17 @@ def _run(ctx: StageContext) -> dict:
         rng.ravel()[pixels[empty]], valid.ravel()[pixels[empty]] = values[empty], True
     clock.lap("fill")
     _release_freed_memory()
-    list(thread_map(lambda k: ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k])), sorted(maps)))
-    clock.lap("save_maps")
     checkers = min(config.fusion_views, len(maps) - 1)
     if config.min_consistent > checkers:
         raise ConfigError(f"densify.min_consistent={config.min_consistent}: a point can be checked by at most "
                           f"{checkers} other panorama(s) here (densify.fusion_views={config.fusion_views}, "
                           f"{len(maps)} range maps); no point could be kept")
-    points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
-    clock.lap("fusion")
+    with ThreadPoolExecutor(max_workers=1) as saver:  # the maps are saved while the fusion runs (both only read them)
+        saved = saver.submit(lambda: [ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k]))
+                                      for k in sorted(maps)])
+        points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
+        saved.result()
+    clock.lap("save_maps_and_fusion")
     _release_freed_memory()
     with ThreadPoolExecutor(max_workers=1) as pool:  # the preview is drawn while the mesh is made
         preview = pool.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
