@@ -34,10 +34,11 @@
 
 Panoramas are never upsampled: the working width is at most the native width.
 
-Threads: pairs run two at a time, the per-panorama steps (region fill, world fill, confirmation, fusion, saving)
-on a pool of local threads, the world planes are found while the region fill runs, and BLAS keeps one thread; every
-result is gathered in a fixed order, so the outputs are the same bytes on any number of threads
-(``tests/test_densify_stage.py``). ``phases_s`` in the summary gives each phase's wall and CPU seconds.
+Threads: pairs run two at a time, the per-panorama steps (region fill, world fill, confirmation, fusion) on a pool
+of local threads, the world planes are found on a side thread while the stereo check and the region fill run, the
+maps are saved on one while the fusion runs, and BLAS keeps one thread; every result is gathered in a fixed order, so
+the outputs are the same bytes on any number of threads (``tests/test_densify_stage.py``). ``phases_s`` in the
+summary gives each phase's wall and CPU seconds (the process's: a side thread's count in the phase it ends in).
 """
 
 from __future__ import annotations
@@ -106,13 +107,18 @@ def _run(ctx: StageContext) -> dict:
     clock.lap("load")
     maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs)
     clock.lap("stereo")
-    settled = _resolve_conflicts(config, maps, singles, conflicts, R, t, centers) \
-        if config.stereo_check and config.resolve_conflicts else {}
-    unconfirmed = _seen_through_stereo(config, maps, singles, R, t, centers) if config.stereo_check else {}
-    del singles, conflicts
-    clock.lap("stereo_check")
-    filled = _fill_textureless(ctx, images, maps, R, t, centers, sparse["points"], float(np.nanmedian(median_depth))) \
-        if config.fill_planes or config.world_planes else {}
+    with ThreadPoolExecutor(max_workers=1) as side:
+        # the world planes come from the combined stereo alone (not from the stereo check's settlements and drops,
+        # applied after the fills): found on a side thread while the stereo check and the region fill run
+        fill = _FillInputs(ctx, images, maps, R, t, centers) if config.fill_planes or config.world_planes else None
+        world = side.submit(_world_planes, config, fill.views, fill.neighbours, fill.options, sparse["points"],
+                            float(np.nanmedian(median_depth))) if fill is not None and config.world_planes else None
+        settled = _resolve_conflicts(config, maps, singles, conflicts, R, t, centers) \
+            if config.stereo_check and config.resolve_conflicts else {}
+        unconfirmed = _seen_through_stereo(config, maps, singles, R, t, centers) if config.stereo_check else {}
+        del singles, conflicts
+        clock.lap("stereo_check")
+        filled = _fill_textureless(ctx, fill, maps, world) if fill is not None else {}
     for k, drop in unconfirmed.items():  # the fills have seen them: they bounded the image regions (module doc, 3a)
         maps[k] = (np.where(drop, np.nan, maps[k][0]).astype(np.float32), maps[k][1] & ~drop)
     for k, (pixels, values) in settled.items():  # where the fills left the pixel empty
@@ -121,15 +127,17 @@ def _run(ctx: StageContext) -> dict:
         rng.ravel()[pixels[empty]], valid.ravel()[pixels[empty]] = values[empty], True
     clock.lap("fill")
     _release_freed_memory()
-    list(thread_map(lambda k: ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k])), sorted(maps)))
-    clock.lap("save_maps")
     checkers = min(config.fusion_views, len(maps) - 1)
     if config.min_consistent > checkers:
         raise ConfigError(f"densify.min_consistent={config.min_consistent}: a point can be checked by at most "
                           f"{checkers} other panorama(s) here (densify.fusion_views={config.fusion_views}, "
                           f"{len(maps)} range maps); no point could be kept")
-    points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
-    clock.lap("fusion")
+    with ThreadPoolExecutor(max_workers=1) as saver:  # the maps are saved while the fusion runs (both only read them)
+        saved = saver.submit(lambda: [ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k]))
+                                      for k in sorted(maps)])
+        points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
+        saved.result()
+    clock.lap("save_maps_and_fusion")
     _release_freed_memory()
     with ThreadPoolExecutor(max_workers=1) as pool:  # the preview is drawn while the mesh is made
         preview = pool.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
@@ -302,29 +310,36 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
 
 
 # ------------------------------------------------------------------------------------------------ textureless
-def _fill_textureless(ctx: StageContext, images, maps, R, t, centers, sparse_points, median_depth: float
-                      ) -> dict[str, float]:
-    """Fill each range map's textureless regions in place (module doc, step 3b); returns the filled share per
-    panorama. Only where a stereo range could be: inside the latitude caps and the image mask. Every per-panorama
-    step runs on local threads (numpy and OpenCV release the GIL); each result depends on its panorama alone."""
+class _FillInputs:
+    """What the fills of a stage's panoramas share (``cams``: the cameras with a range map, in order): each one's
+    observable area and reduced view (stereo ranges as combined), the views checking it, the plane options."""
+
+    def __init__(self, ctx: StageContext, images, maps, R, t, centers):
+        config: DensifyOptions = ctx.options
+        self.cams = sorted(maps)
+        self.neighbours = fusion_neighbours(centers[self.cams], config.fusion_views)
+        self.options = planes.PlaneOptions(fit_tolerance=config.plane_tolerance)
+        self.observable = [_observable(config, ctx.dataset.load_mask(ctx.dataset.image_names[k]), maps[k][0].shape)
+                           for k in self.cams]
+        self.views = [planes.view_of(R[k], t[k], maps[k][0], self.observable[a], images[k],
+                                     min(config.fill_width, maps[k][0].shape[1])) for a, k in enumerate(self.cams)]
+
+
+def _fill_textureless(ctx: StageContext, inputs: _FillInputs, maps, world) -> dict[str, float]:
+    """Fill each range map's textureless regions in place (module doc, step 3b), then the world planes'
+    (``world``: the future of ``_world_planes``, or None); returns the filled share per panorama. Only where a
+    stereo range could be: inside the latitude caps and the image mask. Every per-panorama step runs on local
+    threads (numpy and OpenCV release the GIL); each result depends on its panorama alone."""
     config: DensifyOptions = ctx.options
     names = ctx.dataset.image_names
-    cams = sorted(maps)
-    neighbours = fusion_neighbours(centers[cams], config.fusion_views)
-    options = planes.PlaneOptions(fit_tolerance=config.plane_tolerance)
-    observable = [_observable(config, ctx.dataset.load_mask(names[k]), maps[k][0].shape) for k in cams]
-    views = [planes.view_of(R[k], t[k], maps[k][0], observable[a], images[k],
-                            min(config.fill_width, maps[k][0].shape[1])) for a, k in enumerate(cams)]
+    cams, views, neighbours, options = inputs.cams, inputs.views, inputs.neighbours, inputs.options
     fills = [(np.full(v.range_map.shape, np.nan, np.float32), np.zeros(v.range_map.shape, np.int32)) for v in views]
-    with ThreadPoolExecutor(max_workers=1) as side:  # the world planes come from the stereo alone: found meanwhile
-        world = side.submit(_world_planes, config, views, neighbours, options, sparse_points, median_depth) \
-            if config.world_planes else None
-        if config.fill_planes:
-            fills = list(tqdm(thread_map(lambda a: planes.fill_plane_ranges(
-                views[a], [views[b] for b in neighbours[a]], options, config.seed + cams[a]), range(len(cams))),
-                total=len(cams), desc="planes", unit="pano"))
-        if world is not None:
-            fills = _fill_world_planes(views, fills, neighbours, options, *world.result())
+    if config.fill_planes:
+        fills = list(tqdm(thread_map(lambda a: planes.fill_plane_ranges(
+            views[a], [views[b] for b in neighbours[a]], options, config.seed + cams[a]), range(len(cams))),
+            total=len(cams), desc="planes", unit="pano"))
+    if world is not None:
+        fills = _fill_world_planes(views, fills, neighbours, options, *world.result())
     confirmed = list(thread_map(lambda a: planes.confirmed_by_views(
         views[a], *fills[a], [views[b] for b in neighbours[a]], [fills[b][0] for b in neighbours[a]], options),
         range(len(cams))))
@@ -334,7 +349,7 @@ def _fill_textureless(ctx: StageContext, images, maps, R, t, centers, sparse_poi
         rng, valid = maps[k]
         fill = cv2.resize(np.where(kept, fill, np.nan), (rng.shape[1], rng.shape[0]),
                           interpolation=cv2.INTER_NEAREST)
-        new = ~valid & np.isfinite(fill) & observable[a]
+        new = ~valid & np.isfinite(fill) & inputs.observable[a]
         maps[k] = (np.where(new, fill, rng).astype(np.float32), valid | new)
         shares[names[k]] = float(new.mean())
         log.info("planes: %s %.0f%% filled, %.0f%% valid", names[k], 100 * new.mean(), 100 * np.mean(maps[k][1]))
@@ -375,7 +390,7 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
     kept = world_planes.carve_extents(found, judges, wopt)
     log.info("world planes: %d found in %d points, %d kept after the free-space check (%.1f s)", len(found),
              len(points), len(kept), time.perf_counter() - t0)
-    occluders = [world_planes.nearest_plane_ranges(v, kept, wopt) for v in views] \
+    occluders = list(thread_map(lambda v: world_planes.nearest_plane_ranges(v, kept, wopt), views)) \
         if config.occlusion_aware_vote else None
     return wopt, kept, judges, occluders
 

@@ -480,3 +480,98 @@ def test_a_wall_narrower_than_the_window_of_votes_is_judged_by_all_its_columns()
     wide_carved[:, 39] = True  # seen through 30 columns away: outside the window of the first columns
     evidenced = world_planes._evidenced(wide_on, wide_carved, options)
     assert evidenced[:, :9].all() and not evidenced[:, 9:].any()
+
+
+def _reference_mode(values, band):
+    """The wall and level fits' mode as first written: medians of masked windows (np.median each time)."""
+    mode = float(np.median(values))
+    for window in world_planes.LEVEL_MODE_WINDOWS:
+        for _ in range(world_planes.LEVEL_MODE_ROUNDS):
+            near = values[np.abs(values - mode) <= window * band]
+            if len(near) < 3:
+                break
+            previous, mode = mode, float(np.median(near))
+            if previous == mode:
+                break
+    return mode
+
+
+def _mode_samples(rng):
+    """Offsets as the fits see them (a peak on a spread), on a grid of a quarter band (values exactly at the windows'
+    edges, many ties), with exact duplicates, and tiny sets."""
+    band = 0.04
+    yield rng.normal(0.3, 0.02, 400).tolist() + rng.uniform(-1, 1, 600).tolist(), band
+    yield (np.round(rng.normal(0.0, 0.05, 300) / (band / 4)) * (band / 4)).tolist(), band
+    yield np.repeat(rng.uniform(-0.1, 0.1, 40), rng.integers(1, 6, 40)).tolist(), band
+    yield [0.5], band
+    yield [0.5, 0.52], band
+    yield [0.1, 0.1 + 2 * band, 0.1 + 4 * band], band
+    yield (rng.normal(0, 1e-3, 50) + 1e6).tolist(), 1e-4  # rounding where the values are large
+
+
+def test_the_mode_read_off_sorted_values_is_the_masked_medians_mode():
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        for values, band in _mode_samples(rng):
+            values = np.array(values)
+            expected = _reference_mode(values, band)
+            assert world_planes._mode_of(rng.permutation(values), band) == expected
+            assert world_planes._mode_of(np.sort(values), band, presorted=True) == expected
+
+
+class _ReferenceWallSide:
+    """The wall side as first written: every point seen from the side sorted by offset (stable), slabs bisected."""
+
+    def __init__(self, flat, seen_from, tolerance, azimuth):
+        normal = np.array([np.cos(azimuth), np.sin(azimuth)])
+        d = flat @ normal
+        front = np.flatnonzero(seen_from @ normal > d)
+        self.index = front[np.argsort(d[front], kind="stable")]
+        self.d, self.tolerance = d[self.index], tolerance[self.index]
+        self.widest = float(self.tolerance.max()) if len(self.index) else 0.0
+
+    def offset(self, low, high, band):
+        values = self.d[np.searchsorted(self.d, low, "left"):np.searchsorted(self.d, high, "right")]
+        return _reference_mode(values, band) if len(values) >= 3 else 0.5 * (low + high)
+
+    def near(self, offset, shrink):
+        lo = np.searchsorted(self.d, offset - shrink * self.widest, "left")
+        hi = np.searchsorted(self.d, offset + shrink * self.widest, "right")
+        ok = np.abs(self.d[lo:hi] - offset) <= shrink * self.tolerance[lo:hi]
+        return self.index[lo:hi][ok]
+
+
+def test_a_wall_sides_slabs_are_those_of_all_its_points_sorted():
+    """The same points, in the same order (ties in row order), and the same modes as sorting every point of the side
+    by its offset, on points with repeated offsets (duplicated points, a grid), a few far ones with wide tolerances,
+    and slab bounds on points' offsets."""
+    rng = np.random.default_rng(5)
+    for trial in range(6):
+        n = 3000
+        flat = np.round(rng.uniform(-3, 3, (n, 2)), 2 if trial % 2 else 6)  # coarse grid: many equal offsets
+        flat = np.vstack([flat, flat[:200]])  # exact duplicates
+        seen_from = flat + rng.normal(0, 1, flat.shape)
+        tolerance = np.where(rng.random(len(flat)) < 0.02, 0.5, 0.03) * rng.uniform(0.5, 1.5, len(flat))
+        azimuth = 0.0 if trial < 2 else rng.uniform(-np.pi, np.pi)
+        fast = world_planes._WallSide(flat, seen_from, tolerance, azimuth)
+        slow = _ReferenceWallSide(flat, seen_from, tolerance, azimuth)
+        offsets = np.concatenate([rng.uniform(-3, 3, 20), slow.d[rng.integers(0, len(slow.d), 20)]])
+        for offset in offsets:
+            for shrink in (3.0, 1.0):
+                np.testing.assert_array_equal(fast.near(offset, shrink), slow.near(offset, shrink))
+            for low, high in ((offset - 0.1, offset + 0.1), (offset, offset), (offset + 0.1, offset - 0.1)):
+                assert fast.offset(low, high, 0.04) == slow.offset(low, high, 0.04)
+
+
+def test_a_run_within_reach_is_what_the_mask_keeps_at_the_last_bit():
+    """``abs(v - c) <= r`` as rounded and ``c - r <= v <= c + r`` disagree for values within a few ulps of the
+    bounds; the run found by bisection must still be exactly the mask's values."""
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        centre, reach = rng.uniform(-10, 10), rng.uniform(0, 1)
+        edges = [centre - reach, centre + reach]
+        near_edges = [np.nextafter(e, np.inf * s) for e in edges for s in (-1, 1)]
+        near_edges += [np.nextafter(np.nextafter(e, np.inf * s), np.inf * s) for e in edges for s in (-1, 1)]
+        values = np.sort(np.concatenate([edges, near_edges, edges, rng.uniform(centre - 2, centre + 2, 20)]))
+        lo, hi = world_planes._run_within(values, centre, reach)
+        np.testing.assert_array_equal(values[lo:hi], values[np.abs(values - centre) <= reach])
