@@ -58,7 +58,6 @@ WALL_MERGE_BANDS = 3  # _one_wall_plane_per_offset: snapped walls facing one way
 WALL_AZIMUTH_BANDS = (3.0, 2.0) + (1.0,) * 8  # ... rounds of the common wall direction's fit, inlier band (x
 # tolerance); the rounds in the last band stop when the direction stays within WALL_AZIMUTH_STAYS radians
 WALL_AZIMUTH_STAYS = 1e-6
-SLAB_BUCKETS = 1 << 16  # _WallSide: buckets of offset its points are sorted into (16-bit numbers: a radix sort)
 SWEEP_SUPPORT_FACTOR = 2  # a swept wall needs this many times min_support points (its lines, seen from its side)
 BEHIND_CELLS = 2  # _walls_floor_to_ceiling: floor (ceiling) points this many cells behind a wall's face ...
 BEHIND_POINTS = 3  # ... at least this many in a column: the floor (ceiling) goes on behind the wall there
