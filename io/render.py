@@ -1,9 +1,10 @@
 """Off-screen pictures of reconstructions: colour-mapped range maps and point-cloud previews (atomic PNG writes).
 
-Point clouds are drawn with matplotlib's Agg backend (no display, no OpenGL): orthographic views, points sorted far
-to near (painter's algorithm) and splatted at about their spacing. Indoor scenes are seen from inside, so the
-surfaces facing away from a view (given normals) or the points above the cameras (without normals) are left out:
-the previews look into the room like into a doll's house.
+Point clouds are rasterised with numpy and OpenCV (no display, no OpenGL, no matplotlib): orthographic views, each
+pixel showing the nearest of the squares splatted at about the points' spacing (what drawing them far to near, the
+painter's algorithm, gives). Indoor scenes are seen from inside, so the surfaces facing away from a view (given
+normals) or the points above the cameras (without normals) are left out: the previews look into the room like into a
+doll's house.
 """
 
 from __future__ import annotations
@@ -133,8 +134,9 @@ def render_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, *, no
         px_per_unit = panel_px / extent
         left, top_y = (x_lo + x_hi - extent) / 2, (y_lo + y_hi + extent) / 2
 
-        def pixels(xs, ys):
-            return np.floor((xs - left) * px_per_unit).astype(np.int64), np.floor((top_y - ys) * px_per_unit).astype(np.int64)
+        def pixels(xs, ys):  # (column, row) of the pixels holding the points (xs, ys)
+            return (np.floor((xs - left) * px_per_unit).astype(np.int64),
+                    np.floor((top_y - ys) * px_per_unit).astype(np.int64))
 
         side = max(1, int(round(1.6 * spacing * px_per_unit)))
         panel = _splat(*pixels(x, y), bgr[near_first], side, panel_px)
