@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from fullview.io.artifacts import FORMAT_KEY, load_ply
 from fullview.io.config import load_config
 from fullview.io.dataset import Dataset
-from fullview.io.render import colorize_range, render_point_cloud
+from fullview.io.render import colorize_range, render_mesh, render_point_cloud
 from fullview.synth import write_synthetic_dataset
 from fullview.io.workspace import DEPTH_VERSION, Workspace
 from fullview.sfm import dense
@@ -254,13 +254,63 @@ def test_render_point_cloud_and_colorize(tmp_path):
     rng = np.random.default_rng(0)
     pts = rng.uniform(-1, 1, (5000, 3)) * [3, 1, 2]
     cols = rng.integers(0, 255, (5000, 3), dtype=np.uint8)
-    path = render_point_cloud(tmp_path / "p.png", pts, cols, up=np.array([0, 1.0, 0]), panel_px=200)
+    path = render_point_cloud(tmp_path / "p.png", pts, cols, up=np.array([0, 1.0, 0]), panel_px=200,
+                              cameras=np.zeros((2, 3)), title="t")
     img = cv2.imread(str(path))
-    assert img.shape[1] == 600 and img.std() > 5
+    assert img.shape == (250, 600, 3) and img.std() > 5
     rmap = np.linspace(1, 5, 64 * 32, dtype=np.float32).reshape(32, 64)
     rmap[0, 0] = np.nan
     pic = colorize_range(rmap)
     assert pic.shape == (32, 64, 3) and not pic[0, 0].any() and pic[5:].any(axis=-1).all()
+
+
+def _two_layers(upper_normal_z: float):
+    """A blue 2 x 2 square at height 0 under a red 1 x 1 square at height 1 (dense grids), the red one listed
+    last and first, with normals +z for the blue one and ``upper_normal_z`` for the red one."""
+    g = np.linspace(-1, 1, 81)
+    lower = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    upper = lower[(np.abs(lower) <= 0.5).all(1)]
+    pts = np.vstack([np.c_[lower, np.zeros(len(lower))], np.c_[upper, np.ones(len(upper))]])
+    cols = np.vstack([np.tile([0, 0, 255], (len(lower), 1)), np.tile([255, 0, 0], (len(upper), 1))]).astype(np.uint8)
+    normals = np.vstack([np.tile([0, 0, 1.0], (len(lower), 1)), np.tile([0, 0, upper_normal_z], (len(upper), 1))])
+    return pts, cols, normals
+
+
+@pytest.mark.parametrize("reverse", [False, True])
+def test_render_point_cloud_near_hides_far_and_culls_back_faces(tmp_path, reverse):
+    """Seen from the top, the red square above hides the blue one below at the panel's centre, whatever the order
+    of the points; once it faces down (normals -z) it is culled and the blue one shows there. The blue ring
+    around shows in both, and the PNG has one panel_px square per view under the title band."""
+    for upper_normal_z, centre_bgr in ((1.0, (0, 0, 255)), (-1.0, (255, 0, 0))):
+        pts, cols, normals = _two_layers(upper_normal_z)
+        order = slice(None, None, -1 if reverse else 1)
+        path = render_point_cloud(tmp_path / "p.png", pts[order], cols[order], normals=normals[order],
+                                  up=np.array([0, 0, 1.0]), views=(("top", 0.0, 90.0),), panel_px=120)
+        img = cv2.imread(str(path))
+        assert img.shape == (120 + 50, 120, 3)
+        panel = img[50:]
+        assert (panel[55:65, 55:65] == centre_bgr).all()
+        assert (panel[60, 8:20] == (255, 0, 0)).all() and (panel[60, -20:-8] == (255, 0, 0)).all()
+
+
+def test_render_mesh_culls_faces_turned_away(tmp_path):
+    """A mesh of two stacked 2 x 2 grids seen from the top: the upper red one hides the lower blue one when its
+    triangles face up (counter-clockwise from above) and is culled when they face down."""
+    g = np.linspace(-1, 1, 21)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    i = (np.arange(20)[:, None] * 21 + np.arange(20)).ravel()  # lower-left corner of each quad
+    up_tris = np.vstack([np.c_[i, i + 1, i + 22], np.c_[i, i + 22, i + 21]])  # counter-clockwise from above
+    for turned, centre_bgr in ((False, (0, 0, 255)), (True, (255, 0, 0))):
+        verts = np.vstack([np.c_[xy, np.zeros(len(xy))], np.c_[xy, np.ones(len(xy))]])
+        tris = np.vstack([up_tris, (up_tris[:, ::-1] if turned else up_tris) + len(xy)])
+        cols = np.vstack([np.tile([0, 0, 255], (len(xy), 1)), np.tile([255, 0, 0], (len(xy), 1))]).astype(np.uint8)
+        path = render_mesh(tmp_path / "m.png", verts, tris, cols, up=np.array([0, 0, 1.0]),
+                           views=(("top", 0.0, 90.0),), panel_px=100)
+        img = cv2.imread(str(path)).astype(int)
+        assert img.shape == (150, 100, 3)
+        centre = img[50:][45:55, 45:55].reshape(-1, 3)
+        drawn = centre.max(1) > 100  # triangle centres splatted: a few background pixels between them
+        assert drawn.mean() > 0.5 and (np.argmax(centre[drawn], 1) == np.argmax(centre_bgr)).all(), turned
 
 
 def test_range_error_per_pixel_matches_law_of_sines_derivative():
