@@ -441,7 +441,7 @@ def main() -> int:
         for hand in (True, False):
             label = f"synth{views}-{'hand' if hand else 'nohand'}"
             dense = hand and views == args.dense_views
-            row = {"scene": label, "kind": kind, "views": views, "ours": ours(dataset, args.work, label,
+            row = {"scene": label, "kind": "room", "views": views, "ours": ours(dataset, args.work, label,
                                                                 [f"filter.use_hand_points={str(hand).lower()}"], dense)}
             if hand and not args.no_colmap:
                 row["colmap"] = colmap(dataset, args.work, label)
