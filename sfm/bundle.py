@@ -60,6 +60,7 @@ import scipy.sparse
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.linalg import spsolve
 
+from fullview.sfm import manhattan
 from fullview.sfm.camera import camera_center, normalize, skew, tangent_basis
 from fullview.sfm.triangulation import _pairs_within_tracks
 
@@ -162,6 +163,15 @@ class _Problem:
     prior_basis: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))  # (M, 2, 3) basis orthogonal to
     # each measured gravity
     prior_sqrt_w: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) σ_obs / σ_g
+    heading_camera: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (H,) cameras with a heading
+    # prior (`manhattan`)
+    heading_axis: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (H, 3) measured axis, camera frame
+    heading_gravity: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (H, 3) measured gravity
+    heading_down: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (H, 3) the group's world down
+    heading_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (H, 3) the group's world axis,
+    # updated in place between reweighting rounds (`_update_world_axis`)
+    heading_group: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (H,) cameras sharing an axis
+    heading_sqrt_w: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (H,) σ_obs / σ_heading
 
 
 def _so3_coefficients(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -330,6 +340,55 @@ def _residuals_of(x: np.ndarray, problem: _Problem, with_jacobian: bool, obs: sl
 
 
 def _prior_residuals(x: np.ndarray, problem: _Problem) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) weighted prior residuals and their (M, 2, 3) Jacobian blocks on the ω of `_prior_cameras`: the
+    gravity prior's, then the heading prior's (one residual each, the second component zero)."""
+    if not len(problem.heading_camera):
+        return _gravity_residuals(x, problem)
+    r_g, J_g = _gravity_residuals(x, problem)
+    r_h, J_h = _heading_residuals(x, problem)
+    return np.concatenate([r_g, r_h]), np.concatenate([J_g, J_h])
+
+
+def _prior_cameras(problem: _Problem) -> np.ndarray:
+    """The camera of each row of `_prior_residuals`."""
+    if not len(problem.heading_camera):
+        return problem.prior_camera
+    return np.concatenate([problem.prior_camera, problem.heading_camera])
+
+
+def _heading_residuals(x: np.ndarray, problem: _Problem) -> tuple[np.ndarray, np.ndarray]:
+    """(H, 2) weighted heading-prior residuals (`manhattan.heading_residuals`, second component zero) and their
+    (H, 2, 3) Jacobian blocks on each camera's ω: v = exp([ω]×) R₀ u, ∂v/∂ω = −[v]× J_l(ω)."""
+    cams = problem.heading_camera
+    lay = problem.layout
+    dR, J_l = rotation_exp(_rotation_vectors(x, lay)[cams])
+    v = np.einsum("mij,mj->mi", dR @ problem.R_init[cams], problem.heading_world)
+    r, dr_dv = manhattan.heading_residuals(v, problem.heading_axis, problem.heading_gravity, problem.heading_sqrt_w)
+    J = np.zeros((len(cams), 2, 3))
+    J[:, 0] = np.einsum("mi,mij->mj", dr_dv, -skew(v) @ J_l)
+    J[lay.cam_dof[cams] == 0] = 0.0
+    tilt = lay.cam_dof[cams] == 2
+    J[tilt, :, 0:2] = J[tilt] @ lay.tilt_basis[cams[tilt]]
+    J[tilt, :, 2] = 0.0
+    return np.stack([r, np.zeros_like(r)], axis=1), J
+
+
+def _update_world_axis(x: np.ndarray, problem: _Problem) -> None:
+    """Each group's world Manhattan axis: the precision-weighted circular mean of its cameras' measured axes carried
+    to the world by their current rotations (alternated with the pose steps, as `_update_world_up`)."""
+    cams = problem.heading_camera
+    if not len(cams):
+        return
+    R = rotation_exp(_rotation_vectors(x, problem.layout)[cams])[0] @ problem.R_init[cams]
+    axis_world = np.einsum("mji,mj->mi", R, problem.heading_axis)
+    for group in np.unique(problem.heading_group):
+        rows = np.flatnonzero(problem.heading_group == group)
+        down = problem.heading_down[rows[0]]
+        problem.heading_world[rows] = manhattan.mean_axis(manhattan.world_heading(axis_world[rows], down),
+                                                          problem.heading_sqrt_w[rows] ** 2, down)
+
+
+def _gravity_residuals(x: np.ndarray, problem: _Problem) -> tuple[np.ndarray, np.ndarray]:
     """(M, 2) weighted gravity-prior residuals and their (M, 2, 3) Jacobian blocks on each camera's ω."""
     cams = problem.prior_camera
     if not len(cams):
@@ -431,7 +490,7 @@ class _WeightedResiduals:
         """(2K + 2M, n) weighted Jacobian, sparse: the observations', then the gravity prior's rows."""
         mask, indices, indptr = _jacobian_structure(self.problem)  # built on demand: (K, 18) indices
         obs = csr_matrix((self.jac_blocks(x)[mask], indices, indptr), shape=self.shape)
-        cams = self.problem.prior_camera
+        cams = _prior_cameras(self.problem)
         if not len(cams):
             return obs
         cols = np.broadcast_to((np.maximum(self.problem.layout.cam_col[cams], 0)[:, None] + np.arange(3))[:, None, :],
@@ -685,6 +744,7 @@ def bundle_adjust(
     ftol: float = 1e-4,
     gravity_prior: GravityPrior | None = None,
     pose_tolerance_rad: float = 0.0,
+    heading_prior: manhattan.HeadingPrior | None = None,
 ) -> BundleResult:
     """Refine camera poses and points by minimising robust angular errors of observed bearings.
 
@@ -707,7 +767,8 @@ def bundle_adjust(
     layout = _build_layout(C0, len(X0), fixed, scale_camera, cam, _tilt_free_cameras(gravity_prior, fixed, R0))
     problem = _Problem(R_init=R0, t_init=t0, C_init=C0, obs_camera=cam, obs_point=pt, bearings=z,
                        basis=tangent_basis(z), layout=layout,
-                       **_prior_terms(gravity_prior, layout, R0, C0, X0, cam, pt, z))
+                       **_prior_terms(gravity_prior, layout, R0, C0, X0, cam, pt, z),
+                       **_heading_terms(heading_prior, R0, C0, X0, cam, pt, z))
     if (few := np.bincount(pt, minlength=len(X0)) < 2).any():
         log.warning("bundle_adjust: %d points have fewer than 2 observations", few.sum())
     objective = _WeightedResiduals(problem)
@@ -836,6 +897,26 @@ def _prior_terms(prior: GravityPrior | None, layout: _Layout, R, C, X, cam, pt, 
             "prior_group": np.asarray(prior.group, np.int64), "prior_gravity": gravity}
 
 
+def _heading_terms(prior: manhattan.HeadingPrior | None, R, C, X, cam, pt, bearings) -> dict:
+    """The _Problem fields of the heading prior: its cameras, measured axes and gravities, world axes, weights."""
+    if prior is None:
+        return {}
+    camera = np.asarray(prior.camera, dtype=np.int64)
+    if camera.size and (camera.min() < 0 or camera.max() >= len(R)):
+        raise ValueError(f"heading_prior.camera values must be in [0, {len(R)})")
+    sigma = np.asarray(prior.sigma_rad, dtype=np.float64)
+    if not (np.isfinite(sigma) & (sigma > 0)).all():
+        raise ValueError("heading_prior.sigma_rad must be finite and positive")
+    y = np.einsum("kij,kj->ki", R[cam], X[pt] - C[cam])
+    errors = np.arccos(np.clip(np.einsum("ki,ki->k", normalize(y), bearings), -1.0, 1.0))
+    return {"heading_camera": camera, "heading_axis": normalize(np.asarray(prior.axis_cam, np.float64)),
+            "heading_gravity": normalize(np.asarray(prior.gravity_cam, np.float64)),
+            "heading_down": normalize(np.asarray(prior.down_world, np.float64)),
+            "heading_world": normalize(np.asarray(prior.axis_world, np.float64)),
+            "heading_group": np.asarray(prior.group, np.int64),
+            "heading_sqrt_w": _observation_sigma(errors, pt) / sigma}
+
+
 def _irls(
     objective: _WeightedResiduals, x: np.ndarray, *, loss: str, f_target: float, max_nfev: int, ftol: float,
     pose_tolerance_rad: float = 0.0,
@@ -860,6 +941,7 @@ def _irls(
         f_scale = scales[min(rounds, len(scales) - 1)]
         objective.sqrt_w = np.sqrt(_LOSSES[loss][1]((theta / f_scale) ** 2))
         _update_world_up(x, objective.problem)
+        _update_world_axis(x, objective.problem)
         x_before = x
         x, rounds = _levenberg_marquardt(objective, system, x, min(_ROUND_NFEV, budget), ftol), rounds + 1
         theta = objective.errors(x)
@@ -906,7 +988,7 @@ def _levenberg_marquardt(objective: _WeightedResiduals, system: _SchurSystem, x:
     for _ in range(max_evaluations):
         if J is None:
             J, J_prior = objective.jac_blocks(x), objective.prior_blocks(x)
-        solved = system.solve(r, J, objective.damping, J_prior, objective.problem.prior_camera)
+        solved = system.solve(r, J, objective.damping, J_prior, _prior_cameras(objective.problem))
         if solved is None or not solved[1] > 0:
             objective.damping, nu = min(objective.damping * nu, _LM_DAMPING_BOUNDS[1]), 2 * nu
             continue

@@ -165,6 +165,9 @@ class TriangulationOptions:
                                         "its known epipolar circles", ge=8, le=1_000_000)
     gravity_prior: bool = setting(True, "bundle adjustment holds each image's tilt to its gravity from vertical "
                                   "lines (filter.upright: vanishing), weighted by its precision")
+    manhattan_prior: bool = setting(True, "bundle adjustment holds each image's heading, modulo 90°, to its "
+                                    "model's wall directions measured from its horizontal lines (needs a measured "
+                                    "gravity; a model whose images do not agree on one pair of directions gets none)")
     free_block_min_pairs: int = setting(3, "after the final adjustment, blocks of cameras that share no track with "
                                         "the rest (meeting at one camera) and hold this many verified pairs are scaled "
                                         "to the block with the most pairs (free_block_scale)", ge=0, le=1_000_000,

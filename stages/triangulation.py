@@ -13,9 +13,12 @@ never span two models, since only pairs inside one model are consistent) and wri
 from __future__ import annotations
 
 import logging
+from functools import partial
+
 import numpy as np
 
 from fullview.io.exports import SparseModel, split_models, write_colmap_model
+from fullview.sfm import manhattan, upright
 from fullview.sfm.bundle import bundle_adjust, gravity_error_factor, gravity_prior_for_models, with_gravity_error
 from fullview.sfm.registration.free_blocks import camera_heights, camera_links, free_block_similarities
 from fullview.sfm.tracks import Tracks, build_tracks
@@ -23,7 +26,8 @@ from fullview.sfm.options import TriangulationOptions
 from fullview.sfm.triangulation import (filter_tracks, gather_bearings, longest_tracks_per_image,
                                         triangulate_multiview)
 from fullview.stages.geometry_pairs import geometry_matches
-from fullview.stages.protocol import StageContext
+from fullview.stages.filter import GRAVITY_WIDTH
+from fullview.stages.protocol import StageContext, thread_map
 from fullview.stages.registration import track_matches
 
 log = logging.getLogger(__name__)
@@ -65,17 +69,18 @@ def run(ctx: StageContext) -> dict:
     measured = (verified.extra.get("gravity"), verified.extra.get("gravity_std_rad"))
     measured = measured if measured[0] is not None and measured[1] is not None else None
     gravity = measured if config.gravity_prior else None
+    headings = _manhattan_axes(ctx, measured, model_id) if config.manhattan_prior and measured is not None else None
     keep = _triangulate_and_filter(tracks, bearings, R, t, LOOSE_FACTOR * max_err, min_angle)
     tracks_kept, points = tracks.subset(keep[0]), keep[1]
     if config.bundle_adjust and tracks_kept.num_tracks:
         pose_tracks = longest_tracks_per_image(tracks_kept, POSE_ROUND_TRACKS_PER_IMAGE)
         R, t, _, _ = _bundle(tracks_kept.subset(pose_tracks), bearings, R, t, points[pose_tracks], model_id, config,
-                             gravity, pose_tolerance_rad=POSE_ROUND_TOLERANCE * max_err)
+                             gravity, pose_tolerance_rad=POSE_ROUND_TOLERANCE * max_err, headings=headings)
     mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
     final = tracks.subset(mask)
     if config.bundle_adjust and final.num_tracks:
         R, t, points, errors = _bundle(final, bearings, R, t, points, model_id, config, gravity,
-                                       gravity_error=tracks_kept.num_tracks > 0)
+                                       gravity_error=tracks_kept.num_tracks > 0, headings=headings)
         # The last adjustment moved the points: drop the few tracks it left beyond the bound, so the stored
         # errors describe the stored points.
         worst = np.full(final.num_tracks, 0.0)
@@ -89,6 +94,32 @@ def run(ctx: StageContext) -> dict:
     else:  # the errors of the points just triangulated (with an adjustment, its own errors replace them)
         errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     return _write(ctx, obs, model_id, R, t, final, points, errors, geometry_pairs=len(extra))
+
+
+def _manhattan_axes(ctx: StageContext, gravity, model_id) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Each registered image's Manhattan axis in its frame from its horizontal lines (`manhattan.manhattan_axis`,
+    about its measured gravity), with its standard error (NaN where none: no gravity, too few lines, no dominant
+    pair of directions) and the gravity; None when no image has one."""
+    g, std = gravity
+    names = ctx.dataset.image_names
+    todo = np.flatnonzero((model_id >= 0) & np.isfinite(std) & (np.linalg.norm(np.nan_to_num(g), axis=1) > 0))
+    axis, sigma = np.full((len(names), 3), np.nan), np.full(len(names), np.nan)
+    # Images are independent and OpenCV's line detector releases the GIL: two at a time use both cores.
+    found = thread_map(partial(_image_axis, ctx.dataset), [(names[k], g[k]) for k in todo], threads=2)
+    for k, result in zip(todo, found):
+        if result is not None:
+            axis[k], sigma[k] = result[0], result[1]
+    log.info("manhattan: %d of %d images measure a heading from their horizontal lines", np.isfinite(sigma).sum(),
+             len(todo))
+    return (axis, sigma, g) if np.isfinite(sigma).any() else None
+
+
+def _image_axis(dataset, item) -> tuple[np.ndarray, float, int] | None:
+    """`manhattan.manhattan_axis` of one image (read at most GRAVITY_WIDTH wide, as for its gravity)."""
+    name, gravity = item
+    image = dataset.load_image(name, width=min(GRAVITY_WIDTH, dataset.image_sizes[name][0]))
+    normals, lengths = upright.detect_line_normals(image)
+    return manhattan.manhattan_axis(normals, lengths, gravity)
 
 
 def _model_down(R, model_id, gravity) -> np.ndarray | None:
@@ -135,7 +166,7 @@ def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
 
 
 def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=None, pose_tolerance_rad=0.0,
-            gravity_error=False):
+            gravity_error=False, headings=None):
     """Bundle adjustment over the cameras of every model (reindexed), the first camera of each model fixed; with
     `gravity` ((N, 3) gravity per image in its frame, (N,) its standard error), each image's tilt is held to it.
     With `gravity_error` (R already adjusted once: the pose round), the standard errors are first widened by how far
@@ -153,6 +184,12 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
         log.info("gravity: measured %.2f stated standard errors (per component) from the adjusted up%s", factor,
                  ", standard errors widened" if factor > 1.0 else "")
         prior = with_gravity_error(prior, factor)
+    heading = None if headings is None else manhattan.heading_prior_for_models(
+        R[cams], headings[0][cams], headings[2][cams], headings[1][cams], model_id[cams])
+    if heading is not None and gravity_error:
+        factor = manhattan.heading_error_factor(R[cams], heading)
+        log.info("manhattan: headings measured %.2f stated standard errors from the adjusted axes", factor)
+        heading = manhattan.with_heading_error(heading, factor)
     # Each model's first camera is held, preferably one with a measured gravity: the prior then decides its tilt.
     held = np.zeros(len(cams), bool) if prior is None else np.isin(np.arange(len(cams)), prior.camera)
     _, first = np.unique(np.stack([model_id[cams], ~held]).T, axis=0, return_index=True)
@@ -163,9 +200,11 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
         obs_camera=local[tracks.image_ids], obs_point=tracks.track_ids,
         obs_bearings=gather_bearings(bearings, tracks.image_ids, tracks.feature_ids),
         fixed_cameras=tuple(first.tolist()), loss="soft_l1", loss_scale_rad=np.radians(config.ba_loss_scale_deg),
-        max_nfev=config.ba_max_iterations, gravity_prior=prior, pose_tolerance_rad=pose_tolerance_rad)
-    log.info("bundle adjustment: %d cameras (%d with a gravity prior), %d points, cost %.4g -> %.4g, median error "
-             "%.4f deg", len(cams), 0 if prior is None else len(prior.camera), len(points), result.initial_cost,
+        max_nfev=config.ba_max_iterations, gravity_prior=prior, pose_tolerance_rad=pose_tolerance_rad,
+        heading_prior=heading)
+    log.info("bundle adjustment: %d cameras (%d with a gravity prior, %d with a heading prior), %d points, cost %.4g -> %.4g, median error "
+             "%.4f deg", len(cams), 0 if prior is None else len(prior.camera),
+             0 if heading is None else len(heading.camera), len(points), result.initial_cost,
              result.final_cost, np.degrees(np.median(result.obs_error_rad)))
     R, t = R.copy(), t.copy()
     R[cams], t[cams] = result.R_cam_from_world, result.t_cam_from_world
