@@ -68,8 +68,10 @@ def run(ctx: StageContext) -> dict:
     # The filter's gravity per image (absent from workspaces it wrote before it stored them: no prior).
     measured = (verified.extra.get("gravity"), verified.extra.get("gravity_std_rad"))
     measured = measured if measured[0] is not None and measured[1] is not None else None
-    gravity = measured if config.gravity_prior else None
     headings = _manhattan_axes(ctx, measured, model_id) if config.manhattan_prior and measured is not None else None
+    # Where an image's Manhattan frame is found, its gravity is the frame's, fitted on the horizontal lines too.
+    refined = measured if headings is None else (headings[2], headings[3])
+    gravity = refined if config.gravity_prior else None
     keep = _triangulate_and_filter(tracks, bearings, R, t, LOOSE_FACTOR * max_err, min_angle)
     tracks_kept, points = tracks.subset(keep[0]), keep[1]
     if config.bundle_adjust and tracks_kept.num_tracks:
@@ -96,30 +98,34 @@ def run(ctx: StageContext) -> dict:
     return _write(ctx, obs, model_id, R, t, final, points, errors, geometry_pairs=len(extra))
 
 
-def _manhattan_axes(ctx: StageContext, gravity, model_id) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Each registered image's Manhattan axis in its frame from its horizontal lines (`manhattan.manhattan_axis`,
-    about its measured gravity), with its standard error (NaN where none: no gravity, too few lines, no dominant
-    pair of directions) and the gravity; None when no image has one."""
+def _manhattan_axes(ctx: StageContext, gravity, model_id):
+    """Each registered image's Manhattan frame from its lines: its axis (`manhattan.manhattan_axis` about its measured
+    gravity), the axis's standard error (NaN where none: no gravity, too few lines, no dominant pair of directions),
+    and its gravity and the gravity's standard error, refined with the axis on the vertical and horizontal lines
+    (`manhattan.manhattan_frame`; the measured ones where no axis is found). None when no image has an axis."""
     g, std = gravity
     names = ctx.dataset.image_names
     todo = np.flatnonzero((model_id >= 0) & np.isfinite(std) & (np.linalg.norm(np.nan_to_num(g), axis=1) > 0))
     axis, sigma = np.full((len(names), 3), np.nan), np.full(len(names), np.nan)
+    g, std = g.copy(), std.copy()
     # Images are independent and OpenCV's line detector releases the GIL: two at a time use both cores.
-    found = thread_map(partial(_image_axis, ctx.dataset), [(names[k], g[k]) for k in todo], threads=2)
+    found = thread_map(partial(_image_frame, ctx.dataset), [(names[k], g[k]) for k in todo], threads=2)
     for k, result in zip(todo, found):
-        if result is not None:
-            axis[k], sigma[k] = result[0], result[1]
+        if result is not None and np.isfinite(result[2]):
+            g[k], axis[k], std[k], sigma[k] = result
     log.info("manhattan: %d of %d images measure a heading from their horizontal lines", np.isfinite(sigma).sum(),
              len(todo))
-    return (axis, sigma, g) if np.isfinite(sigma).any() else None
+    return (axis, sigma, g, std) if np.isfinite(sigma).any() else None
 
 
-def _image_axis(dataset, item) -> tuple[np.ndarray, float, int] | None:
-    """`manhattan.manhattan_axis` of one image (read at most GRAVITY_WIDTH wide, as for its gravity)."""
+def _image_frame(dataset, item):
+    """`manhattan.manhattan_frame` of one image (read at most GRAVITY_WIDTH wide, as for its gravity), None without
+    an axis."""
     name, gravity = item
     image = dataset.load_image(name, width=min(GRAVITY_WIDTH, dataset.image_sizes[name][0]))
     normals, lengths = upright.detect_line_normals(image)
-    return manhattan.manhattan_axis(normals, lengths, gravity)
+    found = manhattan.manhattan_axis(normals, lengths, gravity)
+    return None if found is None else manhattan.manhattan_frame(normals, lengths, gravity, found[0])
 
 
 def _model_down(R, model_id, gravity) -> np.ndarray | None:
