@@ -7,7 +7,11 @@ a, and a is orthogonal to g: every horizontal line gives one heading of a about 
 headings cluster at one angle modulo 90° (``manhattan_axis``): the image's own heading, measured independently of
 every other image.
 
-The bundle adjustment uses it as a soft prior (``bundle.HeadingPrior``): a model's cameras share one world
+With the axis found, the gravity and the axis are refined together on the vertical and the horizontal lines
+(``manhattan_frame``): horizontal lines constrain the tilt too, and this gravity replaces the vertical lines' one in
+the bundle adjustment's gravity prior.
+
+The bundle adjustment uses the axis as a soft prior (``bundle.HeadingPrior``): a model's cameras share one world
 Manhattan axis u (one per model, horizontal), and each camera sees it at the heading its lines measured. Why: on a
 chain of rooms joined through doorways the bearings leave each room's heading free to drift slowly (0.1-0.2° at the
 far end of the 30-view homes), like its tilt, which the gravity prior holds; each image's heading is ~0.05° off and
@@ -62,9 +66,9 @@ def manhattan_axis(normals: np.ndarray, weights: np.ndarray, gravity_cam: np.nda
     less than min_share of the horizontal lines' information (a scene without one dominant pair of wall directions).
 
     normals: (M, 3) great-circle normals of line segments (`upright.detect_line_normals`), weights (M,) their lengths.
-    Each non-vertical line's heading ψ = heading of n × g; its information about the heading is a² (a = n·d⊥, small
-    for lines near the horizon, whose circles barely constrain it). The mode of ψ modulo 90° (the candidate with the
-    most information within inlier_deg) is refined by weighted least squares of n·d(ψ) = 0 (each line on its nearer
+    Each non-vertical line's heading ψ = heading of n × g; its information about the heading is a² (a = n·d⊥,
+    small for lines near the horizon, whose circles barely constrain it). The mode of ψ modulo 90° (the candidate
+    with the most information within inlier_deg) is refined by weighted least squares of n·d(ψ) = 0 (each line on its nearer
     axis), re-selecting the inliers until they no longer change.
     """
     n = normalize(np.asarray(normals, np.float64).reshape(-1, 3))
@@ -168,7 +172,7 @@ def manhattan_frame(normals: np.ndarray, weights: np.ndarray, gravity_cam: np.nd
     g, d = frame[1], frame[0]
     tilt = np.stack([d, frame[2]])  # rotations about d and d × g tilt the gravity
     sigma_g = float(np.sqrt(np.linalg.eigvalsh(tilt @ covariance @ tilt.T).max()))
-    return g, d, max(sigma_g, 0.0), max(float(np.sqrt(g @ covariance @ g)), MIN_HEADING_SIGMA_RAD)
+    return g, d, sigma_g, max(float(np.sqrt(g @ covariance @ g)), MIN_HEADING_SIGMA_RAD)
 
 
 def _rotation(omega: np.ndarray) -> np.ndarray:
@@ -285,8 +289,8 @@ def group_axes(R: np.ndarray, prior: HeadingPrior, weights: np.ndarray) -> np.nd
 
 def heading_error_factor(R_cam_from_world: np.ndarray, prior: HeadingPrior) -> float:
     """How many times its stated standard error each measured heading lies from its group's axis (rotations of the
-    prior's cameras taken from R_cam_from_world (N, 3, 3)): √(Σ (Δ_i / σ_i)² / (M − G)), each group's axis taking one
-    degree of freedom. 1 when there is no redundancy."""
+    prior's cameras taken from R_cam_from_world (N, 3, 3)): √(Σ (Δ_i / σ_i)² / (M − G)), each group's axis taking
+    one degree of freedom. 1 when there is no redundancy."""
     dof = len(prior.camera) - len(np.unique(prior.group))
     if dof <= 0:
         return 1.0

@@ -2,10 +2,12 @@
 
 Two rounds: triangulate with the registration's poses and keep tracks under a loose error bound, bundle-adjust
 the poses on each image's longest of them, then re-triangulate every track with the refined poses, apply the
-configured bounds and bundle-adjust again. Blocks of cameras that no track joins to the rest (rooms meeting at one
-doorway camera) are then put at the root block's camera height above the floor, or one median pair baseline where a
-floor is not seen (`triangulation.free_block_min_pairs`, `free_block_scale`): the adjustment's cost is the same for
-any scale of such a block, so it kept registration's guesses.
+configured bounds and bundle-adjust again. Both adjustments hold each image's tilt to its gravity and, where its
+lines show one dominant pair of horizontal directions, its heading modulo 90° to its model's wall axis
+(`triangulation.gravity_prior`, `manhattan_prior`; `sfm/manhattan.py`). Blocks of cameras that no track joins to
+the rest (rooms meeting at one doorway camera) are then put at the root block's camera height above the floor, or
+one median pair baseline where a floor is not seen (`triangulation.free_block_min_pairs`, `free_block_scale`): the
+adjustment's cost is the same for any scale of such a block, so it kept registration's guesses.
 Every model of the registration is adjusted in its own frame (one problem, its first camera fixed per model: tracks
 never span two models, since only pairs inside one model are consistent) and written as ``models/<k>/``.
 """
@@ -208,8 +210,8 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
         fixed_cameras=tuple(first.tolist()), loss="soft_l1", loss_scale_rad=np.radians(config.ba_loss_scale_deg),
         max_nfev=config.ba_max_iterations, gravity_prior=prior, pose_tolerance_rad=pose_tolerance_rad,
         heading_prior=heading)
-    log.info("bundle adjustment: %d cameras (%d with a gravity prior, %d with a heading prior), %d points, cost %.4g -> %.4g, median error "
-             "%.4f deg", len(cams), 0 if prior is None else len(prior.camera),
+    log.info("bundle adjustment: %d cameras (%d with a gravity prior, %d with a heading prior), %d points, cost "
+             "%.4g -> %.4g, median error %.4f deg", len(cams), 0 if prior is None else len(prior.camera),
              0 if heading is None else len(heading.camera), len(points), result.initial_cost,
              result.final_cost, np.degrees(np.median(result.obs_error_rad)))
     R, t = R.copy(), t.copy()

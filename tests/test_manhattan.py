@@ -109,7 +109,7 @@ def test_heading_prior_jacobian_and_schur_step(tilt_free):
 
 def test_heading_prior_removes_the_heading_drift_along_a_chain():
     """Noisy bearings (0.2°) on a chain of 15 level cameras let the heading drift (0.08-0.12° on average, seeds 0-2);
-    measured axes 0.02° off each hold it (0.012-0.020°: under 0.4 of the drift), and the bearings still fit as well."""
+    measured axes 0.02° off each hold it (0.012-0.020°: under 0.4 of the drift), and the bearings fit as well."""
     for seed in range(3):
         rng = np.random.default_rng(seed)
         R, t, points, cam, pt, bearings = _chain(rng)
