@@ -878,19 +878,25 @@ def _observation_sigma(errors: np.ndarray, pt: np.ndarray) -> float:
     return float(np.sqrt(np.sum(errors[kept] ** 2) / residual_dof * len(errors) / max(kept.sum(), 1)))
 
 
+def _checked_prior(name: str, prior, R, C, X, cam, pt, bearings) -> tuple[np.ndarray, np.ndarray, float]:
+    """A prior's cameras and standard errors, checked (errors name the argument), and the bearings' noise σ_obs it is
+    weighed against (`_observation_sigma` of the initial errors)."""
+    camera = np.asarray(prior.camera, dtype=np.int64)
+    if camera.size and (camera.min() < 0 or camera.max() >= len(R)):
+        raise ValueError(f"{name}.camera values must be in [0, {len(R)})")
+    sigma = np.asarray(prior.sigma_rad, dtype=np.float64)
+    if not (np.isfinite(sigma) & (sigma > 0)).all():
+        raise ValueError(f"{name}.sigma_rad must be finite and positive")
+    y = np.einsum("kij,kj->ki", R[cam], X[pt] - C[cam])
+    errors = np.arccos(np.clip(np.einsum("ki,ki->k", normalize(y), bearings), -1.0, 1.0))
+    return camera, sigma, _observation_sigma(errors, pt)
+
+
 def _prior_terms(prior: GravityPrior | None, layout: _Layout, R, C, X, cam, pt, bearings) -> dict:
     """The _Problem fields of the gravity prior: its moving cameras, their world up, bases and weights."""
     if prior is None:
         return {}
-    camera = np.asarray(prior.camera, dtype=np.int64)
-    if camera.size and (camera.min() < 0 or camera.max() >= len(R)):
-        raise ValueError(f"gravity_prior.camera values must be in [0, {len(R)})")
-    sigma = np.asarray(prior.sigma_rad, dtype=np.float64)
-    if not (np.isfinite(sigma) & (sigma > 0)).all():
-        raise ValueError("gravity_prior.sigma_rad must be finite and positive")
-    y = np.einsum("kij,kj->ki", R[cam], X[pt] - C[cam])
-    errors = np.arccos(np.clip(np.einsum("ki,ki->k", normalize(y), bearings), -1.0, 1.0))
-    sigma_obs = _observation_sigma(errors, pt)
+    camera, sigma, sigma_obs = _checked_prior("gravity_prior", prior, R, C, X, cam, pt, bearings)
     gravity = normalize(np.asarray(prior.gravity_cam, np.float64))
     return {"prior_camera": camera, "prior_up": normalize(np.asarray(prior.up_world, np.float64)),
             "prior_basis": tangent_basis(gravity), "prior_sqrt_w": sigma_obs / sigma,
@@ -901,20 +907,13 @@ def _heading_terms(prior: manhattan.HeadingPrior | None, R, C, X, cam, pt, beari
     """The _Problem fields of the heading prior: its cameras, measured axes and gravities, world axes, weights."""
     if prior is None:
         return {}
-    camera = np.asarray(prior.camera, dtype=np.int64)
-    if camera.size and (camera.min() < 0 or camera.max() >= len(R)):
-        raise ValueError(f"heading_prior.camera values must be in [0, {len(R)})")
-    sigma = np.asarray(prior.sigma_rad, dtype=np.float64)
-    if not (np.isfinite(sigma) & (sigma > 0)).all():
-        raise ValueError("heading_prior.sigma_rad must be finite and positive")
-    y = np.einsum("kij,kj->ki", R[cam], X[pt] - C[cam])
-    errors = np.arccos(np.clip(np.einsum("ki,ki->k", normalize(y), bearings), -1.0, 1.0))
+    camera, sigma, sigma_obs = _checked_prior("heading_prior", prior, R, C, X, cam, pt, bearings)
     return {"heading_camera": camera, "heading_axis": normalize(np.asarray(prior.axis_cam, np.float64)),
             "heading_gravity": normalize(np.asarray(prior.gravity_cam, np.float64)),
             "heading_down": normalize(np.asarray(prior.down_world, np.float64)),
             "heading_world": normalize(np.asarray(prior.axis_world, np.float64)),
             "heading_group": np.asarray(prior.group, np.int64),
-            "heading_sqrt_w": _observation_sigma(errors, pt) / sigma}
+            "heading_sqrt_w": sigma_obs / sigma}
 
 
 def _irls(

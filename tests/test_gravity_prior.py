@@ -10,6 +10,7 @@ from fullview.sfm.bundle import (
     GravityPrior,
     _build_layout,
     _pack,
+    _prior_cameras,
     _prior_terms,
     _Problem,
     _SchurSystem,
@@ -67,20 +68,26 @@ def test_schur_step_with_the_prior_solves_the_damped_normal_equations(tilt_free)
     terms = _prior_terms(prior, layout, R, C, points, cam, pt, bearings)
     problem = _Problem(R_init=R, t_init=t, C_init=C, obs_camera=cam, obs_point=pt, bearings=bearings,
                        basis=tangent_basis(bearings), layout=layout, **terms)
-    objective = _WeightedResiduals(problem)
     x = _pack(layout, C, points) + rng.normal(scale=1e-3, size=layout.num_params)
+    check_prior_rows_and_schur_step(problem, x, tilt_free)
+
+
+def check_prior_rows_and_schur_step(problem: _Problem, x: np.ndarray, tilt_free: bool) -> None:
+    """The Jacobian columns of camera 1's ω (and of camera 0's free tilt) match finite differences, the prior's rows
+    among them, and the Schur step is the step of the full damped system."""
+    objective, layout = _WeightedResiduals(problem), problem.layout
     J, r = objective.jac(x).toarray(), objective.fun(x)
-    # The prior's Jacobian rows match finite differences.
     h = 1e-6
     columns = list(range(layout.cam_col[1], layout.cam_col[1] + 3)) + ([0, 1] if tilt_free else [])
     for col in columns:
         e = np.zeros_like(x)
         e[col] = h
         fd = (objective.fun(x + e) - objective.fun(x - e)) / (2 * h)
+        assert np.abs(fd[2 * len(problem.obs_camera):]).max() > 0  # the prior's rows depend on this column
         np.testing.assert_allclose(J[:, col], fd, atol=1e-6 * np.abs(fd).max() + 1e-9)
     damping = 1e-3
     step, _ = _SchurSystem(problem).solve(r.reshape(-1, 2), objective.jac_blocks(x), damping,
-                                          objective.prior_blocks(x), problem.prior_camera)
+                                          objective.prior_blocks(x), _prior_cameras(problem))
     JtJ = J.T @ J
     expected = np.linalg.solve(JtJ + damping * np.diag(np.maximum(np.diag(JtJ), 1e-12)), -J.T @ r)
     np.testing.assert_allclose(step, expected, rtol=1e-7, atol=1e-10 * np.abs(expected).max())

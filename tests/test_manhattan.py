@@ -7,9 +7,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fullview.sfm import manhattan
-from fullview.sfm.bundle import (_build_layout, _heading_terms, _pack, _prior_cameras, _Problem, _SchurSystem,
-                                 _WeightedResiduals, bundle_adjust)
+from fullview.sfm.bundle import _build_layout, _heading_terms, _pack, _prior_cameras, _Problem, bundle_adjust
 from fullview.sfm.camera import normalize, tangent_basis
+from tests.test_gravity_prior import _chain as gravity_chain
+from tests.test_gravity_prior import check_prior_rows_and_schur_step
 
 UP = np.array([0.0, 1.0, 0.0])  # world gravity ("down" is +y, as the filter's estimates)
 X_AXIS = np.array([1.0, 0.0, 0.0])
@@ -20,21 +21,9 @@ def _yaw(angles):
 
 
 def _chain(rng, num_cameras=15, points_per_camera=20, noise_rad=np.radians(0.2)):
-    """Level cameras 2 m apart along x, each seeing only the points near it and its neighbours' (a chain of rooms):
-    the bearings hold the relative poses of neighbours, and the heading drifts along the chain."""
-    centers = np.stack([2.0 * np.arange(num_cameras), np.zeros(num_cameras), np.zeros(num_cameras)], 1)
-    R = _yaw(rng.uniform(-np.pi, np.pi, num_cameras))
-    points = np.concatenate([c + rng.uniform([-1.5, -1.2, -2.5], [1.5, 1.2, 2.5], (points_per_camera, 3))
-                             for c in centers])
-    owner = np.repeat(np.arange(num_cameras), points_per_camera)
-    cam, pt = [], []
-    for offset in (-1, 0, 1):
-        seen = (owner + offset >= 0) & (owner + offset < num_cameras)
-        cam.append(owner[seen] + offset), pt.append(np.flatnonzero(seen))
-    cam, pt = np.concatenate(cam), np.concatenate(pt)
-    y = np.einsum("kij,kj->ki", R[cam], points[pt] - centers[cam])
-    bearings = normalize(normalize(y) + rng.normal(scale=noise_rad, size=y.shape))
-    return R, -np.einsum("nij,nj->ni", R, centers), points, cam, pt, bearings
+    """`test_gravity_prior`'s chain of rooms (level cameras 2 m apart, each seeing its own and its neighbours'
+    points): the bearings hold the relative poses of neighbours, and the heading drifts along the chain."""
+    return gravity_chain(rng, num_cameras=num_cameras, points_per_camera=points_per_camera, noise_rad=noise_rad)
 
 
 def _measured_axes(R, rng, sigma_rad, world_axes=None):
@@ -87,24 +76,9 @@ def test_heading_prior_jacobian_and_schur_step(tilt_free):
     problem = _Problem(R_init=R, t_init=t, C_init=C, obs_camera=cam, obs_point=pt, bearings=bearings,
                        basis=tangent_basis(bearings), layout=layout,
                        **_heading_terms(prior, R, C, points, cam, pt, bearings))
-    objective = _WeightedResiduals(problem)
     x = _pack(layout, C, points) + rng.normal(scale=1e-3, size=layout.num_params)
-    J, r = objective.jac(x).toarray(), objective.fun(x)
-    assert J.shape[0] == 2 * len(cam) + 2 * 5
-    h = 1e-6
-    columns = list(range(layout.cam_col[1], layout.cam_col[1] + 3)) + ([0, 1] if tilt_free else [])
-    for col in columns:
-        e = np.zeros_like(x)
-        e[col] = h
-        fd = (objective.fun(x + e) - objective.fun(x - e)) / (2 * h)
-        assert np.abs(fd[2 * len(cam):]).max() > 0  # the prior's rows depend on this column
-        np.testing.assert_allclose(J[:, col], fd, atol=1e-6 * np.abs(fd).max() + 1e-9)
-    damping = 1e-3
-    step, _ = _SchurSystem(problem).solve(r.reshape(-1, 2), objective.jac_blocks(x), damping,
-                                          objective.prior_blocks(x), _prior_cameras(problem))
-    JtJ = J.T @ J
-    expected = np.linalg.solve(JtJ + damping * np.diag(np.maximum(np.diag(JtJ), 1e-12)), -J.T @ r)
-    np.testing.assert_allclose(step, expected, rtol=1e-7, atol=1e-10 * np.abs(expected).max())
+    assert len(_prior_cameras(problem)) == 5  # one row each
+    check_prior_rows_and_schur_step(problem, x, tilt_free)
 
 
 def test_heading_prior_removes_the_heading_drift_along_a_chain():
