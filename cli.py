@@ -75,6 +75,7 @@ def _models_line(pipeline) -> str | None:
 
 def cmd_synth(args) -> int:
     from fullview.synth import write_synthetic_dataset
+    from fullview.synth.capture import CaptureTraits
     from fullview.synth.home import check_closed_door, views_per_room
     if args.views < 2 or args.width < 64 or args.width % 2 or args.seed < 0:
         raise ConfigError("synth needs --views >= 2, an even --width >= 64 and --seed >= 0")
@@ -86,8 +87,14 @@ def cmd_synth(args) -> int:
             raise ConfigError(f"synth --scene home: {e}") from None
     elif args.closed_door is not None:
         raise ConfigError("synth: --closed-door needs --scene home")
+    try:
+        capture = CaptureTraits(tilt_deg=args.tilt_deg, exposure_stops=args.exposure_stops, noise=args.noise,
+                                shuffle=args.shuffle)
+    except ValueError as e:
+        raise ConfigError(f"synth: --{str(e).replace('_', '-')}") from None
     print(write_synthetic_dataset(args.out, views=args.views, width=args.width, seed=args.seed, kind=args.scene,
-                                  rooms=args.rooms, closed_door=args.closed_door, hand_points=args.hand_points))
+                                  rooms=args.rooms, closed_door=args.closed_door, hand_points=args.hand_points,
+                                  capture=capture))
     return 0
 
 
@@ -201,6 +208,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="home: close the doorway between room K and K+1 (0-based) with a windowed door leaf, splitting the walk")
     p.add_argument("--hand-points", choices=("all", "crossing", "none"), default="all",
                    help="hand_points.yaml: every track, the 8 joining the sides of --closed-door, or no file")
+    p.add_argument("--tilt-deg", type=float, default=0.0, metavar="DEG",
+                   help="capture trait: each panorama tilted by up to DEG about a random horizontal axis "
+                        "(an inexact zenith correction)")
+    p.add_argument("--exposure-stops", type=float, default=0.0, metavar="S",
+                   help="capture trait: each image's exposure off by up to +-S stops (auto exposure)")
+    p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
+                   help="capture trait: Gaussian sensor noise of SIGMA 8-bit levels")
+    p.add_argument("--shuffle", action="store_true",
+                   help="capture trait: image names in a random order, not the walk's")
     p.set_defaults(func=cmd_synth)
     p = sub.add_parser("eval", help="metrics of the current reconstruction against ground_truth/")
     _common(p)

@@ -141,6 +141,9 @@ class RegistrationOptions:
                                          "scale averaging guessed gives its matches to the final tracks when this "
                                          "many fit a baseline near the model's under its rotations (2 unknowns)",
                                          ge=2, le=1_000_000, zero_means="never")
+    join_by_weak_pairs: bool = setting(True, "join two models where three or more raw-matched pairs between them, "
+                                       "each too weak to verify (6+ upright inliers), agree on one rotation and "
+                                       "placement (a doorway seen from both rooms)")
     unjoined_parts: str = setting("keep", "a part whose scale neither the pair directions nor shared points fix: "
                                   "separate: placed again by points or left a model of its own; keep: a guess "
                                   "(scaled to main's median baseline; a camera tied by one pair at the median "

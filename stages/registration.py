@@ -11,7 +11,7 @@ from fullview.io.errors import FullviewError
 from fullview.sfm.options import RegistrationOptions
 from fullview.sfm.registration import relative_from_absolute
 from fullview.sfm.registration.models import ModelSet, PairLinks, build_models
-from fullview.sfm.registration.diagnosis import unregistered_reasons
+from fullview.sfm.registration.diagnosis import pairs_toward_main, unregistered_reasons
 from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
 from fullview.sfm.tracks import build_tracks
 from fullview.stages.protocol import StageContext
@@ -44,13 +44,16 @@ def run(ctx: StageContext) -> dict:
                       weights=weights, e_i=epi["e_i"], e_j=epi["e_j"])
     models = build_models(links=links, tracks=tracks, bearings=[o["bearings"] for o in obs], options=options,
                           descriptors=_descriptors(ctx, obs) if options.resection else None,
-                          pair_matches=_raw_matches(ctx) if options.min_weak_pair_inliers else None)
+                          pair_matches=_raw_matches(ctx) if (options.min_weak_pair_inliers
+                                                              or options.join_by_weak_pairs) else None,
+                          gravity=verified.extra.get("gravity"), weak_join_threshold_rad=_filter_threshold(ctx))
     R, C, model_id = models.R_cam_from_world, models.centers, models.model_id
     t = -np.einsum("nab,nb->na", R, C)
     rot_res, dir_res, pair_ok = _judge_pairs(epi, weights, models, t, options)
     placed = model_id >= 0
     reasons = _reasons(ctx, obs, verified, epi, usable, placed)
     sizes = models.sizes()
+    toward_main = _pairs_toward_main(verified, epi, model_id, names)
     for k in np.flatnonzero(model_id > 0):  # outside the main model, but placed: say where
         reasons[names[k]] = (f"in model {model_id[k]} ({sizes[model_id[k]]} images), not joined to model 0 by "
                              "verified pairs or shared points")
@@ -64,6 +67,9 @@ def run(ctx: StageContext) -> dict:
     if len(sizes) > 1:
         log.warning("%d separate models (sizes %s): no verified pairs or shared points join them; model 0 is the "
                     "main one (densify, viewer)", len(sizes), sizes)
+        for m, text in toward_main.items():
+            log.warning("model %d meets model 0 best at %s: too few to verify alone; 8 hand points across one of "
+                        "them (hand_points.yaml) join the models", m, text)
     summary = {"registered": int((model_id == 0).sum()), "images": len(names), "models": sizes,
                "weak_pairs": len({(i, j) for i, _, j, _ in models.weak_pair_matches}),
                "in_models": int(placed.sum()), "unregistered": [n for n, ok in zip(names, placed) if not ok],
@@ -74,6 +80,7 @@ def run(ctx: StageContext) -> dict:
                "joined_parts": [{"images": [names[k] for k in j["images"]], "tracks": j["tracks"],
                                  "scale": j["scale"], "confirmed": j.get("confirmed", False)} for j in models.joins],
                "matched_2d3d": [names[k] for k in models.matched],
+               "pairs_toward_model_0": {str(m): text for m, text in toward_main.items()},
                "model": options.model, "inlier_pairs": int(pair_ok.sum()), "epipole_cost": float(models.epipole_cost)}
     ctx.out.save_registration(report=summary, image_names=names, registered=model_id == 0, model_id=model_id,
                               R_cam_from_world=R, t_cam_from_world=t, pair_inlier_mask=pair_ok,
@@ -106,6 +113,28 @@ class NormalisedDescriptors(Sequence):
 
 def _descriptors(ctx: StageContext, obs) -> NormalisedDescriptors:
     return NormalisedDescriptors(ctx.ws, list(ctx.dataset.image_names), [int(o["num_sift"]) for o in obs])
+
+
+def _filter_threshold(ctx: StageContext) -> float | None:
+    """The filter's inlier threshold (radians), from its manifest: weak pairs between models are fitted as it fits
+    pairs. None when the manifest does not record it."""
+    value = ((ctx.ws.read_manifest("filter") or {}).get("params") or {}).get("threshold_deg")
+    return None if value is None else float(np.radians(value))
+
+
+def _pairs_toward_main(verified, epi, model_id: np.ndarray, names: list[str]) -> dict[int, str]:
+    """Per model beyond model 0: the pairs into model 0 with the most raw matches, as text ("pano_003.png –
+    pano_004.png (39 raw matches, 0 inliers), ..."), where hand points would join the two."""
+    num_raw = np.asarray(verified.extra.get("num_raw", np.zeros(len(verified.pairs))), np.int64)
+    pairs = np.asarray(verified.pairs, np.int64).reshape(-1, 2)
+    inliers = {(int(i), int(j)): int(n) for (i, j), n in zip(epi["pairs"], epi["num_inliers"])}
+    out = {}
+    for m in range(1, int(model_id.max(initial=0)) + 1):
+        found = pairs_toward_main(pairs=pairs, num_raw=num_raw, model_id=model_id, model=m)
+        if found:
+            out[m] = ", ".join(f"{names[a]} – {names[b]} ({raw} raw matches, "
+                               f"{inliers.get((min(a, b), max(a, b)), 0)} inliers)" for a, b, raw in found)
+    return out
 
 
 def _raw_matches(ctx: StageContext) -> dict[tuple[int, int], np.ndarray]:

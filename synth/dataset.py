@@ -14,6 +14,7 @@ import yaml
 from fullview.io.artifacts import apply_umask, save_npz
 from fullview.io.errors import FullviewError
 from fullview.io.workspace import make_dirs
+from fullview.synth.capture import CaptureTraits
 from fullview.synth.scene import SynthScene, crossing_hand_points, render_scene
 
 log = logging.getLogger(__name__)
@@ -29,14 +30,16 @@ class SynthError(FullviewError):
 
 
 def write_synthetic_dataset(out: Path, *, views: int, width: int, seed: int, kind: str = "room", rooms: int = 4,
-                            closed_door: int | None = None, hand_points: str = "all") -> Path:
+                            closed_door: int | None = None, hand_points: str = "all",
+                            capture: CaptureTraits | None = None) -> Path:
     """Render and write a scene (``kind``, ``rooms``, ``closed_door``: see ``render_scene``); the folder appears
     complete or not at all. An existing folder is replaced only when it is empty or a synthetic dataset written
     before (never a folder of other files).
 
     ``hand_points``: which tracks go to hand_points.yaml: ``"all"`` (every marker and corner seen by >= 2 views),
     ``"crossing"`` (home with a closed door only: the ``CROSSING_HAND_POINTS`` tracks seen by >= 2 views on each
-    side of it, see ``crossing_hand_points``) or ``"none"`` (no hand_points.yaml)."""
+    side of it, see ``crossing_hand_points``) or ``"none"`` (no hand_points.yaml). ``capture``: traits of a real
+    capture (``fullview.synth.capture``), recorded in scene.npz when any is on."""
     out = Path(out).resolve()
     if hand_points not in HAND_POINT_MODES:
         raise SynthError(f"hand_points must be one of {', '.join(HAND_POINT_MODES)}, got {hand_points!r}")
@@ -46,7 +49,12 @@ def write_synthetic_dataset(out: Path, *, views: int, width: int, seed: int, kin
     params = dict(views=views, width=width, seed=seed)
     if kind == "home":  # the room scene's scene.npz keeps its original keys
         params.update(rooms=rooms, closed_door=-1 if closed_door is None else closed_door)
-    scene = render_scene(views=views, width=width, seed=seed, kind=kind, rooms=rooms, closed_door=closed_door)
+    traits = {}
+    if capture is not None and capture.any:  # the scene.npz of a clean render keeps its original keys
+        traits = dict(tilt_deg=np.float64(capture.tilt_deg), exposure_stops=np.float64(capture.exposure_stops),
+                      noise=np.float64(capture.noise), shuffle=np.bool_(capture.shuffle))
+    scene = render_scene(views=views, width=width, seed=seed, kind=kind, rooms=rooms, closed_door=closed_door,
+                         capture=capture)
     if hand_points == "crossing":
         try:
             tracks = crossing_hand_points(scene, closed_door, CROSSING_HAND_POINTS)
@@ -58,7 +66,7 @@ def write_synthetic_dataset(out: Path, *, views: int, width: int, seed: int, kin
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     apply_umask(tmp, directory=True)
     try:
-        _write(tmp, scene, params, kind, tracks)
+        _write(tmp, scene, params, kind, tracks, traits)
         if out.exists():
             shutil.rmtree(out)
         tmp.rename(out)
@@ -76,7 +84,8 @@ def _check_replaceable(out: Path) -> None:
         raise SynthError(f"{out}: exists and is not empty nor a synthetic dataset; choose a new folder")
 
 
-def _write(root: Path, scene: SynthScene, params: dict, kind: str, hand_points: list[dict] | None) -> None:
+def _write(root: Path, scene: SynthScene, params: dict, kind: str, hand_points: list[dict] | None,
+           traits: dict) -> None:
     (root / "images").mkdir()
     (root / "ground_truth" / "depth").mkdir(parents=True)
     for view in scene.views:
@@ -91,7 +100,7 @@ def _write(root: Path, scene: SynthScene, params: dict, kind: str, hand_points: 
                                                               default_flow_style=None))
     save_npz(root / SCENE_FILE, SCENE_VERSION, boxes=scene.boxes,
              scene_size=np.float64(scene.scene_size), **{k: np.int64(v) for k, v in params.items()},
-             **({"kind": np.str_(kind)} if kind != "room" else {}))
+             **({"kind": np.str_(kind)} if kind != "room" else {}), **traits)
 
 
 def _plain(points: list[dict]) -> list[dict]:

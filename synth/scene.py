@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from tqdm import tqdm
 
 from fullview.sfm.camera import bearings_to_pixels
+from fullview.synth.capture import CaptureTraits, exposed, gains, name_order, tilted
 from fullview.synth.geometry import SceneGeometry, face_frame, face_normal
 from fullview.synth.corridor import layout_corridor
 from fullview.synth.home import HomeLayout, layout_home
@@ -103,7 +104,7 @@ def _hand_points(geometry: SceneGeometry, views: list[SynthView], rng: np.random
 
 def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point_noise_px: float = 1.0,
                  supersample: int = SUPERSAMPLE, kind: str = "room", rooms: int = 4,
-                 closed_door: int | None = None) -> SynthScene:
+                 closed_door: int | None = None, capture: CaptureTraits | None = None) -> SynthScene:
     """Render a seeded synthetic scene seen by ``views`` panoramas of ``width`` x ``width // 2``.
 
     ``kind="room"`` (default): one textured room; the room, furniture and textures depend only on ``seed`` (the
@@ -112,7 +113,8 @@ def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point
     ``closed_door=k`` closes the doorway between room k and k + 1 with a door that has a window (impassable for
     the walk and for matching, see ``fullview.synth.home``; ``crossing_hand_points`` picks tracks across it).
     ``kind="corridor"``: a long textured corridor divided into bays, walked by ``views`` level cameras in order
-    (sparse view graph, see ``fullview.synth.corridor``). The same arguments give bit-identical output.
+    (sparse view graph, see ``fullview.synth.corridor``). ``capture``: traits of a real capture (tilt, exposure,
+    noise, file order; ``fullview.synth.capture``), none by default. The same arguments give bit-identical output.
     """
     if kind not in ("room", "home", "corridor"):
         raise ValueError(f"kind must be 'room', 'home' or 'corridor', got {kind!r}")
@@ -147,12 +149,20 @@ def render_scene(*, views: int = 6, width: int = 2048, seed: int = 0, hand_point
                                   marker_names=marker_names, marker_faces=marker_faces)
         t1 = time.perf_counter()
         rots, centers = place_cameras(np.random.default_rng(s_cam), boxes, views)
+    capture = capture or CaptureTraits()
+    if capture.tilt_deg > 0:
+        rots = tilted(rots, capture.tilt_deg, seed)
+        home = replace(home, R_world_from_cam=rots) if home is not None else None
+    order = name_order(views, capture.shuffle, seed)
     out = []
     for k in tqdm(range(views), desc="render", disable=None, leave=False):
         image, depth = render_view(geometry, R_world_from_cam=rots[k], center=centers[k], width=width,
                                    supersample=supersample)
-        out.append(SynthView(name=f"pano_{k:03d}.png", image=image, depth=depth,
+        out.append(SynthView(name=f"pano_{order[k]:03d}.png", image=image, depth=depth,
                              R_world_from_cam=rots[k], center=centers[k]))
+    images = exposed([v.image for v in out], gains(views, capture.exposure_stops, seed), capture.noise, seed)
+    for view, image in zip(out, images):
+        view.image = image
     t2 = time.perf_counter()
     hand, hand_xyz = _hand_points(geometry, out, np.random.default_rng(s_noise), hand_point_noise_px)
     log.info("synthetic %s seed=%d: %d boxes, textures %.2fs, %d views %dx%d %.2fs, %d hand tracks",

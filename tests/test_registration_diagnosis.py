@@ -25,3 +25,15 @@ def test_each_kind_of_unregistered_image_gets_its_reason():
     assert "no baseline" in reasons["img5"]
     assert reasons["img6"] == "too few features (3)"
     assert reasons["img7"] == "no verified pair with >= 30 inliers (best: 12)"
+
+
+def test_pairs_toward_main_name_the_best_matched_pairs_between_two_models():
+    from fullview.sfm.registration.diagnosis import pairs_toward_main
+    model_id = np.array([1, 1, 0, 0, 0, -1])
+    pairs = np.array([[0, 1], [0, 2], [1, 2], [1, 3], [2, 3], [0, 5], [1, 4]])
+    num_raw = np.array([90, 20, 39, 0, 70, 50, 12])
+    # within a model, to no model and without raw matches: not listed; image of model 1 first, most matches first
+    assert pairs_toward_main(pairs=pairs, num_raw=num_raw, model_id=model_id, model=1) == [(1, 2, 39), (0, 2, 20),
+                                                                                           (1, 4, 12)]
+    assert pairs_toward_main(pairs=pairs, num_raw=num_raw, model_id=model_id, model=1, count=1) == [(1, 2, 39)]
+    assert pairs_toward_main(pairs=pairs, num_raw=num_raw, model_id=model_id, model=2) == []

@@ -234,3 +234,13 @@ def test_refine_pose_reaches_the_noise_level_from_a_perturbed_start():
     assert rms(R1, t1) <= rms(R, t) * 1.001  # the fit is at least as good as the truth: the noise level
     assert _rotation_deg(R1, R) < 0.02
     assert np.linalg.norm(camera_center(R1, t1) - camera_center(R, t)) < 0.01
+
+
+def test_cross_is_numpys_bit_for_bit():
+    """resection's own cross product (no axis handling, for speed) gives np.cross's result exactly, broadcasting
+    alike, so RANSAC's samples, costs and poses are unchanged by it."""
+    from fullview.sfm.resection import _cross
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(7, 5, 3)), rng.normal(size=(5, 3)) * 1e3
+    assert np.array_equal(_cross(a, b), np.cross(a, b))
+    assert np.array_equal(_cross(b, a), np.cross(b, a))

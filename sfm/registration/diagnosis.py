@@ -39,3 +39,17 @@ def _no_pair_reason(touching: np.ndarray, num_inliers: np.ndarray, no_baseline: 
                 "cameras: epipoles.min_cheiral_ratio)")
     best = int(num_inliers[touching].max()) if touching.any() else 0
     return f"no verified pair with >= {min_inliers} inliers (best: {best})"
+
+
+def pairs_toward_main(*, pairs: np.ndarray, num_raw: np.ndarray, model_id: np.ndarray, model: int, main: int = 0,
+                      count: int = 3) -> list[tuple[int, int, int]]:
+    """Up to ``count`` pairs (image of ``model``, image of ``main``, raw matches) between two models with the most raw
+    matches, most first: where a user can add hand points to join the models (a doorway pair has 30-40 raw matches,
+    about a quarter of them true, too few to verify alone; 8 hand points across it verify it)."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    across = ((model_id[i] == model) & (model_id[j] == main)) | ((model_id[i] == main) & (model_id[j] == model))
+    order = np.flatnonzero(across & (num_raw > 0))
+    order = order[np.argsort(-num_raw[order], kind="stable")][:count]
+    return [(int(i[k]), int(j[k]), int(num_raw[k])) if model_id[i[k]] == model else (int(j[k]), int(i[k]),
+                                                                                      int(num_raw[k]))
+            for k in order]

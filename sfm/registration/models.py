@@ -33,6 +33,8 @@ from fullview.sfm.options import MatchesOptions, RegistrationOptions
 from fullview.sfm.registration.driver import register
 from fullview.sfm.registration.rigid_parts import estimate_join, rigid_parts
 from fullview.sfm.registration.view_graph import bridges, component_labels, largest_component
+from fullview.sfm.registration.weak_joins import (MIN_AGREEING_PAIRS, MIN_PAIR_INLIERS, CrossPair,
+                                                  join_by_weak_pairs)
 from fullview.sfm.resection import ResectionOptions, resect
 from fullview.sfm.matching import match_descriptors
 from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
@@ -111,13 +113,16 @@ class ModelSet:
 
 def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndarray], options: RegistrationOptions,
                  descriptors: Sequence[np.ndarray] | None = None,
-                 pair_matches: dict[tuple[int, int], np.ndarray] | None = None) -> ModelSet:
+                 pair_matches: dict[tuple[int, int], np.ndarray] | None = None,
+                 gravity: np.ndarray | None = None, weak_join_threshold_rad: float | None = None) -> ModelSet:
     """Global models, grown by attachment and resection, merged where they overlap (see the module doc).
 
     ``descriptors`` (per image, (F_i, D) for its first F_i features, L2-normalised), when given, let growth place an
     image no track ties to a model by matching them to the model's points (2D-3D matching). ``pair_matches``
     ((i, j) -> (M, 2) feature indices: every matched pair's raw matches), when given, let the pairs too weak to
-    verify alone give their matches that fit a model (`_weak_pair_matches`) to the final tracks."""
+    verify alone give their matches that fit a model (`_weak_pair_matches`) to the final tracks; with ``gravity``
+    ((N, 3) per image, zero rows unknown) and ``weak_join_threshold_rad`` (the filter's inlier threshold) too, two
+    models are joined where several such pairs between them agree (`weak_joins`)."""
     state = _empty_state(len(bearings), len(links.pairs))
     state.tracks = tracks
     open_pairs = links.weights > 0
@@ -134,9 +139,16 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
     if options.resection and descriptors is not None:
         while _absorb_a_model_by_matching(state, links, bearings, options, descriptors):
             pass
+    if (options.join_by_weak_pairs and pair_matches is not None and gravity is not None
+            and weak_join_threshold_rad is not None):
+        while _join_once_by_weak_pairs(state, links, pair_matches, bearings, gravity, weak_join_threshold_rad,
+                                       options, descriptors):
+            pass
     _renumber(state)
     if pair_matches is not None and options.min_weak_pair_inliers:
-        state.weak_pair_matches = _weak_pair_matches(state, links, pair_matches, bearings, options)
+        joined = set(state.weak_pair_matches)  # the weak joins' matches, if any: not added twice
+        state.weak_pair_matches += [row for row in _weak_pair_matches(state, links, pair_matches, bearings, options)
+                                    if row not in joined]
     log.info("models: sizes %s; %d attached, %d resected, %d merge(s)", state.sizes(), len(state.attached),
              len(state.resected), len(state.merges))
     return state
@@ -742,6 +754,56 @@ def _similarity_of_poses(R_b, C_b, R_a, C_a, max_rotation_deg: float = 1.0, max_
     if scale <= 0 or np.linalg.norm(scale * C_b @ M.T + shift - C_a, axis=1).max() > max_centre_error * spread:
         return None
     return M, scale, shift
+
+
+# --------------------------------------------------------------------------------------------- weak joins
+def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: dict[tuple[int, int], np.ndarray],
+                             bearings, gravity: np.ndarray, threshold_rad: float, options: RegistrationOptions,
+                             descriptors=None) -> bool:
+    """Join the first pair of models (largest first) that several weak pairs between them agree on
+    (`weak_joins.join_by_weak_pairs`): the smaller one moves into the larger by the join's similarity, the agreeing
+    pairs' inlier matches join the final tracks (as weak pairs' do), and the model grows again. True if joined."""
+    order = _by_size(state)
+    steps = _model_steps(state.centers, state.model_id, links.pairs[links.weights > 0])
+    for a_rank, a in enumerate(order):
+        for b in order[a_rank + 1:]:
+            cross = _cross_pairs(state.model_id, a, b, pair_matches, bearings)
+            if len(cross) < MIN_AGREEING_PAIRS:
+                continue
+            cams_a, cams_b = np.flatnonzero(state.model_id == a), np.flatnonzero(state.model_id == b)
+            step_a, step_b = steps[a], steps[b] if np.isfinite(steps[b]) else steps[a]
+            join = join_by_weak_pairs(R_a={int(k): state.R_cam_from_world[k] for k in cams_a},
+                                      C_a={int(k): state.centers[k] for k in cams_a},
+                                      R_b={int(k): state.R_cam_from_world[k] for k in cams_b},
+                                      C_b={int(k): state.centers[k] for k in cams_b}, gravity=gravity, cross=cross,
+                                      threshold_rad=threshold_rad, step_a=float(step_a), step_b=float(step_b),
+                                      seed=options.seed)
+            if join is None:
+                continue
+            state.R_cam_from_world[cams_b] = state.R_cam_from_world[cams_b] @ join.M.T
+            state.centers[cams_b] = join.scale * state.centers[cams_b] @ join.M.T + join.shift
+            state.model_id[cams_b] = a
+            state.merges.append({"images": cams_b.tolist(), "points": 0})
+            state.weak_pair_matches += join.inlier_matches
+            log.info("model %d (%d images) joined to model %d by %d weak pairs agreeing on one rotation (k, l, "
+                     "inliers): %s%s", b, len(cams_b), a, len(join.pairs), join.pairs,
+                     "; its scale is a guess (the pairs touch one of its cameras)" if join.scale_guessed else "")
+            _adjust_model(state, a, state.tracks, bearings, options)
+            _grow(state, a, links, bearings, options, descriptors)
+            return True
+    return False
+
+
+def _cross_pairs(model_id: np.ndarray, a: int, b: int, pair_matches: dict[tuple[int, int], np.ndarray],
+                 bearings) -> list[CrossPair]:
+    """The raw-matched pairs between a camera k of model b and a camera l of model a, as (k, l) pairs."""
+    out = []
+    for (i, j), m in pair_matches.items():
+        if len(m) < MIN_PAIR_INLIERS or {model_id[i], model_id[j]} != {a, b}:
+            continue
+        k, l, mk = (i, j, m) if model_id[i] == b else (j, i, m[:, ::-1])
+        out.append(CrossPair(k=int(k), l=int(l), b_k=bearings[k][mk[:, 0]], b_l=bearings[l][mk[:, 1]], matches=mk))
+    return out
 
 
 # --------------------------------------------------------------------------------------------- merging

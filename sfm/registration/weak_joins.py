@@ -1,0 +1,154 @@
+"""Two models joined by the pairs between them that are too weak to verify alone, when several agree.
+
+Where rooms of two panoramas each are walked through doorways, the doorway pair is often the only pair that could
+join two rooms, and on plain walls it holds about ten true matches among thirty or forty raw ones: below the upright
+fit's `filter.min_inliers_upright`, at the level chance fits reach (8-13 inliers at 1024 px). The home then falls
+apart into separate models (measured on new bare homes of 15-16 rooms with two panoramas per room: 28 + 4, 20 + 12).
+
+One weak pair alone cannot be told from chance, but the pairs around a doorway see the same opening: each pair
+between model b and model a that the upright fit gives enough inliers implies the rotation of b's frame into a's
+(`M = R_lᵀ R_lk R_k`). Chance fits imply rotations spread over all yaws; the doorway's pairs agree to a fraction of a
+degree. A join is taken when `MIN_AGREEING_PAIRS` or more pairs imply one rotation within
+`MAX_ROTATION_DISAGREEMENT_DEG` and their baseline directions then place b's cameras consistently: the scale and
+shift of b (4 unknowns, 2 equations per pair) by least squares when the pairs touch two cameras of b or more, else
+the shift alone with b's median baseline set to a's (the same guess as a part whose scale no points fix); every
+pair's direction must then lie within `MAX_DIRECTION_DISAGREEMENT_DEG` of where the placement puts its cameras.
+Pure geometry: no file access.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fullview.sfm import two_view, upright
+from fullview.sfm.camera import normalize
+from fullview.sfm.rotations import rotation_angle_deg
+
+MIN_PAIR_INLIERS = 6  # a cross pair's upright fit below this many inliers implies nothing (at 0.35° on the bare homes
+# at 1024 px, 5 of the 112 pairs between two models of seed 42 reach 6, 3 of them the doorway's, 7-11 inliers)
+MAX_ROTATION_DISAGREEMENT_DEG = 1.0  # cross pairs implying rotations this close agree on the join
+MIN_AGREEING_PAIRS = 3  # pairs that must agree on one rotation (and on the placement: 6 equations, 3-4 unknowns)
+MAX_DIRECTION_DISAGREEMENT_DEG = 2.0  # each agreeing pair's baseline direction against the placement's
+MAX_ITERATIONS = 2000  # upright RANSAC samples per cross pair (few matches: the cap is rarely reached)
+
+
+@dataclass(kw_only=True)
+class CrossPair:
+    k: int  # camera of model b
+    l: int  # camera of model a
+    b_k: np.ndarray  # (M, 3) bearings of the raw matches in camera k
+    b_l: np.ndarray  # (M, 3) ... and in camera l
+    matches: np.ndarray  # (M, 2) feature indices (k's, l's)
+
+
+@dataclass(kw_only=True)
+class WeakJoin:
+    M: np.ndarray  # (3, 3) rotation of model b's frame into model a's: x_a = scale M x_b + shift
+    scale: float
+    shift: np.ndarray  # (3,)
+    pairs: list[tuple[int, int, int]]  # (k, l, inliers) of the agreeing cross pairs
+    inlier_matches: list[tuple[int, int, int, int]]  # (k, feature, l, feature) of the agreeing pairs
+    scale_guessed: bool  # the agreeing pairs touch one camera of b: its scale is model a's median baseline's
+
+
+def join_by_weak_pairs(*, R_a: dict[int, np.ndarray], C_a: dict[int, np.ndarray], R_b: dict[int, np.ndarray],
+                       C_b: dict[int, np.ndarray], gravity: np.ndarray, cross: list[CrossPair], threshold_rad: float,
+                       step_a: float, step_b: float, seed: int = 0) -> WeakJoin | None:
+    """The join of model b into model a that several weak cross pairs agree on, or None (see the module doc).
+
+    R_a, C_a (R_b, C_b): rotations (cam from world) and centres of the models' cameras by image; gravity (N, 3) per
+    image in its camera frame (zero rows: unknown, such pairs are skipped); step_a, step_b: the models' median
+    used-pair baselines (the scale guess)."""
+    fits = []
+    for n, pair in enumerate(cross):
+        fit = _upright_pair(pair, gravity, threshold_rad, seed + n)
+        if fit is not None:
+            R_lk, t_lk, inliers = fit
+            M = R_a[pair.l].T @ R_lk @ R_b[pair.k]
+            u = normalize(R_a[pair.l].T @ t_lk)  # from C_l towards C_k, in a's frame
+            fits.append((pair, M, u, inliers))
+    for candidate in _agreeing_sets(fits):
+        chosen = [fits[n] for n in candidate]
+        M = _mean_rotation(np.array([f[1] for f in chosen]))
+        placed = _place(M, chosen, C_a, C_b, step_a, step_b)
+        if placed is not None:
+            break
+    else:
+        return None
+    scale, shift, guessed = placed
+    rows = [(f[0].k, int(a), f[0].l, int(b)) for f in chosen for a, b in f[0].matches[f[3]]]
+    return WeakJoin(M=M, scale=scale, shift=shift, pairs=[(f[0].k, f[0].l, int(f[3].sum())) for f in chosen],
+                    inlier_matches=rows, scale_guessed=guessed)
+
+
+def _upright_pair(pair: CrossPair, gravity: np.ndarray, threshold_rad: float, seed: int):
+    """(R_l_from_k, t_l_from_k, inlier mask) of the pair's upright fit on levelled bearings, or None."""
+    g_k, g_l = gravity[pair.k], gravity[pair.l]
+    if len(pair.b_k) < MIN_PAIR_INLIERS or not (np.any(g_k) and np.any(g_l)):
+        return None
+    L_k, L_l = upright.leveling_rotation(g_k), upright.leveling_rotation(g_l)
+    options = two_view.RansacOptions(threshold_rad=threshold_rad, max_iterations=MAX_ITERATIONS, seed=seed)
+    try:
+        res = upright.ransac_f_upright(pair.b_k @ L_k.T, pair.b_l @ L_l.T, options)
+        if res.inliers.sum() < MIN_PAIR_INLIERS:
+            return None
+        F = upright.unlevel_f(res.F, L_k, L_l)
+        pose = two_view.relative_pose_from_f(F, pair.b_k[res.inliers], pair.b_l[res.inliers])
+    except ValueError:  # degenerate samples or F: the pair implies nothing
+        return None
+    if pose.num_cheiral < 0.9 * res.inliers.sum():
+        return None
+    return pose.R_j_from_i, pose.t_j_from_i, res.inliers
+
+
+def _agreeing_sets(fits: list) -> list[list[int]]:
+    """Sets of fits agreeing with one of them on the rotation (MIN_AGREEING_PAIRS or more), most inliers first."""
+    if len(fits) < MIN_AGREEING_PAIRS:
+        return []
+    Ms = np.array([f[1] for f in fits])
+    counts = np.array([f[3].sum() for f in fits])
+    found = {}
+    for n in range(len(fits)):
+        close = np.flatnonzero(rotation_angle_deg(Ms, np.broadcast_to(Ms[n], Ms.shape))
+                               <= MAX_ROTATION_DISAGREEMENT_DEG)
+        if len(close) >= MIN_AGREEING_PAIRS:
+            found[tuple(close.tolist())] = int(counts[close].sum())
+    return [list(k) for k, _ in sorted(found.items(), key=lambda kv: -kv[1])]
+
+
+def _mean_rotation(Ms: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(Ms.sum(axis=0))
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def _place(M: np.ndarray, chosen: list, C_a: dict, C_b: dict, step_a: float, step_b: float):
+    """(scale, shift, guessed) putting b's cameras of the chosen pairs on their baseline rays from a's cameras:
+    u × (s M C_k + T − C_l) = 0 per pair; with one camera of b the scale is the median-baseline guess. None when the
+    scale is not positive or a pair's direction is more than MAX_DIRECTION_DISAGREEMENT_DEG off (or behind)."""
+    b_cameras = {f[0].k for f in chosen}
+    rows, rhs = [], []
+    for pair, _, u, _ in chosen:
+        U = _skew(u)
+        rows.append(np.column_stack([U @ (M @ C_b[pair.k]), U]))
+        rhs.append(U @ C_a[pair.l])
+    A, y = np.concatenate(rows), np.concatenate(rhs)
+    guessed = len(b_cameras) < 2
+    if guessed:
+        scale = step_a / step_b if step_b > 0 else 1.0
+        shift = np.linalg.lstsq(A[:, 1:], y - scale * A[:, 0], rcond=None)[0]
+    else:
+        x = np.linalg.lstsq(A, y, rcond=None)[0]
+        scale, shift = float(x[0]), x[1:]
+    if not scale > 0:
+        return None
+    cos_max = np.cos(np.radians(MAX_DIRECTION_DISAGREEMENT_DEG))
+    for pair, _, u, _ in chosen:
+        if normalize(scale * M @ C_b[pair.k] + shift - C_a[pair.l]) @ u < cos_max:
+            return None
+    return float(scale), shift, guessed
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
