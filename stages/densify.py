@@ -299,7 +299,7 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
     res = dense.densify_pair(images[i], images[j], R[i], t[i], R[j], t[j], rect_height=rect_height,
                              out_width=images[i].shape[1], min_depth_ratio=ratio,
                              min_epipole_angle_deg=config.epipole_margin_deg, params=params)
-    swept = _add_ground_sweep(config, images, R, t, sweep, pair, res) if sweep is not None else (0.0, 0.0)
+    swept = _add_ground_sweep(images, R, t, sweep, pair, res) if sweep is not None else (0.0, 0.0)
     elapsed = time.perf_counter() - t0
     pair_errors, kept = [], []
     for cam, other, rng in ((i, j, res.range_i), (j, i, res.range_j)):
@@ -313,11 +313,16 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
 
 
 def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points):
-    """(up, {camera: height above its ground, NaN where the sparse points do not tell}) for the ground sweep, or
-    None where it does not run (off, or a ceiling over the cameras with ``no_ceiling``: indoors the fills own the
+    """(up, {camera: height above its ground, NaN where the sparse points do not tell}, the sweep's options, its
+    width) for the ground sweep, or None where it does not run (off, or a ceiling over the cameras with ``no_ceiling``: indoors the fills own the
     floor)."""
     if config.ground_sweep == "off":
         return None
+    options = ground_sweep.GroundSweepOptions(window=config.ground_sweep_window, min_ncc=config.ground_sweep_min_ncc,
+                                              min_texture_std=config.min_texture_std,
+                                              lr_tolerance=config.combine_tolerance,
+                                              min_latitude_deg=config.min_latitude_deg)
+    width = config.ground_sweep_width  # read here: the settings are the stage's whether the sweep runs or not
     up = camera_up(R[cams])
     points = np.asarray(sparse_points, np.float64).reshape(-1, 3)
     if config.ground_sweep == "no_ceiling" and ground_sweep.has_ceiling(centers[cams], points, up):
@@ -325,23 +330,19 @@ def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points)
         return None
     heights = ground_sweep.ground_heights(centers[cams], points, up)  # NaN: from each pair's stereo instead
     log.info("ground sweep: on, camera heights from the sparse points %s", ", ".join(f"{h:.3g}" for h in heights))
-    return up, dict(zip(cams, heights.tolist()))
+    return up, dict(zip(cams, heights.tolist())), options, width
 
 
-def _add_ground_sweep(config: DensifyOptions, images, R, t, sweep, pair: tuple[int, int], res) -> tuple[float, float]:
+def _add_ground_sweep(images, R, t, sweep, pair: tuple[int, int], res) -> tuple[float, float]:
     """Fill the pair's maps where SGBM found no range with the ground sweep's (``sfm.dense.ground_sweep``), in
     place; the sweep runs at ``ground_sweep_width`` at most and its ranges are resized to the maps (nearest).
     Returns the share of each map it filled."""
     i, j = pair
-    up, heights = sweep
+    up, heights, options, width = sweep
     shape = res.range_i.shape
-    width = min(config.ground_sweep_width, images[i].shape[1])
+    width = min(width, images[i].shape[1])
     small = [cv2.resize(images[k], (width, width // 2), interpolation=cv2.INTER_AREA)
              if images[k].shape[1] != width else images[k] for k in pair]
-    options = ground_sweep.GroundSweepOptions(window=config.ground_sweep_window, min_ncc=config.ground_sweep_min_ncc,
-                                              min_texture_std=config.min_texture_std,
-                                              lr_tolerance=config.combine_tolerance,
-                                              min_latitude_deg=config.min_latitude_deg)
     t0 = time.perf_counter()
     swept = ground_sweep.ground_sweep_pair(*small, R[i], t[i], R[j], t[j], up, heights[i], heights[j], options)
     shares = []

@@ -99,20 +99,34 @@ def has_ceiling(centers: np.ndarray, points: np.ndarray, up: np.ndarray, min_sha
     return bool(shares) and float(np.median(shares)) >= min_share
 
 
-def swept_ground_height(ref: np.ndarray, src: np.ndarray, R_ref: np.ndarray, c_ref: np.ndarray, R_src: np.ndarray,
-                        c_src: np.ndarray, up: np.ndarray, options: GroundSweepOptions) -> float:
-    """The reference camera's height above its ground from a coarse sweep (half width, heights from
-    ``COARSE_SPAN`` times the baseline, ``COARSE_STEP`` log steps): the most frequent accepted height among the
-    rays more than ``GROUND_DEPRESSION_DEG`` below the horizon (NaN if fewer than ``MIN_COARSE_PIXELS``). Used where
-    the sparse points do not tell: rectified stereo of the near ground is itself what fails there."""
-    baseline = float(np.linalg.norm(np.asarray(c_src, np.float64) - np.asarray(c_ref, np.float64)))
-    h, w = ref.shape
-    small = [cv2.resize(g, (w // 2, h // 2), interpolation=cv2.INTER_AREA) for g in (ref, src)]
+def swept_ground_heights(grey_i: np.ndarray, grey_j: np.ndarray, R_i: np.ndarray, c_i: np.ndarray,
+                         R_j: np.ndarray, c_j: np.ndarray, up: np.ndarray, options: GroundSweepOptions
+                         ) -> tuple[float, float]:
+    """Both cameras' heights above their ground from a coarse sweep (half width, heights from ``COARSE_SPAN`` times
+    the baseline in ``COARSE_STEP`` log steps, the two directions left-right checked): for each, the most frequent
+    height among its accepted rays more than ``GROUND_DEPRESSION_DEG`` below the horizon (NaN if fewer than
+    ``MIN_COARSE_PIXELS``). Used where the sparse points do not tell: rectified stereo of the near ground is itself
+    what fails there."""
+    baseline = float(np.linalg.norm(np.asarray(c_j, np.float64) - np.asarray(c_i, np.float64)))
+    h, w = grey_i.shape
+    small = [cv2.resize(g, (w // 2, h // 2), interpolation=cv2.INTER_AREA) for g in (grey_i, grey_j)]
     coarse = GroundSweepOptions(**{**options.__dict__, "min_height_factor": COARSE_SPAN[0],
                                    "max_height_factor": COARSE_SPAN[1], "step": COARSE_STEP,
                                    "window": max(3, options.window // 2 | 1)})
-    ranges = sweep_ranges(*small, R_ref, c_ref, R_src, c_src, up, baseline, coarse)
-    depression = -(pixel_grid_bearings(w // 2, h // 2, np.float32) @ np.asarray(R_ref, np.float32)) @ \
+    range_i = sweep_ranges(small[0], small[1], R_i, c_i, R_j, c_j, up, baseline, coarse)
+    range_j = sweep_ranges(small[1], small[0], R_j, c_j, R_i, c_i, up, baseline, coarse)
+    tolerance = 2 * COARSE_STEP
+    keep_i = _left_right_agree(range_i, range_j, R_i, c_i, R_j, c_j, tolerance)
+    keep_j = _left_right_agree(range_j, range_i, R_j, c_j, R_i, c_i, tolerance)
+    return (_mode_height(np.where(keep_i, range_i, np.nan), R_i, up, baseline),
+            _mode_height(np.where(keep_j, range_j, np.nan), R_j, up, baseline))
+
+
+def _mode_height(ranges: np.ndarray, R_cam_from_world: np.ndarray, up: np.ndarray, baseline: float) -> float:
+    """The most frequent height below the camera (log bins of ``COARSE_STEP``; the median of the mode's bin and its
+    neighbours) of the ranges more than ``GROUND_DEPRESSION_DEG`` below its horizon; NaN if too few."""
+    h, w = ranges.shape
+    depression = -(pixel_grid_bearings(w, h, np.float32) @ np.asarray(R_cam_from_world, np.float32)) @ \
         np.asarray(up, np.float32)
     near = np.isfinite(ranges) & (depression > np.sin(np.radians(GROUND_DEPRESSION_DEG)))
     if near.sum() < MIN_COARSE_PIXELS:
@@ -131,10 +145,10 @@ def ground_sweep_pair(image_i: np.ndarray, image_j: np.ndarray, R_i: np.ndarray,
     found none or the two directions disagree). A height that is NaN is found by a coarse sweep first."""
     grey_i, grey_j = _grey(image_i), _grey(image_j)
     c_i, c_j = camera_center(R_i, t_i), camera_center(R_j, t_j)
-    if not np.isfinite(height_i):
-        height_i = swept_ground_height(grey_i, grey_j, R_i, c_i, R_j, c_j, up, options)
-    if not np.isfinite(height_j):
-        height_j = swept_ground_height(grey_j, grey_i, R_j, c_j, R_i, c_i, up, options)
+    if not np.isfinite([height_i, height_j]).all():
+        coarse = swept_ground_heights(grey_i, grey_j, R_i, c_i, R_j, c_j, up, options)
+        height_i, height_j = (known if np.isfinite(known) else found for known, found in
+                              zip((height_i, height_j), coarse))
     range_i = sweep_ranges(grey_i, grey_j, R_i, c_i, R_j, c_j, up, height_i, options)
     range_j = sweep_ranges(grey_j, grey_i, R_j, c_j, R_i, c_i, up, height_j, options)
     keep_i = _left_right_agree(range_i, range_j, R_i, c_i, R_j, c_j, options.lr_tolerance)
