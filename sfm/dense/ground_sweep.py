@@ -29,6 +29,7 @@ from fullview.sfm.camera import bearings_to_pixels_f32, camera_center, pixel_gri
 from fullview.sfm.dense.rectify import _pad_equirect
 
 PAD = 4  # source padding of the warps (pixels), as in rectification
+KNOT_STEP = 4  # the warp's source pixels are computed exactly every this many hypotheses, interpolated between
 CHUNK_ROWS = 48  # reference rows swept at a time (the cost volume of a chunk stays a few tens of MB)
 MIN_POINTS = 20  # sparse points a camera's ground height rests on (else the other cameras' median)
 GROUND_DEPRESSION_DEG = 30.0  # sparse points this far below a camera's horizon are taken as its ground
@@ -184,35 +185,49 @@ def sweep_ranges(ref: np.ndarray, src: np.ndarray, R_ref: np.ndarray, c_ref: np.
     padded = _pad_equirect(src, PAD)
     R_src32 = np.asarray(R_src, np.float32)
     offset = R_src32 @ np.asarray(c_ref - c_src, np.float32)  # the reference centre in the source frame
+    size = (2 * half + 1, 2 * half + 1)
+    knots = np.unique(np.r_[np.arange(0, len(hyp), KNOT_STEP), len(hyp) - 1])
+    min_y = (np.pi / 2 - np.radians(options.min_latitude_deg)) * h / np.pi + PAD - 0.5  # the source's nadir cap
     for top in range(rows[0], rows[-1] + 1, CHUNK_ROWS):
         lo, hi = max(top - half, 0), min(top + CHUNK_ROWS + half, h)  # the chunk with its window margin
         below = np.maximum(depression[lo:hi, :, None], np.float32(1e-3))  # rays at or above the horizon: not swept
         step = (rays[lo:hi] @ R_src32.T) / below  # the plane's point per unit height, source frame
-        ncc = np.stack([_warp_ncc(ref[lo:hi], padded, offset + hk * step, (h, w), half, options) for hk in hyp])
+        ref_c = ref[lo:hi]
+        mean_r = cv2.blur(ref_c, size)
+        std_r = np.sqrt(np.maximum(cv2.blur(ref_c * ref_c, size) - mean_r * mean_r, 0.0))
+        coords = [bearings_to_pixels_f32(offset + hyp[k] * step, w, h, offset=PAD - 0.5) for k in knots]
+        ncc = np.empty((len(hyp),) + ref_c.shape, np.float32)
+        for k in range(len(hyp)):
+            x, y = _between_knots(knots, coords, k, w)
+            warped = cv2.remap(padded, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            mean_w = cv2.blur(warped, size)
+            std_w = np.sqrt(np.maximum(cv2.blur(warped * warped, size) - mean_w * mean_w, 0.0))
+            cov = cv2.blur(ref_c * warped, size) - mean_r * mean_w
+            score = cov / np.maximum(std_r * std_w, 1e-3)
+            score[y > min_y] = -1.0
+            ncc[k] = score
         inner = slice(top - lo, min(top + CHUNK_ROWS, h) - lo)
         ranges = _winner_ranges(ncc[:, inner], hyp, depression[top:top + CHUNK_ROWS], options)
-        std = _window_std(ref[lo:hi], half)[inner]
-        ranges[~(std >= options.min_texture_std) | ~swept[top:top + CHUNK_ROWS]] = np.nan
+        ranges[~(std_r[inner] >= options.min_texture_std) | ~swept[top:top + CHUNK_ROWS]] = np.nan
         out[top:top + CHUNK_ROWS] = ranges
     return out
 
 
-def _warp_ncc(ref: np.ndarray, padded_src: np.ndarray, bearings: np.ndarray, shape: tuple[int, int], half: int,
-              options: GroundSweepOptions) -> np.ndarray:
-    """NCC over windows between the reference rows and the source warped onto them through one plane (bearings:
-    the plane's points in the source frame, per reference pixel). −1 where the source sees the point below its
-    nadir cap or behind the plane's horizon."""
-    h, w = shape
-    x, y = bearings_to_pixels_f32(bearings, w, h, offset=PAD - 0.5)
-    warped = cv2.remap(padded_src, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    size = (2 * half + 1, 2 * half + 1)
-    mean_r, mean_w = cv2.blur(ref, size), cv2.blur(warped, size)
-    cov = cv2.blur(ref * warped, size) - mean_r * mean_w
-    var = (cv2.blur(ref * ref, size) - mean_r * mean_r) * (cv2.blur(warped * warped, size) - mean_w * mean_w)
-    ncc = cov / np.sqrt(np.maximum(var, 1e-6))
-    src_lat = np.float32(np.pi / 2) - (y - np.float32(PAD - 0.5)) * np.float32(np.pi / h)
-    ncc[~np.isfinite(ncc) | (src_lat < np.radians(options.min_latitude_deg))] = -1.0
-    return ncc
+def _between_knots(knots: np.ndarray, coords: list, k: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The warp's source pixels of hypothesis k: exact at the knots, linear in the hypothesis index between them
+    (the point moves smoothly along its epipolar curve; a fraction of a pixel off at 1.5% steps), the column
+    unwrapped across the panorama's seam."""
+    b = int(np.searchsorted(knots, k))
+    if knots[b] == k:
+        return coords[b]
+    a = b - 1
+    t = np.float32((k - knots[a]) / (knots[b] - knots[a]))
+    (xa, ya), (xb, yb) = coords[a], coords[b]
+    dx = xb - xa
+    dx = np.where(dx > width / 2, dx - width, np.where(dx < -width / 2, dx + width, dx))
+    x = xa + t * dx
+    x = np.where(x < PAD - 0.5, x + width, np.where(x >= width + PAD - 0.5, x - width, x))
+    return x.astype(np.float32), (ya + t * (yb - ya)).astype(np.float32)
 
 
 def _winner_ranges(ncc: np.ndarray, hyp: np.ndarray, depression: np.ndarray, options: GroundSweepOptions
@@ -258,12 +273,6 @@ def _left_right_agree(range_a: np.ndarray, range_b: np.ndarray, R_a, c_a, R_b, c
     with np.errstate(invalid="ignore"):
         keep[finite] = np.abs(seen - dist) <= tolerance * seen
     return keep
-
-
-def _window_std(grey: np.ndarray, half: int) -> np.ndarray:
-    size = (2 * half + 1, 2 * half + 1)
-    mean = cv2.blur(grey, size)
-    return np.sqrt(np.maximum(cv2.blur(grey * grey, size) - mean * mean, 0.0))
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
