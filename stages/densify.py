@@ -4,6 +4,11 @@
 2. Per pair (``fullview.sfm.dense.densify_pair``): rectify, SGBM with a left-right check, law-of-sines ranges,
    back to both panoramas. The disparity search covers depths down to the nearest plausible one, taken from the
    sparse points (a low percentile of the camera-to-point distances), since the model's scale is arbitrary.
+2a. Ground sweep (``densify.ground_sweep``, ``fullview.sfm.dense.ground_sweep``): where no ceiling spans over the
+   cameras (outdoors), each pair's pixels below the horizon that SGBM left empty are matched again under
+   hypotheses of ground-parallel planes (plane-induced warps, NCC, a unique peak, a left-right check), so the near
+   and slanted ground is matched as if fronto-parallel and without a disparity cap; the ranges go through the same
+   conditioning and checks as SGBM's.
 3. Per panorama: the pair estimates are combined (median of the agreeing ones; pixels whose estimates conflict are
    dropped).
 3a. Stereo check (``densify.stereo_check``): where a panorama's pair estimates conflict, the one its neighbours'

@@ -138,3 +138,21 @@ def test_a_room_has_a_ceiling_a_courtyard_has_not():
     room = _room_points(rng)
     assert ground_sweep.has_ceiling(cameras, room[room[:, 1] < 1.4], UP)
     assert not ground_sweep.has_ceiling(cameras, _street_points(rng), UP)
+
+
+def test_the_stage_sweeps_only_where_no_ceiling_spans_over_the_cameras():
+    from fullview.sfm.options import DensifyOptions
+    from fullview.stages import densify
+
+    rng = np.random.default_rng(1)
+    cameras = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.5], [-1.0, 0.0, -0.5]])
+    R = np.repeat(np.eye(3)[None], 3, axis=0)
+    room, street = _room_points(rng), _street_points(rng)
+
+    def setup(points, mode):
+        return densify._ground_sweep_setup(DensifyOptions(ground_sweep=mode), R, cameras, [0, 1, 2], points)
+
+    assert setup(room, "no_ceiling") is None and setup(street, "no_ceiling") is not None
+    assert setup(room, "always") is not None and setup(street, "off") is None
+    up, heights, _, _ = setup(room, "always")
+    assert np.allclose(up, UP) and np.allclose(list(heights.values()), 1.5)  # the floor 1.5 below every camera
