@@ -258,8 +258,9 @@ class DensifyOptions:
                                          "cameras) is refitted with a tilt up to this where that explains 1.5x its "
                                          "points (outdoor ground slopes)", ge=0.0, le=30.0, zero_means="always level")
     ground_sweep: str = setting("no_ceiling", "stereo on the ground by a sweep of ground-parallel planes (sfm/dense/"
-                                "ground_sweep.py), filling what a pair's SGBM left empty below the horizon: off, "
-                                "always, or no_ceiling = only when no level band holds half the sparse points overhead",
+                                "ground_sweep.py), where a pair's SGBM has no range below the horizon or one it "
+                                "disagrees with: off, always, or no_ceiling = not in a room (no level band holds half "
+                                "the sparse points overhead, nor are there twice as many low ones)",
                                 choices=("off", "no_ceiling", "always"))
     ground_sweep_width: int = setting(1280, "the ground sweep works at this width (at most the range maps'; its "
                                       "ranges are resized to them)", ge=64, le=65536)

@@ -319,8 +319,8 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
 
 def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points):
     """(up, {camera: height above its ground, NaN where the sparse points do not tell}, the sweep's options, its
-    width) for the ground sweep, or None where it does not run (off, or a ceiling over the cameras with ``no_ceiling``: indoors the fills own the
-    floor)."""
+    width) for the ground sweep, or None where it does not run (off, or a room with ``no_ceiling``: indoors the
+    fills own the floor, ``ground_sweep.has_ceiling``)."""
     if config.ground_sweep == "off":
         return None
     options = ground_sweep.GroundSweepOptions(window=config.ground_sweep_window, min_ncc=config.ground_sweep_min_ncc,
@@ -339,9 +339,10 @@ def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points)
 
 
 def _add_ground_sweep(images, R, t, sweep, pair: tuple[int, int], res) -> tuple[float, float]:
-    """Fill the pair's maps where SGBM found no range with the ground sweep's (``sfm.dense.ground_sweep``), in
+    """Fill the pair's maps with the ground sweep's ranges (``sfm.dense.ground_sweep``) where SGBM found none or one
+    the sweep disagrees with (checked against the other panoramas, the sweep was right 4 times as often), in
     place; the sweep runs at ``ground_sweep_width`` at most and its ranges are resized to the maps (nearest).
-    Returns the share of each map it filled."""
+    Returns the share of each map it set."""
     i, j = pair
     up, heights, options, width = sweep
     shape = res.range_i.shape
@@ -354,7 +355,8 @@ def _add_ground_sweep(images, R, t, sweep, pair: tuple[int, int], res) -> tuple[
     for (rng, valid), ground in zip(((res.range_i, res.valid_i), (res.range_j, res.valid_j)), swept):
         if ground.shape != shape:
             ground = cv2.resize(ground, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
-        new = ~valid & np.isfinite(ground)
+        with np.errstate(invalid="ignore"):  # where SGBM disagrees with the sweep, the sweep is taken (README)
+            new = np.isfinite(ground) & (~valid | (np.abs(rng - ground) > options.lr_tolerance * ground))
         rng[new], valid[new] = ground[new], True
         shares.append(float(new.mean()))
     res.timings["ground_sweep"] = time.perf_counter() - t0
