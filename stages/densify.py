@@ -319,9 +319,9 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
 
 def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points):
     """(up, {camera: height above its ground, NaN where the sparse points do not tell}, the sweep's options, its
-    width) for the ground sweep, or None where it does not run (off, or a room with ``no_ceiling``: indoors the
+    width) for the ground sweep, or None where it does not run (never, or a room with ``no_ceiling``: indoors the
     fills own the floor, ``ground_sweep.has_ceiling``)."""
-    if config.ground_sweep == "off":
+    if config.ground_sweep == "never":
         return None
     options = ground_sweep.GroundSweepOptions(window=config.ground_sweep_window, min_ncc=config.ground_sweep_min_ncc,
                                               min_texture_std=config.min_texture_std,

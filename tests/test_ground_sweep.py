@@ -153,6 +153,6 @@ def test_the_stage_sweeps_only_where_no_ceiling_spans_over_the_cameras():
         return densify._ground_sweep_setup(DensifyOptions(ground_sweep=mode), R, cameras, [0, 1, 2], points)
 
     assert setup(room, "no_ceiling") is None and setup(street, "no_ceiling") is not None
-    assert setup(room, "always") is not None and setup(street, "off") is None
+    assert setup(room, "always") is not None and setup(street, "never") is None
     up, heights, _, _ = setup(room, "always")
     assert np.allclose(up, UP) and np.allclose(list(heights.values()), 1.5)  # the floor 1.5 below every camera
