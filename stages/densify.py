@@ -5,10 +5,10 @@
    back to both panoramas. The disparity search covers depths down to the nearest plausible one, taken from the
    sparse points (a low percentile of the camera-to-point distances), since the model's scale is arbitrary.
 2a. Ground sweep (``densify.ground_sweep``, ``fullview.sfm.dense.ground_sweep``): where no ceiling spans over the
-   cameras (outdoors), each pair's pixels below the horizon that SGBM left empty are matched again under
-   hypotheses of ground-parallel planes (plane-induced warps, NCC, a unique peak, a left-right check), so the near
-   and slanted ground is matched as if fronto-parallel and without a disparity cap; the ranges go through the same
-   conditioning and checks as SGBM's.
+   cameras (outdoors), each pair's pixels below the horizon are matched again under hypotheses of ground-parallel
+   planes (plane-induced warps, NCC, a unique peak, a left-right check), so the near and slanted ground is matched
+   as if fronto-parallel and without a disparity cap; its range is taken where SGBM has none or one it disagrees
+   with, and goes through the same conditioning and checks as SGBM's.
 3. Per panorama: the pair estimates are combined (median of the agreeing ones; pixels whose estimates conflict are
    dropped).
 3a. Stereo check (``densify.stereo_check``): where a panorama's pair estimates conflict, the one its neighbours'
@@ -293,7 +293,7 @@ def _seen_through_stereo(config: DensifyOptions, maps, singles, R, t, centers) -
 
 
 def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, sweep, pair: tuple[int, int]):
-    """One stereo pair (``_range_maps``): its ``PairDepth`` (with the ground sweep's ranges where SGBM found none,
+    """One stereo pair (``_range_maps``): its ``PairDepth`` (with the ground sweep's ranges, ``_add_ground_sweep``,
     when ``sweep`` is set) with the ill-conditioned ranges dropped, the expected relative range error per pixel of
     both maps, their well-conditioned shares, the depth ratio, the baseline and the time taken."""
     i, j = pair
@@ -333,7 +333,7 @@ def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points)
     if config.ground_sweep == "no_ceiling" and ground_sweep.has_ceiling(centers[cams], points, up):
         log.info("ground sweep: off (a ceiling over the cameras)")
         return None
-    heights = ground_sweep.ground_heights(centers[cams], points, up)  # NaN: from each pair's stereo instead
+    heights = ground_sweep.ground_heights(centers[cams], points, up)  # NaN: a coarse sweep of each pair finds it
     log.info("ground sweep: on, camera heights from the sparse points %s", ", ".join(f"{h:.3g}" for h in heights))
     return up, dict(zip(cams, heights.tolist())), options, width
 
