@@ -263,6 +263,16 @@ class DensifyOptions:
     ground_max_tilt_deg: float = setting(10.0, "world planes: the ground (best supported level plane below the "
                                          "cameras) is refitted with a tilt up to this where that explains 1.5x its "
                                          "points (outdoor ground slopes)", ge=0.0, le=30.0, zero_means="always level")
+    ground_sweep: str = setting("no_ceiling", "stereo on the ground by a sweep of ground-parallel planes (sfm/dense/"
+                                "ground_sweep.py), where a pair's SGBM has no range below the horizon or one it "
+                                "disagrees with: never, always, or no_ceiling = not in a room (no level band holds "
+                                "half the sparse points overhead, nor are there twice as many low ones)",
+                                choices=("never", "no_ceiling", "always"))  # not "off": YAML reads a bool
+    ground_sweep_width: int = setting(1280, "the ground sweep works at this width (at most the range maps'; its "
+                                      "ranges are resized to them)", ge=64, le=65536)
+    ground_sweep_window: int = setting(9, "ground sweep: NCC window side (pixels at its width)", ge=3, le=31, odd=True)
+    ground_sweep_min_ncc: float = setting(0.6, "ground sweep: the winning plane's NCC must reach this", ge=-1.0,
+                                          le=1.0)
     free_space_confirmed: bool = setting(True, "the free-space check of the world planes counts only the stereo "
                                          "ranges another panorama confirms (one view's errors at the lines where "
                                          "surfaces meet see through true floors and ceilings)")

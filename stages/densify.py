@@ -4,6 +4,11 @@
 2. Per pair (``fullview.sfm.dense.densify_pair``): rectify, SGBM with a left-right check, law-of-sines ranges,
    back to both panoramas. The disparity search covers depths down to the nearest plausible one, taken from the
    sparse points (a low percentile of the camera-to-point distances), since the model's scale is arbitrary.
+2a. Ground sweep (``densify.ground_sweep``, ``fullview.sfm.dense.ground_sweep``): where no ceiling spans over the
+   cameras (outdoors), each pair's pixels below the horizon are matched again under hypotheses of ground-parallel
+   planes (plane-induced warps, NCC, a unique peak, a left-right check), so the near and slanted ground is matched
+   as if fronto-parallel and without a disparity cap; its range is taken where SGBM has none or one it disagrees
+   with, and goes through the same conditioning and checks as SGBM's.
 3. Per panorama: the pair estimates are combined (median of the agreeing ones; pixels whose estimates conflict are
    dropped).
 3a. Stereo check (``densify.stereo_check``): where a panorama's pair estimates conflict, the one its neighbours'
@@ -58,7 +63,7 @@ from fullview.io.config import ConfigError
 from fullview.io.render import colorize_range, render_point_cloud
 from fullview.sfm import dense
 from fullview.sfm.camera import camera_center, camera_up
-from fullview.sfm.dense import planes, world_planes
+from fullview.sfm.dense import ground_sweep, planes, world_planes
 from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimates, fusion_neighbours,
                                 mask_below_latitude, pair_min_depth_ratio, range_error_per_pixel, scene_size)
 from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
@@ -105,7 +110,8 @@ def _run(ctx: StageContext) -> dict:
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
     clock.lap("load")
-    maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs)
+    sweep = _ground_sweep_setup(config, R, centers, cams, sparse["points"])
+    maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs, sweep)
     clock.lap("stereo")
     with ThreadPoolExecutor(max_workers=1) as side:
         # the world planes come from the combined stereo alone (not from the stereo check's settlements and drops,
@@ -208,7 +214,7 @@ def _stereo_pairs(epi: dict, centers, registered, median_depth, config: DensifyO
     return idx[pairs] if len(pairs) else np.zeros((0, 2), np.intp)
 
 
-def _range_maps(ctx: StageContext, images, R, t, near, pairs):
+def _range_maps(ctx: StageContext, images, R, t, near, pairs, sweep=None):
     """Densify every pair (two at a time on local threads: rectification, SGBM and the back-mapping run in OpenCV
     and numpy without the GIL); combine each panorama's estimates, in pair order, as soon as its last pair is done
     (the same maps as one pair after the other).
@@ -225,14 +231,15 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs):
     maps, singles, conflicts, pair_log = {}, {}, {}, []
     # never upsample: the rectified grid spans 180° in at most as many rows as the panoramas have
     rect_height = min(config.rect_height, min(image.shape[0] for image in images.values()))
-    work = partial(_densify_pair, config, images, R, t, near, rect_height)
-    for (i, j), (res, pair_errors, kept, ratio, baseline, elapsed) in zip(
+    work = partial(_densify_pair, config, images, R, t, near, rect_height, sweep)
+    for (i, j), (res, pair_errors, kept, ratio, baseline, elapsed, swept) in zip(
             pairs, tqdm(thread_map(work, [tuple(p) for p in pairs], threads=PAIR_THREADS), total=len(pairs),
                         desc="densify", unit="pair")):
         pair_log.append({"pair": [names[i], names[j]], "baseline": baseline, "min_depth_ratio": ratio,
                          "num_disparities": dense.disparity_search_range(rect_height, ratio),
                          "valid_i": float(res.valid_i.mean()), "valid_j": float(res.valid_j.mean()),
                          "well_conditioned_i": kept[0], "well_conditioned_j": kept[1],
+                         "ground_sweep_i": swept[0], "ground_sweep_j": swept[1],
                          "time_s": round(elapsed, 3), "timings_s": {k: round(v, 3) for k, v in res.timings.items()}})
         log.info("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%% (well conditioned %.0f%% / "
                  "%.0f%%), %.1f s", names[i], names[j], baseline, ratio, 100 * res.valid_i.mean(),
@@ -285,10 +292,10 @@ def _seen_through_stereo(config: DensifyOptions, maps, singles, R, t, centers) -
     return drops
 
 
-def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, pair: tuple[int, int]):
-    """One stereo pair (``_range_maps``): its ``PairDepth`` with the ill-conditioned ranges dropped, the expected
-    relative range error per pixel of both maps, their well-conditioned shares, the depth ratio, the baseline and
-    the time taken."""
+def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, sweep, pair: tuple[int, int]):
+    """One stereo pair (``_range_maps``): its ``PairDepth`` (with the ground sweep's ranges, ``_add_ground_sweep``,
+    when ``sweep`` is set) with the ill-conditioned ranges dropped, the expected relative range error per pixel of
+    both maps, their well-conditioned shares, the depth ratio, the baseline and the time taken."""
     i, j = pair
     baseline = float(np.linalg.norm(camera_center(R[i], t[i]) - camera_center(R[j], t[j])))
     ratio = pair_min_depth_ratio(near[i], near[j], baseline, config.min_depth_factor, config.max_disparity_deg)
@@ -297,6 +304,7 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
     res = dense.densify_pair(images[i], images[j], R[i], t[i], R[j], t[j], rect_height=rect_height,
                              out_width=images[i].shape[1], min_depth_ratio=ratio,
                              min_epipole_angle_deg=config.epipole_margin_deg, params=params)
+    swept = _add_ground_sweep(images, R, t, sweep, pair, res) if sweep is not None else (0.0, 0.0)
     elapsed = time.perf_counter() - t0
     pair_errors, kept = [], []
     for cam, other, rng in ((i, j, res.range_i), (j, i, res.range_j)):
@@ -306,7 +314,53 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
             rng[~(err <= config.max_range_error_per_px)] = np.nan
         kept.append(float(np.isfinite(rng).mean()))
         pair_errors.append(err)
-    return res, pair_errors, kept, ratio, baseline, elapsed
+    return res, pair_errors, kept, ratio, baseline, elapsed, swept
+
+
+def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points):
+    """(up, {camera: height above its ground, NaN where the sparse points do not tell}, the sweep's options, its
+    width) for the ground sweep, or None where it does not run (never, or a room with ``no_ceiling``: indoors the
+    fills own the floor, ``ground_sweep.has_ceiling``)."""
+    if config.ground_sweep == "never":
+        return None
+    options = ground_sweep.GroundSweepOptions(window=config.ground_sweep_window, min_ncc=config.ground_sweep_min_ncc,
+                                              min_texture_std=config.min_texture_std,
+                                              lr_tolerance=config.combine_tolerance,
+                                              min_latitude_deg=config.min_latitude_deg)
+    width = config.ground_sweep_width  # read here: the settings are the stage's whether the sweep runs or not
+    up = camera_up(R[cams])
+    points = np.asarray(sparse_points, np.float64).reshape(-1, 3)
+    if config.ground_sweep == "no_ceiling" and ground_sweep.has_ceiling(centers[cams], points, up):
+        log.info("ground sweep: off (a ceiling over the cameras)")
+        return None
+    heights = ground_sweep.ground_heights(centers[cams], points, up)  # NaN: a coarse sweep of each pair finds it
+    log.info("ground sweep: on, camera heights from the sparse points %s", ", ".join(f"{h:.3g}" for h in heights))
+    return up, dict(zip(cams, heights.tolist())), options, width
+
+
+def _add_ground_sweep(images, R, t, sweep, pair: tuple[int, int], res) -> tuple[float, float]:
+    """Fill the pair's maps with the ground sweep's ranges (``sfm.dense.ground_sweep``) where SGBM found none or one
+    the sweep disagrees with (checked against the other panoramas, the sweep was right 4 times as often), in
+    place; the sweep runs at ``ground_sweep_width`` at most and its ranges are resized to the maps (nearest).
+    Returns the share of each map it set."""
+    i, j = pair
+    up, heights, options, width = sweep
+    shape = res.range_i.shape
+    width = min(width, images[i].shape[1])
+    small = [cv2.resize(images[k], (width, width // 2), interpolation=cv2.INTER_AREA)
+             if images[k].shape[1] != width else images[k] for k in pair]
+    t0 = time.perf_counter()
+    swept = ground_sweep.ground_sweep_pair(*small, R[i], t[i], R[j], t[j], up, heights[i], heights[j], options)
+    shares = []
+    for (rng, valid), ground in zip(((res.range_i, res.valid_i), (res.range_j, res.valid_j)), swept):
+        if ground.shape != shape:
+            ground = cv2.resize(ground, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+        with np.errstate(invalid="ignore"):  # where SGBM disagrees with the sweep, the sweep is taken (README)
+            new = np.isfinite(ground) & (~valid | (np.abs(rng - ground) > options.lr_tolerance * ground))
+        rng[new], valid[new] = ground[new], True
+        shares.append(float(new.mean()))
+    res.timings["ground_sweep"] = time.perf_counter() - t0
+    return shares[0], shares[1]
 
 
 # ------------------------------------------------------------------------------------------------ textureless
