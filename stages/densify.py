@@ -35,15 +35,17 @@
 Panoramas are never upsampled: the working width is at most the native width.
 
 Threads: pairs run two at a time, the per-panorama steps (region fill, world fill, confirmation, fusion) on a pool
-of local threads, the world planes are found on a side thread while the stereo check and the region fill run, the
-maps are saved on one while the fusion runs, and BLAS keeps one thread; every result is gathered in a fixed order, so
-the outputs are the same bytes on any number of threads (``tests/test_densify_stage.py``). ``phases_s`` in the
-summary gives each phase's wall and CPU seconds (the process's: a side thread's count in the phase it ends in).
+of local threads, the world planes are found on a side thread while the stereo check and the region fill run, open3d
+is imported on one while the fusion checks the points, the maps are saved on one while the mesh is made, and BLAS
+keeps one thread; every result is gathered in a fixed order, so the outputs are the same bytes on any number of threads
+(``tests/test_densify_stage.py``). ``phases_s`` in the summary gives each phase's wall and CPU seconds (the
+process's: a side thread's count in the phase it ends in).
 """
 
 from __future__ import annotations
 
 import ctypes
+import importlib
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -132,22 +134,28 @@ def _run(ctx: StageContext) -> dict:
         raise ConfigError(f"densify.min_consistent={config.min_consistent}: a point can be checked by at most "
                           f"{checkers} other panorama(s) here (densify.fusion_views={config.fusion_views}, "
                           f"{len(maps)} range maps); no point could be kept")
-    with ThreadPoolExecutor(max_workers=1) as saver:  # the maps are saved while the fusion runs (both only read them)
-        saved = saver.submit(lambda: [ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k]))
-                                      for k in sorted(maps)])
+    with ThreadPoolExecutor(max_workers=1) as side:
+        # open3d (the cloud's cleaning at the fusion's end, the mesh) takes 1.2-1.7 CPU s to import, most of it
+        # plotting packages it imports too: imported on the side thread while the panoramas' points are checked, not
+        # on the serial cleaning (not earlier either: its 0.17 GB would come on top of the stereo's peak); a failed
+        # import fails again where open3d is used
+        side.submit(importlib.import_module, "open3d")
         points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
-        saved.result()
-    clock.lap("save_maps_and_fusion")
-    _release_freed_memory()
-    with ThreadPoolExecutor(max_workers=1) as pool:  # the preview is drawn while the mesh is made
-        preview = pool.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
+        clock.lap("fusion")
+        _release_freed_memory()
+        # the mesh's Poisson runs on one thread (reproducible): meanwhile the side thread draws the cloud's preview
+        # and saves the maps (all three only read the cloud and the maps)
+        preview = side.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
                               up=camera_up(R[cams]), cameras=centers[cams],
                               title=f"{ctx.dataset.name}: {len(points)} points") \
             if config.preview and len(points) >= 3 else None
+        saved = side.submit(lambda: [ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k]))
+                                     for k in sorted(maps)])
         mesh = mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel)
-        if preview is not None:
-            preview.result()
-    clock.lap("mesh_and_preview")
+        for job in (preview, saved):
+            if job is not None:
+                job.result()
+    clock.lap("mesh_previews_and_saving")
     log.info("densify phases (wall / CPU s): %s", ", ".join(f"{k} {v['wall']} / {v['cpu']}" for k, v in clock.phases.items()))
     summary = {
         "pairs": int(len(pairs)), "panoramas": len(maps), "points": int(len(points)), "voxel_size": voxel,
