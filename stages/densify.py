@@ -113,7 +113,7 @@ def _run(ctx: StageContext) -> dict:
         # the world planes come from the combined stereo alone (not from the stereo check's settlements and drops,
         # applied after the fills): found on a side thread while the stereo check and the region fill run
         fill = _FillInputs(ctx, images, maps, R, t, centers) if config.fill_planes or config.world_planes else None
-        world = side.submit(_world_planes, config, fill.views, fill.neighbours, fill.options, sparse["points"],
+        world = side.submit(_world_planes, config, fill.views, fill.options, sparse["points"],
                             float(np.nanmedian(median_depth))) if fill is not None and config.world_planes else None
         settled = _resolve_conflicts(config, maps, singles, conflicts, R, t, centers) \
             if config.stereo_check and config.resolve_conflicts else {}
@@ -347,7 +347,11 @@ def _fill_textureless(ctx: StageContext, inputs: _FillInputs, maps, world) -> di
             views[a], [views[b] for b in neighbours[a]], options, config.seed + cams[a]), range(len(cams))),
             total=len(cams), desc="planes", unit="pano"))
     if world is not None:
-        fills = _fill_world_planes(views, fills, neighbours, options, *world.result())
+        # the views judging the planes with their confirmed stereo need no plane: made while the planes are found
+        judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance) \
+            if config.free_space_confirmed else views
+        fills = _fill_world_planes(views, fills, neighbours, options,
+                                   *_carved_world_planes(config, views, judges, *world.result()))
     confirmed = list(thread_map(lambda a: planes.confirmed_by_views(
         views[a], *fills[a], [views[b] for b in neighbours[a]], [fills[b][0] for b in neighbours[a]], options),
         range(len(cams))))
@@ -364,9 +368,9 @@ def _fill_textureless(ctx: StageContext, inputs: _FillInputs, maps, world) -> di
     return shares
 
 
-def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_points, median_depth):
-    """The world planes of the model (``sfm.dense.world_planes``) kept after the free-space check: (options, planes,
-    the views judging with their confirmed stereo, each view's nearest plane per ray or None)."""
+def _world_planes(config: DensifyOptions, views, options, sparse_points, median_depth):
+    """The world planes of the model (``sfm.dense.world_planes``) as found: (their options, the planes, how many
+    points they were found in, the seconds taken); ``_carved_world_planes`` keeps them."""
     t0 = time.perf_counter()
     wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
@@ -393,11 +397,15 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
         log.info("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
                  np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support, len(found) - len(tilted))
     found = tilted
-    judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance) \
-        if config.free_space_confirmed else views
+    return wopt, found, len(points), time.perf_counter() - t0
+
+
+def _carved_world_planes(config: DensifyOptions, views, judges, wopt, found, points: int, seconds: float):
+    """The world planes found (``_world_planes``) kept after the free-space check by the ``judges`` (the views with
+    their confirmed stereo): (options, planes, the judges, each view's nearest plane per ray or None)."""
     kept = world_planes.carve_extents(found, judges, wopt)
-    log.info("world planes: %d found in %d points, %d kept after the free-space check (%.1f s)", len(found),
-             len(points), len(kept), time.perf_counter() - t0)
+    log.info("world planes: %d found in %d points (%.1f s), %d kept after the free-space check", len(found), points,
+             seconds, len(kept))
     occluders = list(thread_map(lambda v: world_planes.nearest_plane_ranges(v, kept, wopt), views)) \
         if config.occlusion_aware_vote else None
     return wopt, kept, judges, occluders
