@@ -47,6 +47,21 @@ def process_map(fn: Callable[[Any], Any], items: Iterable[Any], *, processes: in
         pool.join()  # reaped: their CPU time is in RUSAGE_CHILDREN now
 
 
+def fork_call(fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)`` in one forked child process, for C++ work that holds the GIL throughout (open3d's Poisson), so
+    that this process's threads can run Python meanwhile. Inherited like `process_map`'s workers: only the result
+    travels (it must pickle). Falls back to a call here where `process_map` falls back to threads. The runner counts
+    the child's CPU time with the stage's."""
+    if multiprocessing.current_process().daemon or not sys.platform.startswith("linux"):
+        return fn(*args)
+    with multiprocessing.get_context("fork").Pool(1, initializer=_install_forked,
+                                                  initargs=(lambda _: fn(*args),)) as pool:
+        result = pool.apply(_call_forked, (None,))
+        pool.close()
+        pool.join()  # reaped: its CPU time is in RUSAGE_CHILDREN now
+    return result
+
+
 _FORKED: Callable[[Any], Any] | None = None  # a worker process's function (set in the child only)
 
 
