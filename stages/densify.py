@@ -35,11 +35,12 @@
 Panoramas are never upsampled: the working width is at most the native width.
 
 Threads: pairs run two at a time, the per-panorama steps (region fill, world fill, confirmation, fusion) on a pool
-of local threads, the world planes are found on a side thread while the stereo check and the region fill run, open3d
-is imported on one while the fusion checks the points, the maps are saved on one while the mesh is made, and BLAS
-keeps one thread; every result is gathered in a fixed order, so the outputs are the same bytes on any number of threads
-(``tests/test_densify_stage.py``). ``phases_s`` in the summary gives each phase's wall and CPU seconds (the
-process's: a side thread's count in the phase it ends in).
+of local threads, the world planes are found in a forked child process while the stereo check and the region fill
+run, open3d is imported on a side thread while the fusion checks the points, the maps are saved on one while the
+mesh's Poisson runs in a child process, and BLAS keeps one thread; every result is gathered in a fixed order, so
+the outputs are the same bytes on any number of threads (``tests/test_densify_stage.py``). ``phases_s`` in the
+summary gives each phase's wall and CPU seconds (the process's and its reaped children's: a side thread's or a
+child's count in the phase it ends in).
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ import logging
 import resource
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from functools import partial
 
 import cv2
@@ -67,7 +69,7 @@ from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimat
 from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
 from fullview.sfm.options import DensifyOptions
 from fullview.stages import mesh_step
-from fullview.stages.protocol import StageContext, thread_map
+from fullview.stages.protocol import StageContext, forked, thread_map
 
 log = logging.getLogger(__name__)
 
@@ -110,12 +112,12 @@ def _run(ctx: StageContext) -> dict:
     clock.lap("load")
     maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs)
     clock.lap("stereo")
-    with ThreadPoolExecutor(max_workers=1) as side:
-        # the world planes come from the combined stereo alone (not from the stereo check's settlements and drops,
-        # applied after the fills): found on a side thread while the stereo check and the region fill run
-        fill = _FillInputs(ctx, images, maps, R, t, centers) if config.fill_planes or config.world_planes else None
-        world = side.submit(_world_planes, config, fill.views, fill.options, sparse["points"],
-                            float(np.nanmedian(median_depth))) if fill is not None and config.world_planes else None
+    # the world planes come from the combined stereo alone (not from the stereo check's settlements and drops,
+    # applied after the fills): found in a child process forked now (no other thread at work) while the stereo
+    # check and the region fill run here; in a thread, its Python held the GIL against theirs
+    fill = _FillInputs(ctx, images, maps, R, t, centers) if config.fill_planes or config.world_planes else None
+    with forked(_world_planes, config, fill.views, fill.options, sparse["points"], float(np.nanmedian(median_depth))) \
+            if fill is not None and config.world_planes else nullcontext() as world:
         settled = _resolve_conflicts(config, maps, singles, conflicts, R, t, centers) \
             if config.stereo_check and config.resolve_conflicts else {}
         unconfirmed = _seen_through_stereo(config, maps, singles, R, t, centers) if config.stereo_check else {}
@@ -342,7 +344,7 @@ class _FillInputs:
 
 def _fill_textureless(ctx: StageContext, inputs: _FillInputs, maps, world) -> dict[str, float]:
     """Fill each range map's textureless regions in place (module doc, step 3b), then the world planes'
-    (``world``: the future of ``_world_planes``, or None); returns the filled share per panorama. Only where a
+    (``world``: the job of ``_world_planes``, or None); returns the filled share per panorama. Only where a
     stereo range could be: inside the latitude caps and the image mask. Every per-panorama step runs on local
     threads (numpy and OpenCV release the GIL); each result depends on its panorama alone."""
     config: DensifyOptions = ctx.options

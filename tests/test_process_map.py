@@ -67,9 +67,22 @@ def test_a_forked_call_returns_the_direct_calls_result_and_its_cpu_time_is_count
         protocol.fork_call(lambda: (_ for _ in ()).throw(ValueError("in the child")))
 
 
+def test_a_forked_job_runs_beside_this_process_and_an_unasked_one_is_stopped():
+    parent = os.getpid()
+    with protocol.forked(lambda: os.getpid()) as job:
+        busy = sum(range(10**5))  # this process works meanwhile
+        assert job.result() != parent and busy
+    start = time.perf_counter()
+    with protocol.forked(time.sleep, 30):  # left without asking: stopped, not waited for
+        pass
+    assert time.perf_counter() - start < 10
+
+
 def test_a_forked_call_in_a_daemonic_process_runs_here(monkeypatch):
     monkeypatch.setattr(multiprocessing.current_process(), "daemon", True, raising=False)
     assert protocol.fork_call(os.getpid) == os.getpid()
+    with protocol.forked(os.getpid) as job:
+        assert job.result() == os.getpid()
 
 
 def test_filter_stage_in_workers_equals_threads(tiny_dataset, make_pipeline, monkeypatch):
