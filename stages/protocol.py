@@ -59,10 +59,12 @@ def fork_call(fn: Callable[..., Any], *args: Any) -> Any:
 def forked(fn: Callable[..., Any], *args: Any) -> Iterator[Any]:
     """A job whose ``result()`` is ``fn(*args)``, computed meanwhile in one forked child process: for long Python
     work (the world planes' search) that would hold the GIL against this process's threads, or C++ work that holds
-    it throughout. Inherited like `process_map`'s workers: only the result travels (it must pickle). Fork from a
-    thread with no other thread of this process at work: a lock another thread holds at the fork stays held in the
-    child. Falls back to a local thread where `process_map` falls back to threads. The child is ended on leaving
-    the block; the runner counts its CPU time with the stage's."""
+    it throughout. Inherited like `process_map`'s workers: only the result travels (it must pickle). A lock another
+    thread holds at the fork stays held in the child: fork where no other thread is at work (the world planes), or
+    where ``fn`` needs nothing they may hold (Poisson: open3d and the result's pickling, while the side thread draws
+    with numpy and OpenCV; glibc's malloc is made consistent across a fork). Falls back to a local thread where
+    `process_map` falls back to threads. The child is ended on leaving the block; the runner counts its CPU time
+    with the stage's."""
     if multiprocessing.current_process().daemon or not sys.platform.startswith("linux"):
         with ThreadPoolExecutor(max_workers=1) as side:
             yield side.submit(fn, *args)
