@@ -116,7 +116,9 @@ def _run(ctx: StageContext) -> dict:
     # applied after the fills): found in a child process forked now (no other thread at work) while the stereo
     # check and the region fill run here; in a thread, its Python held the GIL against theirs
     fill = _FillInputs(ctx, images, maps, R, t, centers) if config.fill_planes or config.world_planes else None
-    with forked(_world_planes, config, fill.views, fill.options, sparse["points"], float(np.nanmedian(median_depth))) \
+    # (the options are read here: the child's reads would not be seen by tests/test_settings.py)
+    with forked(_world_planes, _world_plane_options(config, fill.options, float(np.nanmedian(median_depth))),
+                config.seed, fill.views, sparse["points"]) \
             if fill is not None and config.world_planes else nullcontext() as world:
         settled = _resolve_conflicts(config, maps, singles, conflicts, R, t, centers) \
             if config.stereo_check and config.resolve_conflicts else {}
@@ -377,11 +379,10 @@ def _fill_textureless(ctx: StageContext, inputs: _FillInputs, maps, world) -> di
     return shares
 
 
-def _world_planes(config: DensifyOptions, views, options, sparse_points, median_depth):
-    """The world planes of the model (``sfm.dense.world_planes``) as found: (their options, the planes, how many
-    points they were found in, the seconds taken); ``_carved_world_planes`` keeps them."""
-    t0 = time.perf_counter()
-    wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
+def _world_plane_options(config: DensifyOptions, options: planes.PlaneOptions, median_depth: float
+                         ) -> world_planes.WorldPlaneOptions:
+    """The world planes' options from the stage's (``median_depth``: the scene's, for the extent cells)."""
+    return world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
                                           view_tolerance=options.view_tolerance, extent=config.world_plane_extent,
                                           snap_deg=config.world_plane_snap_deg, free_ceiling=config.free_ceiling,
@@ -395,13 +396,19 @@ def _world_planes(config: DensifyOptions, views, options, sparse_points, median_
                                           occluders_on_walls=config.occlusion_aware_wall_vote,
                                           local_extent=config.wall_extent_by_votes,
                                           ground_max_tilt_deg=config.ground_max_tilt_deg)
+
+
+def _world_planes(wopt: world_planes.WorldPlaneOptions, seed: int, views, sparse_points):
+    """The world planes of the model (``sfm.dense.world_planes``) as found: (their options, the planes, how many
+    points they were found in, the seconds taken); ``_carved_world_planes`` keeps them."""
+    t0 = time.perf_counter()
     points, ranges, observers = _model_points(views, sparse_points)
     up = camera_up(np.array([v.R_cam_from_world for v in views]))
-    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt, up=up,
+    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(seed), wopt, up=up,
                                              observers=observers)
     tilted = world_planes.tilt_ground(  # the same list when ground_max_tilt_deg is 0
         found, points, ranges, np.array([camera_center(v.R_cam_from_world, v.t_cam_from_world) for v in views]),
-        up, np.random.default_rng(config.seed), wopt)
+        up, np.random.default_rng(seed), wopt)
     for plane in (p for p in tilted if not any(p is q for q in found)):
         log.info("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
                  np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support, len(found) - len(tilted))
