@@ -40,18 +40,23 @@
 Panoramas are never upsampled: the working width is at most the native width.
 
 Threads: pairs run two at a time, the per-panorama steps (region fill, world fill, confirmation, fusion) on a pool
-of local threads, the world planes are found on a side thread while the stereo check and the region fill run, the
-maps are saved on one while the fusion runs, and BLAS keeps one thread; every result is gathered in a fixed order, so
+of local threads, the world planes are found in a forked child process while the stereo check and the region fill
+run, open3d is imported on a side thread while the fusion checks the points, the maps are saved on one while the
+mesh's Poisson runs in a child process, and BLAS keeps one thread; every result is gathered in a fixed order, so
 the outputs are the same bytes on any number of threads (``tests/test_densify_stage.py``). ``phases_s`` in the
-summary gives each phase's wall and CPU seconds (the process's: a side thread's count in the phase it ends in).
+summary gives each phase's wall and CPU seconds (the process's and its reaped children's: a side thread's or a
+child's count in the phase it ends in).
 """
 
 from __future__ import annotations
 
 import ctypes
+import importlib
 import logging
+import resource
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from functools import partial
 
 import cv2
@@ -69,7 +74,7 @@ from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimat
 from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
 from fullview.sfm.options import DensifyOptions
 from fullview.stages import mesh_step
-from fullview.stages.protocol import StageContext, thread_map
+from fullview.stages.protocol import StageContext, forked, thread_map
 
 log = logging.getLogger(__name__)
 
@@ -113,12 +118,14 @@ def _run(ctx: StageContext) -> dict:
     sweep = _ground_sweep_setup(config, R, centers, cams, sparse["points"])
     maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs, sweep)
     clock.lap("stereo")
-    with ThreadPoolExecutor(max_workers=1) as side:
-        # the world planes come from the combined stereo alone (not from the stereo check's settlements and drops,
-        # applied after the fills): found on a side thread while the stereo check and the region fill run
-        fill = _FillInputs(ctx, images, maps, R, t, centers) if config.fill_planes or config.world_planes else None
-        world = side.submit(_world_planes, config, fill.views, fill.neighbours, fill.options, sparse["points"],
-                            float(np.nanmedian(median_depth))) if fill is not None and config.world_planes else None
+    # the world planes come from the combined stereo alone (not from the stereo check's settlements and drops,
+    # applied after the fills): found in a child process forked now (no other thread at work) while the stereo
+    # check and the region fill run here; in a thread, its Python held the GIL against theirs
+    fill = _FillInputs(ctx, images, maps, R, t, centers) if config.fill_planes or config.world_planes else None
+    # (the options are read here: the child's reads would not be seen by tests/test_settings.py)
+    with forked(_world_planes, _world_plane_options(config, fill.options, float(np.nanmedian(median_depth))),
+                config.seed, fill.views, sparse["points"]) \
+            if fill is not None and config.world_planes else nullcontext() as world:
         settled = _resolve_conflicts(config, maps, singles, conflicts, R, t, centers) \
             if config.stereo_check and config.resolve_conflicts else {}
         unconfirmed = _seen_through_stereo(config, maps, singles, R, t, centers) if config.stereo_check else {}
@@ -138,22 +145,28 @@ def _run(ctx: StageContext) -> dict:
         raise ConfigError(f"densify.min_consistent={config.min_consistent}: a point can be checked by at most "
                           f"{checkers} other panorama(s) here (densify.fusion_views={config.fusion_views}, "
                           f"{len(maps)} range maps); no point could be kept")
-    with ThreadPoolExecutor(max_workers=1) as saver:  # the maps are saved while the fusion runs (both only read them)
-        saved = saver.submit(lambda: [ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k]))
-                                      for k in sorted(maps)])
+    with ThreadPoolExecutor(max_workers=1) as side:
+        # open3d (the cloud's cleaning at the fusion's end, the mesh) takes 1.2-1.7 CPU s to import, most of it
+        # plotting packages it imports too: imported on the side thread while the panoramas' points are checked, not
+        # on the serial cleaning (not earlier either: its 0.17 GB would come on top of the stereo's peak); a failed
+        # import fails again where open3d is used
+        side.submit(importlib.import_module, "open3d")
         points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
-        saved.result()
-    clock.lap("save_maps_and_fusion")
-    _release_freed_memory()
-    with ThreadPoolExecutor(max_workers=1) as pool:  # the preview is drawn while the mesh is made
-        preview = pool.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
+        clock.lap("fusion")
+        _release_freed_memory()
+        # the mesh's Poisson runs on one thread (reproducible): meanwhile the side thread draws the cloud's preview
+        # and saves the maps (all three only read the cloud and the maps)
+        preview = side.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
                               up=camera_up(R[cams]), cameras=centers[cams],
                               title=f"{ctx.dataset.name}: {len(points)} points") \
             if config.preview and len(points) >= 3 else None
+        saved = side.submit(lambda: [ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k]))
+                                     for k in sorted(maps)])
         mesh = mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel)
-        if preview is not None:
-            preview.result()
-    clock.lap("mesh_and_preview")
+        for job in (preview, saved):
+            if job is not None:
+                job.result()
+    clock.lap("mesh_previews_and_saving")
     log.info("densify phases (wall / CPU s): %s", ", ".join(f"{k} {v['wall']} / {v['cpu']}" for k, v in clock.phases.items()))
     summary = {
         "pairs": int(len(pairs)), "panoramas": len(maps), "points": int(len(points)), "voxel_size": voxel,
@@ -180,15 +193,21 @@ def _release_freed_memory() -> None:
 
 
 class _Clock:
-    """Wall and process CPU seconds of each phase of the stage (summary ``phases_s``): the CPU seconds do not depend
-    on the machine's load, and CPU / wall tells how busy the phase kept the cores."""
+    """Wall and process CPU seconds of each phase of the stage (summary ``phases_s``; with the child processes'
+    the phase reaped, the mesh's Poisson): the CPU seconds do not depend on the machine's load, and CPU / wall tells
+    how busy the phase kept the cores."""
 
     def __init__(self):
         self.phases: dict[str, dict[str, float]] = {}
-        self._last = (time.perf_counter(), time.process_time())
+        self._last = (time.perf_counter(), self._cpu())
+
+    @staticmethod
+    def _cpu() -> float:
+        children = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return time.process_time() + children.ru_utime + children.ru_stime
 
     def lap(self, phase: str) -> None:
-        now = (time.perf_counter(), time.process_time())
+        now = (time.perf_counter(), self._cpu())
         self.phases[phase] = {"wall": round(now[0] - self._last[0], 2), "cpu": round(now[1] - self._last[1], 2)}
         self._last = now
 
@@ -381,7 +400,7 @@ class _FillInputs:
 
 def _fill_textureless(ctx: StageContext, inputs: _FillInputs, maps, world) -> dict[str, float]:
     """Fill each range map's textureless regions in place (module doc, step 3b), then the world planes'
-    (``world``: the future of ``_world_planes``, or None); returns the filled share per panorama. Only where a
+    (``world``: the job of ``_world_planes``, or None); returns the filled share per panorama. Only where a
     stereo range could be: inside the latitude caps and the image mask. Every per-panorama step runs on local
     threads (numpy and OpenCV release the GIL); each result depends on its panorama alone."""
     config: DensifyOptions = ctx.options
@@ -393,7 +412,11 @@ def _fill_textureless(ctx: StageContext, inputs: _FillInputs, maps, world) -> di
             views[a], [views[b] for b in neighbours[a]], options, config.seed + cams[a]), range(len(cams))),
             total=len(cams), desc="planes", unit="pano"))
     if world is not None:
-        fills = _fill_world_planes(views, fills, neighbours, options, *world.result())
+        # the views judging the planes with their confirmed stereo need no plane: made while the planes are found
+        judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance) \
+            if config.free_space_confirmed else views
+        fills = _fill_world_planes(views, fills, neighbours, options,
+                                   *_carved_world_planes(config, views, judges, *world.result()))
     confirmed = list(thread_map(lambda a: planes.confirmed_by_views(
         views[a], *fills[a], [views[b] for b in neighbours[a]], [fills[b][0] for b in neighbours[a]], options),
         range(len(cams))))
@@ -410,11 +433,10 @@ def _fill_textureless(ctx: StageContext, inputs: _FillInputs, maps, world) -> di
     return shares
 
 
-def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_points, median_depth):
-    """The world planes of the model (``sfm.dense.world_planes``) kept after the free-space check: (options, planes,
-    the views judging with their confirmed stereo, each view's nearest plane per ray or None)."""
-    t0 = time.perf_counter()
-    wopt = world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
+def _world_plane_options(config: DensifyOptions, options: planes.PlaneOptions, median_depth: float
+                         ) -> world_planes.WorldPlaneOptions:
+    """The world planes' options from the stage's (``median_depth``: the scene's, for the extent cells)."""
+    return world_planes.WorldPlaneOptions(distance=config.world_plane_distance,
                                           cell=WORLD_PLANE_CELL_SHARE * median_depth,
                                           view_tolerance=options.view_tolerance, extent=config.world_plane_extent,
                                           snap_deg=config.world_plane_snap_deg, free_ceiling=config.free_ceiling,
@@ -428,22 +450,32 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
                                           occluders_on_walls=config.occlusion_aware_wall_vote,
                                           local_extent=config.wall_extent_by_votes,
                                           ground_max_tilt_deg=config.ground_max_tilt_deg)
+
+
+def _world_planes(wopt: world_planes.WorldPlaneOptions, seed: int, views, sparse_points):
+    """The world planes of the model (``sfm.dense.world_planes``) as found: (their options, the planes, how many
+    points they were found in, the seconds taken); ``_carved_world_planes`` keeps them."""
+    t0 = time.perf_counter()
     points, ranges, observers = _model_points(views, sparse_points)
     up = camera_up(np.array([v.R_cam_from_world for v in views]))
-    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(config.seed), wopt, up=up,
+    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(seed), wopt, up=up,
                                              observers=observers)
     tilted = world_planes.tilt_ground(  # the same list when ground_max_tilt_deg is 0
         found, points, ranges, np.array([camera_center(v.R_cam_from_world, v.t_cam_from_world) for v in views]),
-        up, np.random.default_rng(config.seed), wopt)
+        up, np.random.default_rng(seed), wopt)
     for plane in (p for p in tilted if not any(p is q for q in found)):
         log.info("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
                  np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support, len(found) - len(tilted))
     found = tilted
-    judges = world_planes.confirmed_views(views, neighbours, options.view_tolerance) \
-        if config.free_space_confirmed else views
+    return wopt, found, len(points), time.perf_counter() - t0
+
+
+def _carved_world_planes(config: DensifyOptions, views, judges, wopt, found, points: int, seconds: float):
+    """The world planes found (``_world_planes``) kept after the free-space check by the ``judges`` (the views with
+    their confirmed stereo): (options, planes, the judges, each view's nearest plane per ray or None)."""
     kept = world_planes.carve_extents(found, judges, wopt)
-    log.info("world planes: %d found in %d points, %d kept after the free-space check (%.1f s)", len(found),
-             len(points), len(kept), time.perf_counter() - t0)
+    log.info("world planes: %d found in %d points (%.1f s), %d kept after the free-space check", len(found), points,
+             seconds, len(kept))
     occluders = list(thread_map(lambda v: world_planes.nearest_plane_ranges(v, kept, wopt), views)) \
         if config.occlusion_aware_vote else None
     return wopt, kept, judges, occluders

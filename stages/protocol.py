@@ -8,6 +8,7 @@ import multiprocessing
 import os
 import sys
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator, Protocol
 
@@ -45,6 +46,39 @@ def process_map(fn: Callable[[Any], Any], items: Iterable[Any], *, processes: in
         yield from pool.imap(_call_forked, items, chunk)
         pool.close()
         pool.join()  # reaped: their CPU time is in RUSAGE_CHILDREN now
+
+
+def fork_call(fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)`` in one forked child process, for C++ work that holds the GIL throughout (open3d's Poisson), so
+    that this process's threads can run Python meanwhile (`forked`)."""
+    with forked(fn, *args) as job:
+        return job.result()
+
+
+@contextmanager
+def forked(fn: Callable[..., Any], *args: Any) -> Iterator[Any]:
+    """A job whose ``result()`` is ``fn(*args)``, computed meanwhile in one forked child process: for long Python
+    work (the world planes' search) that would hold the GIL against this process's threads, or C++ work that holds
+    it throughout. Inherited like `process_map`'s workers: only the result travels (it must pickle). A lock another
+    thread holds at the fork stays held in the child: fork where no other thread is at work (the world planes), or
+    where ``fn`` needs nothing they may hold (Poisson: open3d and the result's pickling, while the side thread draws
+    with numpy and OpenCV; glibc's malloc is made consistent across a fork). Falls back to a local thread where
+    `process_map` falls back to threads. The child is ended on leaving the block; the runner counts its CPU time
+    with the stage's."""
+    if multiprocessing.current_process().daemon or not sys.platform.startswith("linux"):
+        with ThreadPoolExecutor(max_workers=1) as side:
+            yield side.submit(fn, *args)
+        return
+    pool = multiprocessing.get_context("fork").Pool(1, initializer=_install_forked,
+                                                    initargs=(lambda _: fn(*args),))
+    job = pool.apply_async(_call_forked, (None,))
+    job.result = job.get  # the interface of a future
+    try:
+        yield job
+        pool.close()
+    finally:
+        pool.terminate()  # stops a child whose result was not asked for; nothing to stop otherwise
+        pool.join()  # reaped: its CPU time is in RUSAGE_CHILDREN now
 
 
 _FORKED: Callable[[Any], Any] | None = None  # a worker process's function (set in the child only)

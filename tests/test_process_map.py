@@ -49,6 +49,42 @@ def test_runner_counts_the_workers_cpu_time():
     assert cpu_seconds() - before >= 0.55
 
 
+def test_a_forked_call_returns_the_direct_calls_result_and_its_cpu_time_is_counted():
+    parent = os.getpid()
+    table = np.arange(10.0)  # reached through the arguments: inherited by the fork, never pickled
+
+    def spin(values, scale):
+        end = time.process_time() + 0.3
+        while time.process_time() < end:
+            pass
+        return values * scale, os.getpid()
+
+    before, own = cpu_seconds(), time.process_time()
+    values, pid = protocol.fork_call(spin, table, 3.0)
+    assert pid != parent and np.array_equal(values, table * 3.0)
+    assert time.process_time() - own < 0.2 and cpu_seconds() - before >= 0.28
+    with pytest.raises(ValueError, match="in the child"):
+        protocol.fork_call(lambda: (_ for _ in ()).throw(ValueError("in the child")))
+
+
+def test_a_forked_job_runs_beside_this_process_and_an_unasked_one_is_stopped():
+    parent = os.getpid()
+    with protocol.forked(lambda: os.getpid()) as job:
+        busy = sum(range(10**5))  # this process works meanwhile
+        assert job.result() != parent and busy
+    start = time.perf_counter()
+    with protocol.forked(time.sleep, 30):  # left without asking: stopped, not waited for
+        pass
+    assert time.perf_counter() - start < 10
+
+
+def test_a_forked_call_in_a_daemonic_process_runs_here(monkeypatch):
+    monkeypatch.setattr(multiprocessing.current_process(), "daemon", True, raising=False)
+    assert protocol.fork_call(os.getpid) == os.getpid()
+    with protocol.forked(os.getpid) as job:
+        assert job.result() == os.getpid()
+
+
 def test_filter_stage_in_workers_equals_threads(tiny_dataset, make_pipeline, monkeypatch):
     forks = []
     monkeypatch.setattr(filter_stage, "FORK_MIN_PAIRS", 1)

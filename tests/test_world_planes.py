@@ -7,6 +7,7 @@ the gravity extents and the one-sided planes rely on, on exact synthetic points.
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from fullview.sfm.dense import planes, world_planes
 
@@ -561,6 +562,32 @@ def test_a_wall_sides_slabs_are_those_of_all_its_points_sorted():
                 np.testing.assert_array_equal(fast.near(offset, shrink), slow.near(offset, shrink))
             for low, high in ((offset - 0.1, offset + 0.1), (offset, offset), (offset + 0.1, offset - 0.1)):
                 assert fast.offset(low, high, 0.04) == slow.offset(low, high, 0.04)
+
+
+@pytest.mark.parametrize("index_after", [0, 10**9])
+def test_a_wall_sides_slabs_read_from_its_offset_buckets_are_those_of_a_pass_over_all_its_points(
+        monkeypatch, index_after):
+    """Indexed from the first slab (0) or never: the same points in the same order and the same modes as sorting
+    every point of the side, with offsets crowded into few buckets (a coarse grid, duplicates, a far outlier that
+    stretches the buckets), slab bounds on points' offsets and beyond all of them."""
+    monkeypatch.setattr(world_planes, "INDEX_AFTER_SLABS", index_after)
+    rng = np.random.default_rng(11)
+    for trial in range(4):
+        flat = np.round(rng.uniform(-3, 3, (2000, 2)), 3 if trial % 2 else 7)
+        flat = np.vstack([flat, flat[:100], [[400.0, -300.0]]])  # duplicates; one point far away
+        seen_from = flat + rng.normal(0, 1, flat.shape)
+        tolerance = np.where(rng.random(len(flat)) < 0.02, 0.5, 0.03) * rng.uniform(0.5, 1.5, len(flat))
+        azimuth = rng.uniform(-np.pi, np.pi)
+        fast = world_planes._WallSide(flat, seen_from, tolerance, azimuth)
+        slow = _ReferenceWallSide(flat, seen_from, tolerance, azimuth)
+        offsets = np.concatenate([rng.uniform(-4, 4, 15), slow.d[rng.integers(0, len(slow.d), 15)],
+                                  [slow.d.min(), slow.d.max(), slow.d.max() + 1]])
+        for offset in offsets:
+            for shrink in (3.0, 1.0):
+                np.testing.assert_array_equal(fast.near(offset, shrink), slow.near(offset, shrink))
+            for low, high in ((offset - 0.1, offset + 0.1), (offset, offset), (offset - 1e3, offset + 1e3)):
+                assert fast.offset(low, high, 0.04) == slow.offset(low, high, 0.04)
+        assert (fast._index is not None) == (index_after == 0)
 
 
 def test_a_run_within_reach_is_what_the_mask_keeps_at_the_last_bit():

@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -57,8 +57,9 @@ class Mesh:
 
 def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray, R_cam_from_world: np.ndarray,
                     t_cam_from_world: np.ndarray, range_maps: Sequence[np.ndarray | None], *, voxel_size: float,
-                    params: MeshParams = MeshParams()) -> Mesh:
-    """The trimmed, coloured Poisson mesh of a fused cloud.
+                    params: MeshParams = MeshParams(), poisson: Callable[..., tuple] | None = None) -> Mesh:
+    """The trimmed, coloured Poisson mesh of a fused cloud. ``poisson``: how ``poisson_surface`` is called (the
+    stage calls it in a child process: open3d holds the GIL throughout), by default here.
 
     ``points`` / ``colors`` (uint8 RGB) / ``normals`` (N, 3): the fused cloud (the normals' signs do not matter:
     they are turned towards the cameras that see the points); ``R_cam_from_world`` (K, 3, 3), ``t_cam_from_world`` (K, 3) and ``range_maps[k]`` (H, W) ranges
@@ -71,7 +72,8 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
     depth = params.depth or auto_poisson_depth(points, voxel_size)
     normals = orient_normals_to_views(points, normals, R_cam_from_world, t_cam_from_world, range_maps,
                                       tolerance=params.support_tolerance, window_px=params.window_px)
-    vertices, triangles, density = poisson_surface(points, normals, depth)
+    call = poisson or (lambda fn, *args: fn(*args))
+    vertices, triangles, density = call(poisson_surface, points, normals, depth)
     stats = {"poisson_depth": int(depth), "poisson_vertices": int(len(vertices)),
              "poisson_triangles": int(len(triangles))}
     if len(triangles) == 0:

@@ -260,18 +260,22 @@ def _region_evidence(labels: np.ndarray, range_map: np.ndarray) -> tuple[np.ndar
     return region, rows[pixel], cols[pixel]
 
 
-def region_evidence_pixels(labels: np.ndarray, range_map: np.ndarray
+def region_evidence_pixels(labels: np.ndarray, range_map: np.ndarray, wanted: np.ndarray | None = None
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``_region_evidence`` as (region, pixel) pairs, sorted by region, with pixel an index into the (rows, cols) of
-    the valid pixels (also returned): what depends on the pixel alone is then computed once per pixel."""
+    the valid pixels (also returned): what depends on the pixel alone is then computed once per pixel. ``wanted``
+    (bool per label): only the pairs of these regions (the same pairs as the others' dropped afterwards)."""
     rows, cols = np.nonzero(np.isfinite(range_map))
     height, width = labels.shape
-    near = [labels[rows, cols]] + [labels[np.clip(rows + dy, 0, height - 1), (cols + dx) % width]
-                                   for dy, dx in RING_OFFSETS]
-    pixel = np.tile(np.arange(len(rows)), len(near))
-    region = np.concatenate(near)
-    keep = region > 0
-    pair = np.unique(region[keep].astype(np.int64) * max(len(rows), 1) + pixel[keep])  # sorted, each once
+    wanted = np.ones(int(labels.max(initial=0)) + 1, bool) if wanted is None else wanted.copy()
+    wanted[0] = False  # label 0: no region
+    pixel, region = [], []
+    for dy, dx in [(0, 0)] + RING_OFFSETS:  # the pixels' labels, each offset's kept before the next is looked up
+        near = labels[np.clip(rows + dy, 0, height - 1), (cols + dx) % width]
+        keep = np.flatnonzero(wanted[near])
+        pixel.append(keep)
+        region.append(near[keep])
+    pair = np.unique(np.concatenate(region).astype(np.int64) * max(len(rows), 1) + np.concatenate(pixel))  # sorted
     return pair // max(len(rows), 1), pair % max(len(rows), 1), rows, cols
 
 

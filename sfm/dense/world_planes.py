@@ -58,6 +58,8 @@ WALL_MERGE_BANDS = 3  # _one_wall_plane_per_offset: snapped walls facing one way
 WALL_AZIMUTH_BANDS = (3.0, 2.0) + (1.0,) * 8  # ... rounds of the common wall direction's fit, inlier band (x
 # tolerance); the rounds in the last band stop when the direction stays within WALL_AZIMUTH_STAYS radians
 WALL_AZIMUTH_STAYS = 1e-6
+INDEX_AFTER_SLABS = 3  # _WallSide: a side asked for more slabs than this indexes its points by offset bucket ...
+OFFSET_BUCKETS = 1 << 16  # ... into this many (16-bit keys: a radix sort)
 SWEEP_SUPPORT_FACTOR = 2  # a swept wall needs this many times min_support points (its lines, seen from its side)
 BEHIND_CELLS = 2  # _walls_floor_to_ceiling: floor (ceiling) points this many cells behind a wall's face ...
 BEHIND_POINTS = 3  # ... at least this many in a column: the floor (ceiling) goes on behind the wall there
@@ -609,9 +611,12 @@ class _WallSide:
     """The points seen from the side of one horizontal wall normal (``azimuth``) and their offsets along it
     (``flat`` (N, 2): the points' horizontal coordinates, ``seen_from``: their observers'): a wall's points are a
     slab of them. The wall fit builds a side per direction in each of its rounds, so the points are not sorted by
-    offset (a stable sort of 140,000 offsets takes 12 ms, a pass over them 0.1 ms): each slab is a pass over all of
-    them, and only the points it keeps are sorted, giving the same points in the same order (by offset, ties in
-    row order) as a slice of all of them sorted by a stable sort."""
+    offset (a stable sort of 140,000 offsets takes 12-15 ms, a pass over them 0.5-1 ms): each slab is a pass over
+    all of them, and only the points it keeps are sorted, giving the same points in the same order (by offset, ties
+    in row order) as a slice of all of them sorted by a stable sort. A side asked for many slabs (more than
+    ``INDEX_AFTER_SLABS``: the synthetic room's walls, 140 per round) indexes its points once by offset bucket
+    (``OFFSET_BUCKETS`` buckets, a radix sort of 16-bit keys, rows ascending within a bucket: 2-4 ms) and reads
+    each slab from the buckets it spans: the same points, in the same order."""
 
     def __init__(self, flat: np.ndarray, seen_from: np.ndarray, tolerance: np.ndarray, azimuth: float):
         normal = np.array([np.cos(azimuth), np.sin(azimuth)])
@@ -620,22 +625,54 @@ class _WallSide:
         self.rows, self.d, self.tolerance = np.flatnonzero(front), d[front], tolerance[front]  # rows ascending
         self.widest = float(self.tolerance.max()) if len(self.rows) else 0.0
         self._reach: dict[float, np.ndarray] = {}  # shrink: shrink x tolerance
+        self._slabs = 0  # slabs asked for so far
+        self._index: tuple | None = None  # (lowest offset, buckets per unit, then by bucket: keys, rows, d, tol)
+
+    def _slab(self, low: float, high: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rows, offsets and tolerances of a superset of the points with ``low <= offset <= high`` (every point
+        while the side has no index), rows ascending within each offset bucket."""
+        self._slabs += 1
+        if self._index is None:
+            if self._slabs <= INDEX_AFTER_SLABS or not len(self.d):
+                return self.rows, self.d, self.tolerance
+            lowest, highest = float(self.d.min()), float(self.d.max())
+            scale = (OFFSET_BUCKETS - 1) / (highest - lowest) if highest > lowest else 0.0
+            keys = self._keys(self.d, lowest, scale)
+            order = np.argsort(keys, kind="stable")
+            self._index = (lowest, scale, keys[order], self.rows[order], self.d[order], self.tolerance[order])
+        lowest, scale, keys, rows, d, tolerance = self._index
+        # the keys are a rounded, non-decreasing function of the offset: every offset in low..high has a key between
+        # theirs
+        bounds = self._keys(np.array([low, high]), lowest, scale)
+        slab = slice(np.searchsorted(keys, bounds[0], "left"), np.searchsorted(keys, bounds[1], "right"))
+        return rows[slab], d[slab], tolerance[slab]
+
+    @staticmethod
+    def _keys(d: np.ndarray, lowest: float, scale: float) -> np.ndarray:
+        return np.clip((d - lowest) * scale, 0, OFFSET_BUCKETS - 1).astype(np.uint16)
 
     def offset(self, low: float, high: float, band: float) -> float:
         """The mode of the offsets in ``low``..``high`` (``_mode_of``); the middle if fewer than three lie there."""
-        values = np.sort(self.d[(self.d >= low) & (self.d <= high)])
+        d = self._slab(low, high)[1]
+        values = np.sort(d[(d >= low) & (d <= high)])
         return _mode_of(values, band, presorted=True) if len(values) >= 3 else 0.5 * (low + high)
 
     def near(self, offset: float, shrink: float) -> np.ndarray:
         """Rows of the points within ``shrink`` times their tolerance of the plane at ``offset``, by offset (ties
         in row order): those within ``shrink`` times the widest tolerance of it (the slab a sorted search would
         read) and within their own."""
-        if shrink not in self._reach:
-            self._reach[shrink] = shrink * self.tolerance
-        at = np.flatnonzero(np.abs(self.d - offset) <= self._reach[shrink])
-        d = self.d[at]
-        keep = (d >= offset - shrink * self.widest) & (d <= offset + shrink * self.widest)
-        return self.rows[at[keep][np.argsort(d[keep], kind="stable")]]
+        low, high = offset - shrink * self.widest, offset + shrink * self.widest
+        rows, d, tolerance = self._slab(low, high)
+        if rows is self.rows:  # no index: every point, with its reach kept for the side's next slabs
+            if shrink not in self._reach:
+                self._reach[shrink] = shrink * self.tolerance
+            reach = self._reach[shrink]
+        else:
+            reach = shrink * tolerance
+        at = np.flatnonzero(np.abs(d - offset) <= reach)
+        kept = d[at]
+        keep = (kept >= low) & (kept <= high)
+        return rows[at[keep][np.argsort(kept[keep], kind="stable")]]
 
 
 def _fit_wall_azimuth(flat: np.ndarray, seen_from: np.ndarray, tolerance: np.ndarray, azimuth: float,
@@ -656,12 +693,12 @@ def _fit_wall_azimuth(flat: np.ndarray, seen_from: np.ndarray, tolerance: np.nda
     for shrink in WALL_AZIMUTH_BANDS:
         scatter, centroids = np.zeros((2, 2)), []
         for quarter, offset in zip(quarters, offsets):
-            near = sides[quarter].near(offset, shrink)
-            centroids.append(flat[near].mean(axis=0) if len(near) >= 3 else None)
+            near = flat[sides[quarter].near(offset, shrink)]
+            centroids.append(near.mean(axis=0) if len(near) >= 3 else None)
             if len(near) < 3:
                 continue
             c, s = np.cos(-quarter * np.pi / 2), np.sin(-quarter * np.pi / 2)
-            turned = flat[near] @ np.array([[c, -s], [s, c]]).T  # this wall's normal turned onto the first
+            turned = near @ np.array([[c, -s], [s, c]]).T  # this wall's normal turned onto the first
             turned -= turned.mean(axis=0)
             scatter += turned.T @ turned
         if not scatter.any():
@@ -975,15 +1012,20 @@ def _evidenced(seen_on: np.ndarray, carved: np.ndarray, options: WorldPlaneOptio
 
 
 # ------------------------------------------------------------------------------------------------ per pixel
-def region_candidates(ref: View, planes: list[WorldPlane], regions: np.ndarray, options: WorldPlaneOptions
-                      ) -> np.ndarray:
+def region_candidates(ref: View, planes: list[WorldPlane], regions: np.ndarray, options: WorldPlaneOptions,
+                      wanted: np.ndarray | None = None) -> np.ndarray:
     """(regions, planes) bool: the world planes a panorama's image region may take, those that explain at least
     ``min_region_support`` of the stereo depths inside or around it (``planes._region_evidence``). A plane crossing
-    the room without being a surface there has no such support in the region's own view."""
+    the room without being a surface there has no such support in the region's own view. ``wanted`` (bool per
+    region): only these regions are judged (the others' rows are False, bar ``free_ceiling``'s), and only the stereo
+    pixels of their evidence looked at: each pixel's numbers are those of the whole (``_rows_times``)."""
     allowed = np.zeros((int(regions.max()) + 1, len(planes)), bool)
-    region, pixel, rows, cols = region_evidence_pixels(regions, ref.range_map)
+    region, pixel, rows, cols = region_evidence_pixels(regions, ref.range_map, wanted)
     if not len(region) or not planes:
         return allowed
+    if wanted is not None:  # the pixels of the kept pairs (pixel ascending: the blocks below see them in order)
+        used, pixel = np.unique(pixel, return_inverse=True)
+        rows, cols = rows[used], cols[used]
     h, w = ref.range_map.shape
     bearings = reduced_bearings_world(ref.R_cam_from_world, w, h)[rows, cols].astype(np.float64)
     center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
@@ -1152,23 +1194,6 @@ def _wall_brackets(ref: View, planes: list[WorldPlane], pix: np.ndarray, toleran
     rows, cols = np.nonzero(np.isfinite(ref.range_map))
     index = np.full((h, w), len(rows), np.intp)  # the last row of the bits below: "no range there"
     index[rows, cols] = np.arange(len(rows))
-    bearings = reduced_bearings_world(ref.R_cam_from_world, w, h)[rows, cols].astype(np.float64)
-    observed = ref.range_map[rows, cols].astype(np.float64)
-    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
-    upright = np.array([not p.level for p in planes])
-    normals = np.array([p.normal for p in planes])
-    distances = np.array([p.offset for p in planes]) - normals @ center
-    width = (len(planes) + 7) // 8
-    on, beyond = [np.zeros((0, width), np.uint8)], [np.zeros((0, width), np.uint8)]
-    for start in range(0, len(rows), EVIDENCE_BLOCK):  # per range: on each wall, clearly beyond it
-        block = slice(start, start + EVIDENCE_BLOCK)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            predicted = distances[None] / _rows_times(bearings[block], normals.T)
-            o = observed[block, None]
-            on.append(np.packbits((np.abs(predicted - o) <= tolerance * o) & upright, axis=1))
-            beyond.append(np.packbits((o > (1 + tolerance) * predicted) & upright, axis=1))
-    none = np.zeros((1, width), np.uint8)
-    on, beyond = np.concatenate(on + [none]), np.concatenate(beyond + [none])
     finite = index < len(rows)
     row, col = np.divmod(pix, w)
     grid = np.broadcast_to(np.arange(h)[:, None], (h, w))
@@ -1186,6 +1211,28 @@ def _wall_brackets(ref: View, planes: list[WorldPlane], pix: np.ndarray, toleran
 
     u, d = at(up, col, (row > 0) & (up >= 0)), at(down, col, (row < h - 1) & (down < h))
     lt, rt = at(row, left, left > col), at(row, right, right < col + w)  # within one turn, not the pixel itself
+    # only the ranges next to the pixels are judged (a few percent of them): each range's numbers are those of
+    # all of them (``_rows_times``); the last row of the bits stays "no range there"
+    ranged, slot = np.unique(np.concatenate([u, d, lt, rt]), return_inverse=True)
+    u, d, lt, rt = np.split(slot, 4)
+    ranged = ranged[ranged < len(rows)]  # "no range there" (the largest) is then the row after them
+    bearings = reduced_bearings_world(ref.R_cam_from_world, w, h)[rows[ranged], cols[ranged]].astype(np.float64)
+    observed = ref.range_map[rows[ranged], cols[ranged]].astype(np.float64)
+    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
+    upright = np.array([not p.level for p in planes])
+    normals = np.array([p.normal for p in planes])
+    distances = np.array([p.offset for p in planes]) - normals @ center
+    width = (len(planes) + 7) // 8
+    on, beyond = [np.zeros((0, width), np.uint8)], [np.zeros((0, width), np.uint8)]
+    for start in range(0, len(ranged), EVIDENCE_BLOCK):  # per range: on each wall, clearly beyond it
+        block = slice(start, start + EVIDENCE_BLOCK)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            predicted = distances[None] / _rows_times(bearings[block], normals.T)
+            o = observed[block, None]
+            on.append(np.packbits((np.abs(predicted - o) <= tolerance * o) & upright, axis=1))
+            beyond.append(np.packbits((o > (1 + tolerance) * predicted) & upright, axis=1))
+    none = np.zeros((1, width), np.uint8)
+    on, beyond = np.concatenate(on + [none]), np.concatenate(beyond + [none])
     return (on[u] & on[d]) | (on[lt] & on[rt] & ~beyond[u] & ~beyond[d])
 
 
@@ -1228,7 +1275,9 @@ def fill_from_world_planes(ref: View, planes: list[WorldPlane], others: list[Vie
     fillable = ~np.isfinite(ref.range_map) & ref.observable
     gray = cv2.cvtColor(np.clip(ref.color, 0, 255).astype(np.uint8), cv2.COLOR_BGR2GRAY)
     regions = image_regions(gray, view_options, np.isfinite(ref.range_map))
-    allowed = region_candidates(ref, planes, regions, options)
+    wanted = np.zeros(int(regions.max()) + 1, bool)  # the regions of pixels to fill: no other region's planes matter
+    wanted[regions[fillable]] = True
+    allowed = region_candidates(ref, planes, regions, options, wanted)
     fill, label = label_pixels(ref, planes, fillable, options, regions, allowed)
     rows, cols = np.nonzero(label)
     if not len(rows):
