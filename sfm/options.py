@@ -228,6 +228,14 @@ class DensifyOptions:
                               le=65536)
     plane_tolerance: float = setting(0.03, "relative range difference within which a border depth lies on a plane",
                                      gt=0.0, le=0.5)
+    region_plane_snap_deg: float = setting(6.0, "textureless filling: a region's plane within this angle of level "
+                                           "(upright) is made exactly level (upright) where that still explains its "
+                                           "share of the border depths (their bias along the lines where surfaces "
+                                           "meet tilts a ceiling's fit by a degree or more)", ge=0.0, le=45.0,
+                                           zero_means="region planes keep their fitted normals")
+    region_planes_from_world: bool = setting(True, "with world_planes, a textureless region whose filled pixels (at "
+                                             "least 90%) lie within the view tolerance of a kept world plane takes "
+                                             "that plane (fitted on every panorama's points, not one view's)")
     world_planes: bool = setting(True, "fill what is still empty with the dominant planes of the whole model, each "
                                  "within the extent its points support (sfm/dense/world_planes.py)")
     world_plane_distance: float = setting(0.015, "a point supports a world plane within this share of its range "

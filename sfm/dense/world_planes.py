@@ -27,6 +27,8 @@ has no single plane, but every pixel of it still lies on one of the world's plan
    the nearest wall that the ranges next to it in its image column or row lie on (``_wall_brackets``); in a room, a
    pixel still empty may take the first plane its ray meets where that is the floor (``_free_floor``) or a wall
    (``_free_walls``); small islands of one label are dropped.
+Before 3, ``adopt_world_planes`` moves a region fill's unit (``planes.fill_plane_ranges``) onto the kept world plane of
+its surface, where one lies within the view tolerance of (nearly) all its pixels.
 4. ``fill_from_world_planes`` keeps a filled point where ``planes.check_against_views`` does (no nearby view sees
    through it; its colour is seen by another view); the stage then confirms it per tile by the other panoramas'
    results (``planes.confirmed_by_views``), as for the region fill.
@@ -63,6 +65,8 @@ BEHIND_CELLS = 2  # _walls_floor_to_ceiling: floor (ceiling) points this many ce
 BEHIND_POINTS = 3  # ... at least this many in a column: the floor (ceiling) goes on behind the wall there
 GROUND_TILT_GAIN = 1.5  # tilt_ground: the tilted ground must explain this many times the level one's points
 EVIDENCE_BLOCK = 16_384  # region_candidates judges this many stereo pixels against all planes at a time
+ADOPT_SHARE = 0.9  # adopt_world_planes: a region fill's unit takes a world plane within view_tolerance of this share
+# of its pixels
 
 
 @dataclass(kw_only=True)
@@ -108,6 +112,8 @@ class WorldPlaneOptions:
     ground_max_tilt_deg: float = 10.0  # tilt_ground: the ground may be refitted this far from level (0: never)
     walls_floor_to_ceiling: bool = True  # with snap_deg > 0 and observers: a wall's columns run from the floor to
     # the ceiling plane (_walls_floor_to_ceiling); the free-space check and the views then cut what is not wall
+    adopt_in_regions: bool = True  # the stage moves a region fill's unit onto the world plane that matches it
+    # (adopt_world_planes) before the world fill
 
 
 @dataclass(kw_only=True)
@@ -1217,6 +1223,51 @@ def nearest_plane_ranges(view: View, planes: list[WorldPlane], options: WorldPla
                   range_map=np.full((h // step, w // step), np.nan, np.float32),
                   observable=np.ones((h // step, w // step), bool), color=view.color)
     return label_pixels(coarse, planes, coarse.observable, replace(options, min_island_pixels=0))[0]
+
+
+def adopt_world_planes(ref: View, fill: np.ndarray, units: np.ndarray, planes: list[WorldPlane],
+                       options: WorldPlaneOptions) -> np.ndarray:
+    """(h, w) float32: a region fill's ranges (``fill``, NaN: none; ``units``: its region labels) with each unit's
+    pixels moved onto the kept world plane that lies within ``view_tolerance`` of at least ``ADOPT_SHARE`` of them
+    (the one nearest on average, if several; the camera on its front side); a pixel whose ray does not meet that plane
+    (behind, grazing) is left empty. Units no world plane matches keep their ranges.
+
+    Why: a region's plane is fitted on one panorama's stereo around the region, a world plane on every panorama's
+    points of that surface. Both are the same surface here, but one view's evidence carries its stereo's bias: on
+    360_Flat R0010212 filled its ceiling (a quarter of the panorama) level but 1.9% too low, 0.035 below the ceiling
+    every other panorama filled from the world planes, and disagreed with them across the room."""
+    out = fill.copy()
+    rows, cols = np.nonzero(np.isfinite(fill))
+    if not len(rows) or not planes:
+        return out
+    h, w = fill.shape
+    bearings = reduced_bearings_world(ref.R_cam_from_world, w, h)[rows, cols].astype(np.float64)
+    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
+    own = fill[rows, cols].astype(np.float64)
+    unit = np.unique(units[rows, cols], return_inverse=True)[1]
+    best = np.full(unit.max() + 1, -1)
+    best_error = np.full(unit.max() + 1, np.inf)
+    size = np.bincount(unit)
+    for k, plane in enumerate(planes):
+        if plane.front and np.sign(plane.normal @ center - plane.offset) != plane.front:
+            continue  # the camera sees the back of a one-sided plane
+        cos = bearings @ plane.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            error = np.abs((plane.offset - plane.normal @ center) / cos - own) / own
+        on = error <= options.view_tolerance
+        share = np.bincount(unit, weights=on, minlength=len(size)) / size
+        mean = np.bincount(unit, weights=np.where(on, error, 0.0), minlength=len(size)) / np.maximum(
+            np.bincount(unit, weights=on, minlength=len(size)), 1)
+        better = (share >= ADOPT_SHARE) & (mean < best_error)
+        best[better], best_error[better] = k, mean[better]
+    for u in np.flatnonzero(best >= 0):
+        plane, sel = planes[best[u]], np.flatnonzero(unit == u)
+        cos = bearings[sel] @ plane.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = (plane.offset - plane.normal @ center) / cos
+        ok = (r > 0) & (np.abs(cos) >= np.sin(np.radians(options.min_incidence_deg)))
+        out[rows[sel], cols[sel]] = np.where(ok, r, np.nan)
+    return out
 
 
 def fill_from_world_planes(ref: View, planes: list[WorldPlane], others: list[View], options: WorldPlaneOptions,
