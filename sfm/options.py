@@ -256,6 +256,11 @@ class DensifyOptions:
     ceiling_over_camera: bool = setting(True, "with free_ceiling, a level plane above a camera is its ceiling only "
                                         "where its extent spans over the camera (outdoors a ledge or a roof beside "
                                         "the camera is no ceiling, and the sky stays empty)")
+    room_window_cells: int = setting(2, "world planes: a level plane spans over (under) a camera, its ceiling (floor) "
+                                     "for free_ceiling, free_floor and free_walls, where at least half the extent "
+                                     "cells within this many of the camera's foot point are its (one carved cell under "
+                                     "a tripod switched a panorama's free floor and walls)", ge=0, le=50,
+                                     zero_means="the cell of the foot point alone")
     free_floor: bool = setting(True, "a pixel no other rule fills may take the level world plane below its camera "
                                "(its floor, spanning under it) where that is the first plane its ray meets, in a room "
                                "(a ceiling spans over the camera too), without its region's stereo support")

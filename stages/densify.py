@@ -376,6 +376,7 @@ def _world_planes(config: DensifyOptions, views, neighbours, options, sparse_poi
                                           occluders_on_walls=config.occlusion_aware_wall_vote,
                                           local_extent=config.wall_extent_by_votes,
                                           adopt_in_regions=config.region_planes_from_world,
+                                          room_window_cells=config.room_window_cells,
                                           ground_max_tilt_deg=config.ground_max_tilt_deg)
     points, ranges, observers = _model_points(views, sparse_points)
     up = camera_up(np.array([v.R_cam_from_world for v in views]))

@@ -631,3 +631,32 @@ def test_a_region_fill_takes_the_world_plane_of_its_surface():
     np.testing.assert_allclose(out[ceiling], rng[ceiling], rtol=1e-5)
     np.testing.assert_array_equal(out[wall], fill[wall])
     assert np.isnan(out[~(ceiling | wall)]).all()
+
+
+@pytest.mark.parametrize("reach", [0, 2])
+def test_one_carved_cell_under_the_camera_does_not_take_the_room_away(reach):
+    # the free-space check carved the floor's cell under the camera (a reflection in its tripod cap looked through
+    # it): judged on that cell alone the camera is not in a room and gets no free floor; judged on the 5 x 5 cells
+    # around it (16 of 25 still the floor's) it is. A ledge beside the camera spans over it either way not
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1, room_window_cells=reach)
+    floor, ceiling = _level_plane(ROOM[1, 1], options), _level_plane(ROOM[0, 1], options)
+    foot = CENTERS[0] + (ROOM[1, 1] - CENTERS[0][1]) * np.array([0.0, 1.0, 0.0])
+    col, row = np.floor((foot - floor.origin) @ floor.axes.T / floor.cell).astype(int)
+    floor.extent[row - 1:row + 2, col - 1:col + 2] = False  # the foot's cell and the 8 around it
+    up = np.array([0.0, -1.0, 0.0])
+    assert floor.spans_over(CENTERS[0], reach) == (reach > 0)
+    assert (world_planes._floor_in_room([floor, ceiling], CENTERS[0], up, reach) == [0]) == (reach > 0)
+    ledge = _level_plane(ROOM[0, 1], options)
+    ledge.extent[:, :] = False
+    ledge.extent[:, col + 2:] = True  # beside the camera: the two columns of the window nearest it and beyond
+    assert not ledge.spans_over(CENTERS[0], reach)
+    # the free floor follows: the floor's pixels are taken only where the camera is in a room
+    rng, face, _ = _render(CENTERS[0])
+    view = planes.View(R_cam_from_world=np.eye(3), t_cam_from_world=-CENTERS[0],
+                       range_map=np.full(rng.shape, np.nan, np.float32), observable=np.ones(rng.shape, bool),
+                       color=np.zeros(rng.shape + (3,), np.float32))
+    regions = np.ones(rng.shape, np.int32)
+    allowed = np.zeros((2, 2), bool)
+    fill, label = world_planes.label_pixels(view, [floor, ceiling], view.observable, options, regions, allowed)
+    on_floor = (face == 3) & (label == 1)
+    assert (on_floor.sum() > 0.5 * np.sum(face == 3)) == (reach > 0)

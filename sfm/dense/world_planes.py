@@ -112,6 +112,8 @@ class WorldPlaneOptions:
     ground_max_tilt_deg: float = 10.0  # tilt_ground: the ground may be refitted this far from level (0: never)
     walls_floor_to_ceiling: bool = True  # with snap_deg > 0 and observers: a wall's columns run from the floor to
     # the ceiling plane (_walls_floor_to_ceiling); the free-space check and the views then cut what is not wall
+    room_window_cells: int = 2  # a level plane spans over (under) a camera where half the cells within this many of
+    # the camera's foot point lie in its extent (WorldPlane.spans_over; 0: the foot's cell alone)
     adopt_in_regions: bool = True  # the stage moves a region fill's unit onto the world plane that matches it
     # (adopt_world_planes) before the world fill
 
@@ -137,12 +139,23 @@ class WorldPlane:
         cos = float(self.normal @ up)
         return self.level and abs(cos) > 0.5 and (self.offset - self.normal @ center) / cos > 0
 
-    def spans_over(self, center: np.ndarray) -> bool:
+    def spans_over(self, center: np.ndarray, reach: int = 0) -> bool:
         """Whether the point of this plane straight above (or below) ``center`` lies inside its extent: a room's
         ceiling spans over every camera in the room; a level plane beside the camera (a porch roof, a ledge or a
-        cloud seen from a street) does not."""
+        cloud seen from a street) does not. With ``reach`` > 0: whether at least half the cells within ``reach``
+        cells of that point (a square window; cells off the grid count as outside) lie inside the extent.
+
+        Why the window: the floor under a camera lies in its tripod cap, and the free-space check carves single cells
+        there (a glossy floor's reflections look through it). On 360_Flat the one cell under R0010215 was carved in
+        one run and not in another with the poses 1e-4° apart, and with it the camera's free floor and free walls
+        (0.08 of the panorama) came and went; 17 of the 25 cells around it were in the extent in both."""
         foot = np.asarray(center, np.float64) - (self.normal @ center - self.offset) * self.normal
-        return bool(self.contains(foot[None])[0])
+        if reach <= 0:
+            return bool(self.contains(foot[None])[0])
+        col, row = np.floor((foot - self.origin) @ self.axes.T / self.cell).astype(np.int64)
+        rows, cols = self.extent.shape
+        window = self.extent[max(row - reach, 0):max(row + reach + 1, 0), max(col - reach, 0):max(col + reach + 1, 0)]
+        return bool(window.sum() >= 0.5 * (2 * reach + 1) ** 2)
 
     def cells_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(row, col, inside the grid) of world points (assumed on the plane)."""
@@ -1017,7 +1030,7 @@ def region_candidates(ref: View, planes: list[WorldPlane], regions: np.ndarray, 
         # region (on the home, the region rule dropped 42% of the ceiling's pixels, 98% of which were right)
         up = camera_up(ref.R_cam_from_world[None])
         allowed[1:, [k for k, p in enumerate(planes) if p.is_ceiling_of(center, up)
-                     and (not options.ceiling_over_camera or p.spans_over(center))]] = True
+                     and (not options.ceiling_over_camera or p.spans_over(center, options.room_window_cells))]] = True
     return allowed
 
 
@@ -1092,10 +1105,11 @@ def _take_nearest(plane: WorldPlane, k: int, sel: np.ndarray, bearings: np.ndarr
     taken[sel[inside]] = k + 1
 
 
-def _floor_in_room(planes: list[WorldPlane], center: np.ndarray, up: np.ndarray) -> list[int]:
+def _floor_in_room(planes: list[WorldPlane], center: np.ndarray, up: np.ndarray, reach: int = 0) -> list[int]:
     """Indices of the level planes below ``center`` spanning under it (its floor), if a level plane above spans over
-    it too (a room: outdoors the ground keeps the region rule); else []."""
-    level = [k for k, p in enumerate(planes) if p.level and abs(float(p.normal @ up)) > 0.5 and p.spans_over(center)]
+    it too (a room: outdoors the ground keeps the region rule); else []. ``reach``: ``WorldPlane.spans_over``'s."""
+    level = [k for k, p in enumerate(planes)
+             if p.level and abs(float(p.normal @ up)) > 0.5 and p.spans_over(center, reach)]
     below = [k for k in level if (planes[k].offset - planes[k].normal @ center) / float(planes[k].normal @ up) < 0]
     return below if len(below) < len(level) else []
 
@@ -1108,7 +1122,7 @@ def _free_walls(planes: list[WorldPlane], free: np.ndarray, bearings: np.ndarray
     ceiling and floor lines of a leaking region, or 3-13% off the wall, home 5), so neither the region rule nor the
     brackets take it; from inside a room the first plane met is the surface seen. A cupboard that is a plane of the
     model is met first and its face is taken; the view checks then judge every filled pixel as the others'."""
-    if not len(free) or not _floor_in_room(planes, center, up):
+    if not len(free) or not _floor_in_room(planes, center, up, options.room_window_cells):
         return
     first, which = np.full(len(free), np.inf, np.float32), np.zeros(len(free), np.int32)
     sel = np.arange(len(free))
@@ -1127,7 +1141,7 @@ def _free_floor(planes: list[WorldPlane], free: np.ndarray, bearings: np.ndarray
     and one plain region runs from the floor up the walls, so the region rule refused the floor of whole rooms (home
     7: 91% of a panorama's floor). A cupboard whose plain face is no plane of its region would be filled with the
     floor behind it: where the cupboard is a plane of the model, the ray meets it first and the pixel stays empty."""
-    below = _floor_in_room(planes, center, up)
+    below = _floor_in_room(planes, center, up, options.room_window_cells)
     if not len(free) or not below:
         return
     sel = np.arange(len(free))
