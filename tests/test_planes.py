@@ -616,21 +616,23 @@ def test_a_colour_the_model_says_hides_a_free_wall_is_no_vote_against_it(on_wall
     assert filled[hidden].mean() > 0.9 if on_walls else filled[hidden].mean() < 0.05
 
 
-def test_a_region_fill_takes_the_world_plane_of_its_surface():
-    # a region fill whose ceiling unit is 1.9% too near everywhere (level, too low: one view's biased evidence) and
-    # whose -x wall unit is 6% too near: the ceiling moves onto the model's ceiling exactly; no world plane lies
-    # within the view tolerance of the wall unit (the model's -x wall is 6% off it), so it keeps its ranges
+def test_a_region_fill_takes_the_level_world_plane_of_its_surface():
+    # a region fill whose ceiling unit is 1.9% too near everywhere (level, too low: one view's biased evidence), whose
+    # floor unit is 6% too near and whose -x wall unit is 1% too near: the ceiling moves onto the model's ceiling
+    # exactly; no world plane lies within the view tolerance of the floor unit, and walls are not taken (a world wall
+    # is turned onto the dominant wall direction), so both keep their ranges
     options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1)
     rng, face, image = _render(CENTERS[0])
     view = planes.view_of(np.eye(3), -CENTERS[0], _edges_only(rng, face), np.ones(rng.shape, bool), image, WIDTH)
-    ceiling, wall = (face == 2) & ~np.isfinite(view.range_map), (face == 0) & ~np.isfinite(view.range_map)
+    empty = ~np.isfinite(view.range_map)
+    ceiling, floor, wall = (face == 2) & empty, (face == 3) & empty, (face == 0) & empty
     fill = np.full(rng.shape, np.nan, np.float32)
-    fill[ceiling], fill[wall] = 0.981 * rng[ceiling], 0.94 * rng[wall]
-    units = np.where(ceiling, 1, np.where(wall, 2, 0)).astype(np.int32)
+    fill[ceiling], fill[floor], fill[wall] = 0.981 * rng[ceiling], 0.94 * rng[floor], 0.99 * rng[wall]
+    units = np.select([ceiling, floor, wall], [1, 2, 3], 0).astype(np.int32)
     out = world_planes.adopt_world_planes(view, fill, units, _plain_room_planes(options), options)
     np.testing.assert_allclose(out[ceiling], rng[ceiling], rtol=1e-5)
-    np.testing.assert_array_equal(out[wall], fill[wall])
-    assert np.isnan(out[~(ceiling | wall)]).all()
+    np.testing.assert_array_equal(out[floor | wall], fill[floor | wall])
+    assert np.isnan(out[~(ceiling | floor | wall)]).all()
 
 
 @pytest.mark.parametrize("reach", [0, 2])
