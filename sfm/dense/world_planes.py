@@ -153,7 +153,6 @@ class WorldPlane:
         if reach <= 0:
             return bool(self.contains(foot[None])[0])
         col, row = np.floor((foot - self.origin) @ self.axes.T / self.cell).astype(np.int64)
-        rows, cols = self.extent.shape
         window = self.extent[max(row - reach, 0):max(row + reach + 1, 0), max(col - reach, 0):max(col + reach + 1, 0)]
         return bool(window.sum() >= 0.5 * (2 * reach + 1) ** 2)
 
