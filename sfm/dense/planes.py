@@ -314,12 +314,9 @@ def snap_region_plane(normal: np.ndarray, offset: float, inliers: np.ndarray, po
     other (their stereo comes from the same pairs)."""
     up = up / np.linalg.norm(up)
     cos = float(normal @ up)
-    if abs(cos) >= np.cos(np.radians(options.snap_deg)):
-        snapped = up * np.sign(cos)
-    elif abs(cos) <= np.sin(np.radians(options.snap_deg)):
-        snapped = (normal - cos * up) / np.linalg.norm(normal - cos * up)
-    else:
-        return None
+    if abs(cos) < np.cos(np.radians(options.snap_deg)):
+        return None  # walls keep their fit: made upright, 360_Flat's R0010215 and home 17 lost agreement
+    snapped = up * np.sign(cos)
     offset = float(np.median(points[inliers] @ snapped))
     for shrink in REFINE_SHRINK:
         band = _plane_inliers(snapped[None], np.array([offset]), points, bearings, center, ranges,
