@@ -229,9 +229,9 @@ class DensifyOptions:
     plane_tolerance: float = setting(0.03, "relative range difference within which a border depth lies on a plane",
                                      gt=0.0, le=0.5)
     region_plane_snap_deg: float = setting(6.0, "textureless filling: a region's plane within this angle of level "
-                                           "(upright) is made exactly level (upright) where that still explains its "
-                                           "share of the border depths (their bias along the lines where surfaces "
-                                           "meet tilts a ceiling's fit by a degree or more)", ge=0.0, le=45.0,
+                                           "is made exactly level where that still explains its share of the border "
+                                           "depths (their bias along the lines where surfaces meet tilts a ceiling's "
+                                           "fit by a degree or more; walls keep their fit)", ge=0.0, le=45.0,
                                            zero_means="region planes keep their fitted normals")
     region_planes_from_world: bool = setting(True, "with world_planes, a textureless region whose filled pixels (at "
                                              "least 90%) lie within the view tolerance of a kept world plane takes "

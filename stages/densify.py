@@ -12,9 +12,9 @@
    neighbour confirming it, is dropped from the saved map after the fills (which still see it: it bounds their
    image regions).
 3b. Textureless regions (``densify.fill_planes``, ``fullview.sfm.dense.planes``): each edge-bounded region whose
-   border depths lie on planes gets them where the views do not contradict it (a nearly level or upright plane made
+   border depths lie on planes gets them where the views do not contradict it (a nearly level plane made
    exactly so, ``densify.region_plane_snap_deg``), and a filled pixel is kept only where another panorama's own
-   result (stereo, else its own fill) agrees; a region whose fill a kept world plane (3c) matches takes that plane
+   result (stereo, else its own fill) agrees; a region whose fill a kept level world plane (3c) matches takes it
    (``densify.region_planes_from_world``).
 3c. World planes (``densify.world_planes``, ``fullview.sfm.dense.world_planes``): the dominant level and upright planes
    of the whole model (RANSAC on every panorama's stereo points and the sparse points; level ones made exactly level,

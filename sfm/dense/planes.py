@@ -8,8 +8,8 @@ meet, and those edges bound the plain surface on its plane. So, per panorama (``
 2. ``fit_region_planes``: a region's evidence is the stereo depths inside it and within a few pixels of its border
    (``RING_OFFSETS``); its plane is fitted to them by RANSAC and refined by least squares in shrinking bands, and
    kept when it explains ``min_share`` of them and they span it (not one line). A region whose edges leak (a wall
-   and the ceiling together) has no such plane and is not filled. A plane within ``snap_deg`` of level (upright) is
-   made exactly so where that still explains ``min_share`` of them (``snap_region_plane``).
+   and the ceiling together) has no such plane and is not filled. A plane within ``snap_deg`` of level is made
+   exactly level where that still explains ``min_share`` of them (``snap_region_plane``).
 3. The region's pixels without depth get the range where their rays meet the plane (in front, not grazing), and
    ``check_against_views`` drops a filled point that a nearby view sees through (a valid range clearly beyond it) or
    sees in another colour more often than in its own.
@@ -53,7 +53,7 @@ class PlaneOptions:
     min_confirmed: int = 10  # points of a tile another view must confirm
     min_agreement: float = 0.5  # ... at least this share of the points another view has a range for
     max_contradicted: float = 0.1  # ... and at most this share of them may be contradicted (seen through)
-    snap_deg: float = 0.0  # a region's plane within this angle of level (upright) is made exactly so, where that still
+    snap_deg: float = 0.0  # a region's plane within this angle of level is made exactly level, where that still
     # explains min_share of its depths (snap_region_plane); 0: fitted normals kept
 
 
@@ -283,7 +283,7 @@ def fit_region_planes(points: np.ndarray, bearings: np.ndarray, center: np.ndarr
                       ) -> tuple[list[tuple[np.ndarray, float]], np.ndarray]:
     """The plane through a region's border points, as a list of at most one (normal, offset), and the plane of each
     point (0, or −1: none); no plane unless it explains ``min_share`` of them. With ``up`` (gravity) and
-    ``snap_deg``, a nearly level or upright plane is made exactly so where that still explains ``min_share`` of them
+    ``snap_deg``, a nearly level plane is made exactly level where that still explains ``min_share`` of them
     (``snap_region_plane``; a ramp keeps its fit).
 
     One plane per region: a region whose edges leak (a wall and the ceiling together) is left empty. Up to three
@@ -303,9 +303,9 @@ def fit_region_planes(points: np.ndarray, bearings: np.ndarray, center: np.ndarr
 def snap_region_plane(normal: np.ndarray, offset: float, inliers: np.ndarray, points: np.ndarray,
                       bearings: np.ndarray, center: np.ndarray, ranges: np.ndarray, up: np.ndarray,
                       options: PlaneOptions) -> tuple[np.ndarray, float, np.ndarray] | None:
-    """A region's plane (normal, offset, inliers) made exactly level (normal ``up``) or upright (normal
-    horizontal) when its normal is within ``snap_deg`` of that, at the median offset of its points in shrinking
-    bands, with its inliers; None when it is neither.
+    """A region's plane (normal, offset, inliers) made exactly level (normal ``up``) when its normal is within
+    ``snap_deg`` of that, at the median offset of its points in shrinking bands, with its inliers; None when it is
+    not.
 
     Why: the border depths of a plain ceiling lie along the lines where it meets the walls, and stereo puts those a
     few per cent too far on some sides, so least squares tilts the plane by a degree or more (as the world planes',
