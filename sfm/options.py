@@ -234,6 +234,14 @@ class DensifyOptions:
                               le=65536)
     plane_tolerance: float = setting(0.03, "relative range difference within which a border depth lies on a plane",
                                      gt=0.0, le=0.5)
+    region_plane_snap_deg: float = setting(6.0, "textureless filling: a region's plane within this angle of level "
+                                           "is made exactly level where that still explains its share of the border "
+                                           "depths (their bias along the lines where surfaces meet tilts a ceiling's "
+                                           "fit by a degree or more; walls keep their fit)", ge=0.0, le=45.0,
+                                           zero_means="region planes keep their fitted normals")
+    region_planes_from_world: bool = setting(True, "with world_planes, a textureless region whose filled pixels (at "
+                                             "least 90%) lie within the view tolerance of a kept world plane takes "
+                                             "that plane (fitted on every panorama's points, not one view's)")
     world_planes: bool = setting(True, "fill what is still empty with the dominant planes of the whole model, each "
                                  "within the extent its points support (sfm/dense/world_planes.py)")
     world_plane_distance: float = setting(0.015, "a point supports a world plane within this share of its range "
@@ -254,6 +262,11 @@ class DensifyOptions:
     ceiling_over_camera: bool = setting(True, "with free_ceiling, a level plane above a camera is its ceiling only "
                                         "where its extent spans over the camera (outdoors a ledge or a roof beside "
                                         "the camera is no ceiling, and the sky stays empty)")
+    room_window_cells: int = setting(2, "world planes: a level plane spans over (under) a camera, its ceiling (floor) "
+                                     "for free_ceiling, free_floor and free_walls, where at least half the extent "
+                                     "cells within this many of the camera's foot point are its (one carved cell under "
+                                     "a tripod switched a panorama's free floor and walls)", ge=0, le=50,
+                                     zero_means="the cell of the foot point alone")
     free_floor: bool = setting(True, "a pixel no other rule fills may take the level world plane below its camera "
                                "(its floor, spanning under it) where that is the first plane its ray meets, in a room "
                                "(a ceiling spans over the camera too), without its region's stereo support")

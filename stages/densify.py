@@ -17,8 +17,10 @@
    neighbour confirming it, is dropped from the saved map after the fills (which still see it: it bounds their
    image regions).
 3b. Textureless regions (``densify.fill_planes``, ``fullview.sfm.dense.planes``): each edge-bounded region whose
-   border depths lie on planes gets them where the views do not contradict it, and a filled pixel is kept only where
-   another panorama's own result (stereo, else its own fill) agrees.
+   border depths lie on planes gets them where the views do not contradict it (a nearly level plane made
+   exactly so, ``densify.region_plane_snap_deg``), and a filled pixel is kept only where another panorama's own
+   result (stereo, else its own fill) agrees; a region whose fill a kept level world plane (3c) matches takes it
+   (``densify.region_planes_from_world``).
 3c. World planes (``densify.world_planes``, ``fullview.sfm.dense.world_planes``): the dominant level and upright planes
    of the whole model (RANSAC on every panorama's stereo points and the sparse points; level ones made exactly level,
    walls turned onto the dominant wall direction, ``densify.world_plane_snap_deg``; the ground refitted with a tilt
@@ -391,7 +393,7 @@ class _FillInputs:
         config: DensifyOptions = ctx.options
         self.cams = sorted(maps)
         self.neighbours = fusion_neighbours(centers[self.cams], config.fusion_views)
-        self.options = planes.PlaneOptions(fit_tolerance=config.plane_tolerance)
+        self.options = planes.PlaneOptions(fit_tolerance=config.plane_tolerance, snap_deg=config.region_plane_snap_deg)
         self.observable = [_observable(config, ctx.dataset.load_mask(ctx.dataset.image_names[k]), maps[k][0].shape)
                            for k in self.cams]
         self.views = [planes.view_of(R[k], t[k], maps[k][0], self.observable[a], images[k],
@@ -449,6 +451,8 @@ def _world_plane_options(config: DensifyOptions, options: planes.PlaneOptions, m
                                           free_floor=config.free_floor, free_walls=config.free_walls,
                                           occluders_on_walls=config.occlusion_aware_wall_vote,
                                           local_extent=config.wall_extent_by_votes,
+                                          adopt_in_regions=config.region_planes_from_world,
+                                          room_window_cells=config.room_window_cells,
                                           ground_max_tilt_deg=config.ground_max_tilt_deg)
 
 
@@ -488,6 +492,8 @@ def _fill_world_planes(views, fills, neighbours, options, wopt, kept, judges, oc
 
     def fill(a: int) -> tuple[np.ndarray, np.ndarray]:
         view, (fill, labels) = views[a], fills[a]
+        if wopt.adopt_in_regions:  # a region's own plane gives way to the world plane of the same surface
+            fill = world_planes.adopt_world_planes(view, fill, labels, kept, wopt)
         empty = planes.View(R_cam_from_world=view.R_cam_from_world, t_cam_from_world=view.t_cam_from_world,
                             range_map=np.where(np.isfinite(fill), fill, view.range_map), observable=view.observable,
                             color=view.color)

@@ -8,7 +8,8 @@ meet, and those edges bound the plain surface on its plane. So, per panorama (``
 2. ``fit_region_planes``: a region's evidence is the stereo depths inside it and within a few pixels of its border
    (``RING_OFFSETS``); its plane is fitted to them by RANSAC and refined by least squares in shrinking bands, and
    kept when it explains ``min_share`` of them and they span it (not one line). A region whose edges leak (a wall
-   and the ceiling together) has no such plane and is not filled.
+   and the ceiling together) has no such plane and is not filled. A plane within ``snap_deg`` of level is made
+   exactly level where that still explains ``min_share`` of them (``snap_region_plane``).
 3. The region's pixels without depth get the range where their rays meet the plane (in front, not grazing), and
    ``check_against_views`` drops a filled point that a nearby view sees through (a valid range clearly beyond it) or
    sees in another colour more often than in its own.
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from fullview.sfm.camera import bearings_to_pixels_f32, camera_center, pixel_grid_bearings
+from fullview.sfm.camera import bearings_to_pixels_f32, camera_center, camera_up, pixel_grid_bearings
 
 RANSAC_HYPOTHESES = 128  # plane hypotheses per region (fit_region_plane)
 MIN_SPREAD_RATIO = 0.15  # a region's plane inliers must spread this much across their main direction
@@ -52,6 +53,8 @@ class PlaneOptions:
     min_confirmed: int = 10  # points of a tile another view must confirm
     min_agreement: float = 0.5  # ... at least this share of the points another view has a range for
     max_contradicted: float = 0.1  # ... and at most this share of them may be contradicted (seen through)
+    snap_deg: float = 0.0  # a region's plane within this angle of level is made exactly level, where that still
+    # explains min_share of its depths (snap_region_plane); 0: fitted normals kept
 
 
 # ------------------------------------------------------------------------------------------------ regions
@@ -280,19 +283,54 @@ def region_evidence_pixels(labels: np.ndarray, range_map: np.ndarray, wanted: np
 
 
 def fit_region_planes(points: np.ndarray, bearings: np.ndarray, center: np.ndarray, ranges: np.ndarray,
-                      rng: np.random.Generator, options: PlaneOptions
+                      rng: np.random.Generator, options: PlaneOptions, up: np.ndarray | None = None
                       ) -> tuple[list[tuple[np.ndarray, float]], np.ndarray]:
     """The plane through a region's border points, as a list of at most one (normal, offset), and the plane of each
-    point (0, or −1: none); no plane unless it explains ``min_share`` of them.
+    point (0, or −1: none); no plane unless it explains ``min_share`` of them. With ``up`` (gravity) and
+    ``snap_deg``, a nearly level plane is made exactly level where that still explains ``min_share`` of them
+    (``snap_region_plane``; a ramp keeps its fit).
 
     One plane per region: a region whose edges leak (a wall and the ceiling together) is left empty. Up to three
     planes per region were measured: the home's ceilings then got a wall's plane (nearest in the image) or a slightly
     wrong plane from the leftovers (nearest along the ray), and the views confirmed it, since every view made the
     same choice."""
     found = fit_region_plane(points, bearings, center, ranges, rng, options)
+    if found is not None and up is not None and options.snap_deg > 0:
+        snapped = snap_region_plane(*found, points, bearings, center, ranges, up, options)
+        if snapped is not None and snapped[2].mean() >= options.min_share:
+            found = snapped
     if found is None or found[2].mean() < options.min_share:
         return [], np.full(len(points), -1)
     return [found[:2]], np.where(found[2], 0, -1)
+
+
+def snap_region_plane(normal: np.ndarray, offset: float, inliers: np.ndarray, points: np.ndarray,
+                      bearings: np.ndarray, center: np.ndarray, ranges: np.ndarray, up: np.ndarray,
+                      options: PlaneOptions) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """A region's plane (normal, offset, inliers) made exactly level (normal ``up``) when its normal is within
+    ``snap_deg`` of that, at the median offset of its points in shrinking bands, with its inliers; None when it is
+    not.
+
+    Why: the border depths of a plain ceiling lie along the lines where it meets the walls, and stereo puts those a
+    few per cent too far on some sides, so least squares tilts the plane by a degree or more (as the world planes',
+    ``world_planes._snap_to_gravity``). On 360_Flat two neighbouring panoramas filled a quarter of their pixels with
+    their ceilings 1.2-1.3 degrees tilted, too near by more than 2% across the room from them, and confirmed each
+    other (their stereo comes from the same pairs)."""
+    up = up / np.linalg.norm(up)
+    cos = float(normal @ up)
+    if abs(cos) < np.cos(np.radians(options.snap_deg)):
+        return None  # walls keep their fit: made upright, 360_Flat's R0010215 and home 17 lost agreement
+    snapped = up * np.sign(cos)
+    offset = float(np.median(points[inliers] @ snapped))
+    for shrink in REFINE_SHRINK:
+        band = _plane_inliers(snapped[None], np.array([offset]), points, bearings, center, ranges,
+                              options.fit_tolerance * shrink)[0]
+        if band.sum() < 3:
+            return None
+        offset = float(np.median(points[band] @ snapped))
+    mask = _plane_inliers(snapped[None], np.array([offset]), points, bearings, center, ranges,
+                          options.fit_tolerance)[0]
+    return snapped, offset, mask
 
 
 def fit_region_plane(points: np.ndarray, bearings: np.ndarray, center: np.ndarray, ranges: np.ndarray,
@@ -362,6 +400,7 @@ def fill_plane_ranges(ref: View, others: list[View], options: PlaneOptions, seed
     sizes = np.bincount(labels.ravel())
     bearings = reduced_bearings_world(ref.R_cam_from_world, w, h).astype(np.float64)
     center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
+    up = camera_up(ref.R_cam_from_world[None]) if options.snap_deg > 0 else None  # a levelled panorama's up: gravity
     region, rows, cols = _region_evidence(labels, ref.range_map)
     starts = np.searchsorted(region, np.arange(len(sizes) + 1))
     fillable = (~np.isfinite(ref.range_map) & ref.observable).ravel()
@@ -374,7 +413,7 @@ def fill_plane_ranges(ref: View, others: list[View], options: PlaneOptions, seed
             continue
         sel = slice(starts[lab], starts[lab + 1])
         b, r = bearings[rows[sel], cols[sel]], ref.range_map[rows[sel], cols[sel]].astype(np.float64)
-        planes, _ = fit_region_planes(center + b * r[:, None], b, center, r, rng, options)
+        planes, _ = fit_region_planes(center + b * r[:, None], b, center, r, rng, options, up)
         if not planes:
             continue
         pix = order[pixel_starts[lab]:pixel_starts[lab + 1]]

@@ -27,6 +27,8 @@ has no single plane, but every pixel of it still lies on one of the world's plan
    the nearest wall that the ranges next to it in its image column or row lie on (``_wall_brackets``); in a room, a
    pixel still empty may take the first plane its ray meets where that is the floor (``_free_floor``) or a wall
    (``_free_walls``); small islands of one label are dropped.
+Before 3, ``adopt_world_planes`` moves a region fill's unit (``planes.fill_plane_ranges``) onto the kept level world
+plane of its surface (a floor, a ceiling), where one lies within the view tolerance of (nearly) all its pixels.
 4. ``fill_from_world_planes`` keeps a filled point where ``planes.check_against_views`` does (no nearby view sees
    through it; its colour is seen by another view); the stage then confirms it per tile by the other panoramas'
    results (``planes.confirmed_by_views``), as for the region fill.
@@ -65,6 +67,8 @@ BEHIND_CELLS = 2  # _walls_floor_to_ceiling: floor (ceiling) points this many ce
 BEHIND_POINTS = 3  # ... at least this many in a column: the floor (ceiling) goes on behind the wall there
 GROUND_TILT_GAIN = 1.5  # tilt_ground: the tilted ground must explain this many times the level one's points
 EVIDENCE_BLOCK = 16_384  # region_candidates judges this many stereo pixels against all planes at a time
+ADOPT_SHARE = 0.9  # adopt_world_planes: a region fill's unit takes a world plane within view_tolerance of this share
+# of its pixels
 
 
 @dataclass(kw_only=True)
@@ -110,6 +114,10 @@ class WorldPlaneOptions:
     ground_max_tilt_deg: float = 10.0  # tilt_ground: the ground may be refitted this far from level (0: never)
     walls_floor_to_ceiling: bool = True  # with snap_deg > 0 and observers: a wall's columns run from the floor to
     # the ceiling plane (_walls_floor_to_ceiling); the free-space check and the views then cut what is not wall
+    room_window_cells: int = 2  # a level plane spans over (under) a camera where half the cells within this many of
+    # the camera's foot point lie in its extent (WorldPlane.spans_over; 0: the foot's cell alone)
+    adopt_in_regions: bool = True  # the stage moves a region fill's unit onto the level world plane that matches it
+    # (adopt_world_planes) before the world fill
 
 
 @dataclass(kw_only=True)
@@ -133,12 +141,22 @@ class WorldPlane:
         cos = float(self.normal @ up)
         return self.level and abs(cos) > 0.5 and (self.offset - self.normal @ center) / cos > 0
 
-    def spans_over(self, center: np.ndarray) -> bool:
+    def spans_over(self, center: np.ndarray, reach: int = 0) -> bool:
         """Whether the point of this plane straight above (or below) ``center`` lies inside its extent: a room's
         ceiling spans over every camera in the room; a level plane beside the camera (a porch roof, a ledge or a
-        cloud seen from a street) does not."""
+        cloud seen from a street) does not. With ``reach`` > 0: whether at least half the cells within ``reach``
+        cells of that point (a square window; cells off the grid count as outside) lie inside the extent.
+
+        Why the window: the floor under a camera lies in its tripod cap, and the free-space check carves single cells
+        there (a glossy floor's reflections look through it). On 360_Flat the one cell under R0010215 was carved in
+        one run and not in another with the poses 1e-4° apart, and with it the camera's free floor and free walls
+        (0.08 of the panorama) came and went; 17 of the 25 cells around it were in the extent in both."""
         foot = np.asarray(center, np.float64) - (self.normal @ center - self.offset) * self.normal
-        return bool(self.contains(foot[None])[0])
+        if reach <= 0:
+            return bool(self.contains(foot[None])[0])
+        col, row = np.floor((foot - self.origin) @ self.axes.T / self.cell).astype(np.int64)
+        window = self.extent[max(row - reach, 0):max(row + reach + 1, 0), max(col - reach, 0):max(col + reach + 1, 0)]
+        return bool(window.sum() >= 0.5 * (2 * reach + 1) ** 2)
 
     def cells_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(row, col, inside the grid) of world points (assumed on the plane)."""
@@ -1053,7 +1071,7 @@ def region_candidates(ref: View, planes: list[WorldPlane], regions: np.ndarray, 
         # region (on the home, the region rule dropped 42% of the ceiling's pixels, 98% of which were right)
         up = camera_up(ref.R_cam_from_world[None])
         allowed[1:, [k for k, p in enumerate(planes) if p.is_ceiling_of(center, up)
-                     and (not options.ceiling_over_camera or p.spans_over(center))]] = True
+                     and (not options.ceiling_over_camera or p.spans_over(center, options.room_window_cells))]] = True
     return allowed
 
 
@@ -1128,10 +1146,11 @@ def _take_nearest(plane: WorldPlane, k: int, sel: np.ndarray, bearings: np.ndarr
     taken[sel[inside]] = k + 1
 
 
-def _floor_in_room(planes: list[WorldPlane], center: np.ndarray, up: np.ndarray) -> list[int]:
+def _floor_in_room(planes: list[WorldPlane], center: np.ndarray, up: np.ndarray, reach: int = 0) -> list[int]:
     """Indices of the level planes below ``center`` spanning under it (its floor), if a level plane above spans over
-    it too (a room: outdoors the ground keeps the region rule); else []."""
-    level = [k for k, p in enumerate(planes) if p.level and abs(float(p.normal @ up)) > 0.5 and p.spans_over(center)]
+    it too (a room: outdoors the ground keeps the region rule); else []. ``reach``: ``WorldPlane.spans_over``'s."""
+    level = [k for k, p in enumerate(planes)
+             if p.level and abs(float(p.normal @ up)) > 0.5 and p.spans_over(center, reach)]
     below = [k for k in level if (planes[k].offset - planes[k].normal @ center) / float(planes[k].normal @ up) < 0]
     return below if len(below) < len(level) else []
 
@@ -1144,7 +1163,7 @@ def _free_walls(planes: list[WorldPlane], free: np.ndarray, bearings: np.ndarray
     ceiling and floor lines of a leaking region, or 3-13% off the wall, home 5), so neither the region rule nor the
     brackets take it; from inside a room the first plane met is the surface seen. A cupboard that is a plane of the
     model is met first and its face is taken; the view checks then judge every filled pixel as the others'."""
-    if not len(free) or not _floor_in_room(planes, center, up):
+    if not len(free) or not _floor_in_room(planes, center, up, options.room_window_cells):
         return
     first, which = np.full(len(free), np.inf, np.float32), np.zeros(len(free), np.int32)
     sel = np.arange(len(free))
@@ -1163,7 +1182,7 @@ def _free_floor(planes: list[WorldPlane], free: np.ndarray, bearings: np.ndarray
     and one plain region runs from the floor up the walls, so the region rule refused the floor of whole rooms (home
     7: 91% of a panorama's floor). A cupboard whose plain face is no plane of its region would be filled with the
     floor behind it: where the cupboard is a plane of the model, the ray meets it first and the pixel stays empty."""
-    below = _floor_in_room(planes, center, up)
+    below = _floor_in_room(planes, center, up, options.room_window_cells)
     if not len(free) or not below:
         return
     sel = np.arange(len(free))
@@ -1264,6 +1283,54 @@ def nearest_plane_ranges(view: View, planes: list[WorldPlane], options: WorldPla
                   range_map=np.full((h // step, w // step), np.nan, np.float32),
                   observable=np.ones((h // step, w // step), bool), color=view.color)
     return label_pixels(coarse, planes, coarse.observable, replace(options, min_island_pixels=0))[0]
+
+
+def adopt_world_planes(ref: View, fill: np.ndarray, units: np.ndarray, planes: list[WorldPlane],
+                       options: WorldPlaneOptions) -> np.ndarray:
+    """(h, w) float32: a region fill's ranges (``fill``, NaN: none; ``units``: its region labels) with each unit's
+    pixels moved onto the kept level world plane (a floor or a ceiling) that lies within ``view_tolerance`` of at
+    least ``ADOPT_SHARE`` of them (the one nearest on average, if several; the camera on its front side); a pixel whose
+    ray does not meet that plane (behind, grazing) is left empty. Units no such plane matches keep their ranges.
+
+    Why: a region's plane is fitted on one panorama's stereo around the region, a world plane on every panorama's
+    points of that surface. Both are the same surface here, but one view's evidence carries its stereo's bias: on
+    360_Flat R0010212 filled its ceiling (a quarter of the panorama) level but 1.9% too low, 0.035 below the ceiling
+    every other panorama filled from the world planes, and disagreed with them across the room. Level planes only: a
+    level world plane is exactly level at the mode of every view's heights, while a wall is turned onto the dominant
+    wall direction, which a real wall may miss by a few degrees (its region's own plane keeps its azimuth); taking the
+    walls too lowered home 3's accuracy (cloud 0.985 -> 0.981, mesh 0.980 -> 0.973)."""
+    out = fill.copy()
+    rows, cols = np.nonzero(np.isfinite(fill))
+    if not len(rows) or not planes:
+        return out
+    h, w = fill.shape
+    bearings = reduced_bearings_world(ref.R_cam_from_world, w, h)[rows, cols].astype(np.float64)
+    center = -ref.R_cam_from_world.T @ ref.t_cam_from_world
+    own = fill[rows, cols].astype(np.float64)
+    unit = np.unique(units[rows, cols], return_inverse=True)[1]
+    best = np.full(unit.max() + 1, -1)
+    best_error = np.full(unit.max() + 1, np.inf)
+    size = np.bincount(unit)
+    for k, plane in enumerate(planes):
+        if not plane.level or (plane.front and np.sign(plane.normal @ center - plane.offset) != plane.front):
+            continue  # only floors and ceilings; the camera sees the back of a one-sided plane
+        cos = bearings @ plane.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            error = np.abs((plane.offset - plane.normal @ center) / cos - own) / own
+        on = error <= options.view_tolerance
+        share = np.bincount(unit, weights=on, minlength=len(size)) / size
+        mean = np.bincount(unit, weights=np.where(on, error, 0.0), minlength=len(size)) / np.maximum(
+            np.bincount(unit, weights=on, minlength=len(size)), 1)
+        better = (share >= ADOPT_SHARE) & (mean < best_error)
+        best[better], best_error[better] = k, mean[better]
+    for u in np.flatnonzero(best >= 0):
+        plane, sel = planes[best[u]], np.flatnonzero(unit == u)
+        cos = bearings[sel] @ plane.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = (plane.offset - plane.normal @ center) / cos
+        ok = (r > 0) & (np.abs(cos) >= np.sin(np.radians(options.min_incidence_deg)))
+        out[rows[sel], cols[sel]] = np.where(ok, r, np.nan)
+    return out
 
 
 def fill_from_world_planes(ref: View, planes: list[WorldPlane], others: list[View], options: WorldPlaneOptions,
