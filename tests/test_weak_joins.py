@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fullview.sfm.camera import normalize
-from fullview.sfm.registration.weak_joins import CrossPair, join_by_weak_pairs
+from fullview.sfm.registration.weak_joins import CrossPair, _share_cameras, join_by_weak_pairs
 from fullview.sfm.rotations import rotation_angle_deg
 
 THRESHOLD = np.radians(0.35)
@@ -102,3 +102,14 @@ def test_guided_join_needs_more_than_chance(true_per_pair):
     for seed in range(6):
         inputs, _ = _scene(np.random.default_rng(seed), true_per_pair=true_per_pair, raw_per_pair=35, noise_deg=0.1)
         assert join_by_weak_pairs(**inputs, threshold_rad=THRESHOLD, step_a=1.5, step_b=3.75, guided=True) is None
+
+
+def test_guided_pairs_must_share_cameras():
+    # a chain through shared cameras (3-0, 3-1, 4-1) sees one doorway; pairs of three other camera pairs do not
+    def fits(*pairs):
+        return [(CrossPair(k=k, l=l, b_k=np.zeros((0, 3)), b_l=np.zeros((0, 3)), matches=np.zeros((0, 2), int)),)
+                for k, l in pairs]
+    assert _share_cameras(fits((3, 0), (3, 1), (4, 1)))
+    assert _share_cameras(fits((4, 1), (5, 2), (4, 2)))
+    assert not _share_cameras(fits((3, 0), (4, 1), (5, 2)))
+    assert not _share_cameras(fits((5, 0), (3, 1), (4, 1)))
