@@ -144,6 +144,9 @@ class RegistrationOptions:
     join_by_weak_pairs: bool = setting(True, "join two models where three or more raw-matched pairs between them, "
                                        "each too weak to verify (6+ upright inliers), agree on one rotation and "
                                        "placement (a doorway seen from both rooms)")
+    weak_join_guided: bool = setting(True, "where no three weak pairs agree, each one's rotation guides 2-unknown "
+                                     "baseline fits of the other pairs between the models, and three of them that "
+                                     "place the models consistently join them")
     unjoined_parts: str = setting("keep", "a part whose scale neither the pair directions nor shared points fix: "
                                   "separate: placed again by points or left a model of its own; keep: a guess "
                                   "(scaled to main's median baseline; a camera tied by one pair at the median "

@@ -141,8 +141,9 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
             pass
     if (options.join_by_weak_pairs and pair_matches is not None and gravity is not None
             and weak_join_threshold_rad is not None):
+        guided = options.weak_join_guided
         while _join_once_by_weak_pairs(state, links, pair_matches, bearings, gravity, weak_join_threshold_rad,
-                                       options, descriptors):
+                                       options, descriptors, guided):
             pass
     _renumber(state)
     if pair_matches is not None and options.min_weak_pair_inliers:
@@ -759,10 +760,11 @@ def _similarity_of_poses(R_b, C_b, R_a, C_a, max_rotation_deg: float = 1.0, max_
 # --------------------------------------------------------------------------------------------- weak joins
 def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: dict[tuple[int, int], np.ndarray],
                              bearings, gravity: np.ndarray, threshold_rad: float, options: RegistrationOptions,
-                             descriptors=None) -> bool:
+                             descriptors=None, guided: bool = False) -> bool:
     """Join the first pair of models (largest first) that several weak pairs between them agree on
-    (`weak_joins.join_by_weak_pairs`): the smaller one moves into the larger by the join's similarity, the agreeing
-    pairs' inlier matches join the final tracks (as weak pairs' do), and the model grows again. True if joined."""
+    (`weak_joins.join_by_weak_pairs`; with ``guided``, single fits' rotations guide the other pairs): the smaller
+    one moves into the larger by the join's similarity, the agreeing pairs' inlier matches join the final tracks (as
+    weak pairs' do), and the model grows again. True if joined."""
     order = _by_size(state)
     steps = _model_steps(state.centers, state.model_id, links.pairs[links.weights > 0])
     for a_rank, a in enumerate(order):
@@ -777,7 +779,7 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                                       R_b={int(k): state.R_cam_from_world[k] for k in cams_b},
                                       C_b={int(k): state.centers[k] for k in cams_b}, gravity=gravity, cross=cross,
                                       threshold_rad=threshold_rad, step_a=float(step_a), step_b=float(step_b),
-                                      seed=options.seed)
+                                      seed=options.seed, guided=guided)
             if join is None:
                 continue
             state.R_cam_from_world[cams_b] = state.R_cam_from_world[cams_b] @ join.M.T

@@ -13,6 +13,13 @@ degree. A join is taken when `MIN_AGREEING_PAIRS` or more pairs imply one rotati
 shift of b (4 unknowns, 2 equations per pair) by least squares when the pairs touch two cameras of b or more, else
 the shift alone with b's median baseline set to a's (the same guess as a part whose scale no points fix); every
 pair's direction must then lie within `MAX_DIRECTION_DISAGREEMENT_DEG` of where the placement puts its cameras.
+
+Guided (`guided=True`): where no three fits agree, each fit in turn (most inliers first) lends its rotation to every
+other cross pair, whose baseline then has 2 unknowns (`two_view.baseline_given_rotation`, the 2-point fit that
+lifts a doorway pair's 7-11 true matches out of the chance 3-unknown fits' level); the join is taken when the seed
+and `MIN_AGREEING_PAIRS` − 1 or more such guided pairs, connected by shared cameras (`_share_cameras`), place b
+consistently (as above). Chance guided fits reach 6-9 inliers too, but point their baselines anywhere: the placement
+and the shared cameras are what tell them apart.
 Pure geometry: no file access.
 """
 
@@ -31,6 +38,7 @@ MIN_PAIR_INLIERS = 6  # a cross pair's upright fit below this many inliers impli
 MAX_ROTATION_DISAGREEMENT_DEG = 1.0  # cross pairs implying rotations this close agree on the join
 MIN_AGREEING_PAIRS = 3  # pairs that must agree on one rotation (and on the placement: 6 equations, 3-4 unknowns)
 MAX_DIRECTION_DISAGREEMENT_DEG = 2.0  # each agreeing pair's baseline direction against the placement's
+MAX_GUIDED_COMPANIONS = 12  # guided pairs (most inliers first) tried in threes with a seed fit
 MAX_ITERATIONS = 2000  # upright RANSAC samples per cross pair (few matches: the cap is rarely reached)
 
 
@@ -55,12 +63,12 @@ class WeakJoin:
 
 def join_by_weak_pairs(*, R_a: dict[int, np.ndarray], C_a: dict[int, np.ndarray], R_b: dict[int, np.ndarray],
                        C_b: dict[int, np.ndarray], gravity: np.ndarray, cross: list[CrossPair], threshold_rad: float,
-                       step_a: float, step_b: float, seed: int = 0) -> WeakJoin | None:
+                       step_a: float, step_b: float, seed: int = 0, guided: bool = False) -> WeakJoin | None:
     """The join of model b into model a that several weak cross pairs agree on, or None (see the module doc).
 
     R_a, C_a (R_b, C_b): rotations (cam from world) and centres of the models' cameras by image; gravity (N, 3) per
     image in its camera frame (zero rows: unknown, such pairs are skipped); step_a, step_b: the models' median
-    used-pair baselines (the scale guess)."""
+    used-pair baselines (the scale guess); guided: try each fit's rotation on the other pairs when none agree."""
     fits = []
     for n, pair in enumerate(cross):
         fit = _upright_pair(pair, gravity, threshold_rad, seed + n)
@@ -76,7 +84,10 @@ def join_by_weak_pairs(*, R_a: dict[int, np.ndarray], C_a: dict[int, np.ndarray]
         if placed is not None:
             break
     else:
-        return None
+        found = _guided_join(fits, cross, R_a, C_a, R_b, C_b, threshold_rad, step_a, step_b, seed) if guided else None
+        if found is None:
+            return None
+        M, chosen, placed = found
     scale, shift, guessed = placed
     rows = [(f[0].k, int(a), f[0].l, int(b)) for f in chosen for a, b in f[0].matches[f[3]]]
     return WeakJoin(M=M, scale=scale, shift=shift, pairs=[(f[0].k, f[0].l, int(f[3].sum())) for f in chosen],
@@ -101,6 +112,65 @@ def _upright_pair(pair: CrossPair, gravity: np.ndarray, threshold_rad: float, se
     if pose.num_cheiral < 0.9 * res.inliers.sum():
         return None
     return pose.R_j_from_i, pose.t_j_from_i, res.inliers
+
+
+def _guided_join(fits: list, cross: list[CrossPair], R_a: dict, C_a: dict, R_b: dict, C_b: dict,
+                 threshold_rad: float, step_a: float, step_b: float, seed: int):
+    """(M, chosen fits, placement) of the first seed fit (most inliers first) whose rotation gives other cross pairs
+    2-unknown baselines (MIN_PAIR_INLIERS or more) that, with the seed's, place b consistently; None if none does."""
+    for seed_fit in sorted(fits, key=lambda f: -f[3].sum()):
+        M = seed_fit[1]
+        guided = []
+        for n, pair in enumerate(cross):
+            if pair is seed_fit[0]:
+                continue
+            R_lk = R_a[pair.l] @ M @ R_b[pair.k].T
+            t_lk, inliers = two_view.baseline_given_rotation(pair.b_k, pair.b_l, R_lk, threshold_rad, seed=seed + n)
+            if inliers.sum() >= MIN_PAIR_INLIERS:
+                guided.append((pair, M, normalize(R_a[pair.l].T @ t_lk), inliers))
+        guided = sorted(guided, key=lambda f: -f[3].sum())[:MAX_GUIDED_COMPANIONS]
+        best = None
+        for a in range(len(guided)):
+            for b in range(a + 1, len(guided)):
+                start = [seed_fit, guided[a], guided[b]]
+                if not _share_cameras(start):
+                    continue
+                chosen = _consistent_extension(start, guided, M, C_a, C_b, step_a, step_b)
+                if chosen is not None and (best is None or _size(chosen[0]) > _size(best[0])):
+                    best = chosen
+        if best is not None:
+            return M, best[0], best[1]
+    return None
+
+
+def _share_cameras(fits: list) -> bool:
+    """True if the fits' pairs are connected by shared cameras: the pairs that see one doorway are those between the
+    one or two panoramas on either side of it, and a camera in two pairs is placed twice (its rays must meet), where
+    pairs of chance matches scatter over the models (measured on the closed-door home: a seed and two chance pairs
+    of other cameras placed within 1.4°)."""
+    reached = {0}
+    for _ in fits:
+        reached |= {n for n, f in enumerate(fits) for r in reached
+                    if f[0].k == fits[r][0].k or f[0].l == fits[r][0].l}
+    return len(reached) == len(fits)
+
+
+def _size(chosen: list) -> tuple[int, int]:
+    return len(chosen), int(sum(f[3].sum() for f in chosen))
+
+
+def _consistent_extension(start: list, candidates: list, M, C_a, C_b, step_a, step_b):
+    """(chosen, placement): the start's placement (None if inconsistent) with every candidate whose direction lies
+    within MAX_DIRECTION_DISAGREEMENT_DEG of it added, placed again."""
+    placed = _place(M, start, C_a, C_b, step_a, step_b)
+    if placed is None:
+        return None
+    scale, shift, _ = placed
+    cos_max = np.cos(np.radians(MAX_DIRECTION_DISAGREEMENT_DEG))
+    chosen = start + [f for f in candidates if all(f is not g for g in start)
+                      and normalize(scale * M @ C_b[f[0].k] + shift - C_a[f[0].l]) @ f[2] >= cos_max]
+    again = _place(M, chosen, C_a, C_b, step_a, step_b) if len(chosen) > len(start) else placed
+    return (chosen, again) if again is not None else (start, placed)
 
 
 def _agreeing_sets(fits: list) -> list[list[int]]:
