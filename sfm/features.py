@@ -138,7 +138,8 @@ def denoised(grey: np.ndarray, options: FeaturesOptions) -> np.ndarray:
     1.5 sigma (5 px patches, 11 px search): a room's faint texture repeats over many pixels, the noise does not, so
     the texture survives while the noise's own DoG blobs go, which would otherwise fill the plain faces (detected at
     lowered thresholds) with keypoints and drown their real ones. Clean renders measure ~0.1 and real Theta S
-    panoramas at 2048 px ~0.55: both are left as they are."""
+    panoramas at 2048 px ~0.55. Off by default: on noisy homes it removes the noise keypoints but brings back none
+    of the true matches the noise costs (README, "Sensor noise in the features stage")."""
     if not options.denoise_min_noise:
         return grey
     noise = noise_sigma(grey)
