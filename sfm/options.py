@@ -39,6 +39,9 @@ class FeaturesOptions:
     min_features_per_face: int = setting(300, "a face with fewer keypoints is detected again with half the contrast "
                                          "threshold (plain walls)", ge=0, le=1_000_000, zero_means="never")
     min_contrast_threshold: float = setting(0.0025, "... but never below this contrast threshold", gt=0.0, le=1.0)
+    denoise_min_noise: float = setting(0.0, "panoramas with more sensor noise than this (grey levels, estimated) are "
+                                       "denoised (non-local means) before detection (loses true matches: README)",
+                                       ge=0.0, le=255.0, zero_means="never")
     min_latitude_deg: float = setting(-90.0, "drop features below this latitude (nadir cap: tripod, hand)",
                                       ge=-90.0, le=90.0)
     max_latitude_deg: float = setting(90.0, "drop features above this latitude (zenith cap)", ge=-90.0, le=90.0)

@@ -150,3 +150,34 @@ def test_two_threads_that_need_the_same_face_masks_build_them_once(monkeypatch):
     assert sorted(built) == list(range(6))  # six faces, built by one of the threads
     assert results[0] is results[1]
     ft.face_keep_masks.cache_clear()
+
+
+def _spotted_panorama(noise: float, seed: int = 4) -> np.ndarray:
+    """A plain panorama with 150 dark spots (its only real features), with white sensor noise of `noise` levels."""
+    rng = np.random.default_rng(seed)
+    image = np.full((512, 1024), 128.0)
+    for x, y, r in zip(rng.integers(0, 1024, 150), rng.integers(60, 452, 150), rng.integers(3, 8, 150)):
+        cv2.circle(image, (int(x), int(y)), int(r), 80.0, -1)
+    image = cv2.GaussianBlur(image, (0, 0), 1.0) + rng.normal(0.0, noise, image.shape) * (noise > 0)
+    return image.clip(0, 255).round().astype(np.uint8)
+
+
+@pytest.mark.parametrize("sigma", [1.0, 2.0, 4.0])
+def test_noise_sigma_recovers_a_known_sensor_noise(sigma):
+    assert ft.noise_sigma(_spotted_panorama(0.0)) < 0.15  # plain, spotted, rounded to uint8: next to no noise
+    assert ft.noise_sigma(_spotted_panorama(sigma)) == pytest.approx(sigma, rel=0.05)
+
+
+def test_sensor_noise_does_not_fill_a_plain_panorama_with_keypoints():
+    """Noise of 2 levels on a plain panorama: undenoised, the lowered thresholds of its plain faces find several
+    times its real keypoints, most of them noise; denoised, about as many as the clean panorama's, at its places."""
+    clean = ft.detect_features(_spotted_panorama(0.0), FeaturesOptions())
+    noisy = _spotted_panorama(2.0)
+    raw = ft.detect_features(noisy, FeaturesOptions())  # the default: never denoised
+    handled = ft.detect_features(noisy, FeaturesOptions(denoise_min_noise=1.0))
+    assert len(raw.bearings) > 3 * len(clean.bearings)
+    assert 0.7 * len(clean.bearings) < len(handled.bearings) < 1.5 * len(clean.bearings)
+    near_clean = (handled.bearings @ clean.bearings.T).max(axis=1) > np.cos(np.radians(0.5))
+    assert near_clean.mean() > 0.8
+    # below the noise level that calls for it, the panorama is left exactly as it is
+    assert ft.denoised(noisy, FeaturesOptions(denoise_min_noise=2.5)) is noisy

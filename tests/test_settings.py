@@ -78,6 +78,7 @@ def test_non_finite_numbers_are_rejected_everywhere(item, text):
     ("matches.ratio=.nan", "finite"), ("densify.block_size=4", "odd"), ("densify.block_size=0", ">= 1"),
     ("densify.rect_height=0", ">= 16"), ("features.working_width=7", "or 0"), ("filter.threshold_deg=0", "> 0"),
     ("densify.neighbours=-1", ">= 1"), ("matches.pairs=random", "one of"), ("filter.seed=true", "must be int"),
+    ("features.denoise_min_noise=-1", ">= 0"),
 ])
 def test_the_reported_bad_values_are_refused(override, message):
     with pytest.raises(ConfigError, match=message):
