@@ -408,6 +408,14 @@ def estimate_gravity_with_std(image: np.ndarray, *, face_size: int = 0, max_tilt
                               seed: int = 0) -> tuple[np.ndarray, int, float] | None:
     """`estimate_gravity` and the standard error of its direction (radians, `vertical_direction_std`)."""
     normals, lengths = detect_line_normals(np.asarray(image), face_size=face_size)
+    return gravity_with_std_from_normals(normals, lengths, max_tilt_deg=max_tilt_deg, inlier_deg=inlier_deg,
+                                         min_lines=min_lines, seed=seed)
+
+
+def gravity_with_std_from_normals(normals: np.ndarray, lengths: np.ndarray, *, max_tilt_deg: float = 20.0,
+                                  inlier_deg: float = 1.0, min_lines: int = 6,
+                                  seed: int = 0) -> tuple[np.ndarray, int, float] | None:
+    """`estimate_gravity_with_std` on line segments already found (`detect_line_normals`)."""
     found = vertical_direction_from_normals(normals, lengths, max_tilt_deg=max_tilt_deg, inlier_deg=inlier_deg,
                                             min_lines=min_lines, seed=seed)
     if found is None:

@@ -15,7 +15,7 @@ from functools import lru_cache, partial
 import numpy as np
 from tqdm import tqdm
 
-from fullview.sfm import two_view, upright
+from fullview.sfm import manhattan, two_view, upright
 from fullview.sfm.baseline import has_no_baseline
 from fullview.sfm.matching import epipolar_candidates, match_descriptors
 from fullview.sfm.options import FilterOptions, MatchesOptions
@@ -54,7 +54,7 @@ def run(ctx: StageContext) -> dict:
     # so they are never all in memory at once.
     descriptors = (lru_cache(maxsize=DESCRIPTOR_CACHE)(lambda k: ctx.ws.load_descriptors(ctx.dataset.image_names[k]))
                    if options.guided_matching else None)
-    gravity, gravity_std = _gravity(ctx, options.upright)
+    gravity, gravity_std, frames = _gravity(ctx, options.upright)
     num_sift = [int(o["num_sift"]) for o in obs]
     guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)
     verify = partial(_filter_pair, ctx, options, obs, num_sift, raw, gravity, descriptors, guided,
@@ -77,7 +77,13 @@ def run(ctx: StageContext) -> dict:
                          # Per image, not per pair: the bundle adjustment's gravity prior reads them. Unknown: zero
                          # and an infinite error, not NaN (reruns compare byte-identical arrays, and NaN != NaN).
                          gravity=np.nan_to_num(gravity, nan=0.0),
-                         gravity_std_rad=np.nan_to_num(gravity_std, nan=np.inf))
+                         gravity_std_rad=np.nan_to_num(gravity_std, nan=np.inf),
+                         # The Manhattan frame from the same lines, for triangulation's heading prior: its axis and
+                         # the gravity refitted with it (unknown: zero and an infinite error).
+                         manhattan_axis=np.nan_to_num(frames[0], nan=0.0),
+                         manhattan_axis_std_rad=np.nan_to_num(frames[1], nan=np.inf),
+                         manhattan_gravity=np.nan_to_num(frames[2], nan=0.0),
+                         manhattan_gravity_std_rad=np.nan_to_num(frames[3], nan=np.inf))
     counts = np.array([len(r.inliers) for r in results])
     names = ctx.dataset.image_names
     return {"pairs": len(raw.pairs), "verified_pairs": int((counts > 0).sum()),
@@ -126,32 +132,43 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
                        weak=0 < len(good) < options.min_inliers, early_rejected=early, guided_added=added)
 
 
-def _gravity(ctx: StageContext, mode: str) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) gravity of every image in its camera frame (NaN where unknown: upright none, or no vertical lines) and
-    (N,) its standard error in radians from the spread of the vertical lines (NaN: not measured, as with level)."""
+def _gravity(ctx: StageContext, mode: str):
+    """(N, 3) gravity of every image in its camera frame (NaN where unknown: upright none, or no vertical lines),
+    (N,) its standard error in radians from the spread of the vertical lines (NaN: not measured, as with level), and
+    each image's Manhattan frame from the same lines (`manhattan.manhattan_frame`: (N, 3) axis, (N,) its standard
+    error, (N, 3) the gravity refitted with it, (N,) that gravity's standard error; NaN where no axis is found)."""
     names = ctx.dataset.image_names
     out, std = np.full((len(names), 3), np.nan), np.full(len(names), np.nan)
+    frames = (np.full((len(names), 3), np.nan), np.full(len(names), np.nan), np.full((len(names), 3), np.nan),
+              np.full(len(names), np.nan))
     if mode == "level":
         out[:] = upright.Y_AXIS
     elif mode == "vanishing":
         # Images are independent and OpenCV's line detector releases the GIL: two at a time use both cores (the
         # same results as one after the other; `test_gravity_in_threads_equals_serial`).
         estimate = partial(_image_gravity, ctx.dataset, ctx.options.seed)
-        for k, (name, found) in enumerate(zip(names, tqdm(thread_map(estimate, names, threads=2), total=len(names),
-                                                          desc="gravity", unit="image"))):
+        for k, (name, (found, frame)) in enumerate(zip(names, tqdm(thread_map(estimate, names, threads=2),
+                                                                   total=len(names), desc="gravity", unit="image"))):
             if found is None:
                 log.warning("%s: no vertical lines found; its pairs are verified without the upright prior", name)
-            else:
-                out[k], std[k] = found[0], found[2]
-                log.debug("%s: gravity %s from %d lines", name, np.round(found[0], 4).tolist(), found[1])
-    return out, std
+                continue
+            out[k], std[k] = found[0], found[2]
+            log.debug("%s: gravity %s from %d lines", name, np.round(found[0], 4).tolist(), found[1])
+            if frame is not None and np.isfinite(frame[2]):
+                frames[2][k], frames[0][k], frames[3][k], frames[1][k] = frame
+    return out, std, frames
 
 
-def _image_gravity(dataset, seed: int, name: str) -> tuple[np.ndarray, int, float] | None:
-    """`upright.estimate_gravity_with_std` of one image, read at most GRAVITY_WIDTH wide."""
+def _image_gravity(dataset, seed: int, name: str):
+    """`upright.estimate_gravity_with_std` of one image, read at most GRAVITY_WIDTH wide, and its Manhattan frame
+    about that gravity from the same line segments (`manhattan.manhattan_frame`; None without an axis)."""
     full_w = dataset.image_sizes[name][0]
-    return upright.estimate_gravity_with_std(dataset.load_image(name, width=min(GRAVITY_WIDTH, full_w)),
-                                             min_lines=GRAVITY_MIN_LINES, seed=seed)
+    normals, lengths = upright.detect_line_normals(dataset.load_image(name, width=min(GRAVITY_WIDTH, full_w)))
+    found = upright.gravity_with_std_from_normals(normals, lengths, min_lines=GRAVITY_MIN_LINES, seed=seed)
+    if found is None:
+        return None, None
+    axis = manhattan.manhattan_axis(normals, lengths, found[0])
+    return found, None if axis is None else manhattan.manhattan_frame(normals, lengths, found[0], axis[0])
 
 
 def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, guided_options: MatchesOptions):

@@ -15,12 +15,11 @@ never span two models, since only pairs inside one model are consistent) and wri
 from __future__ import annotations
 
 import logging
-from functools import partial
 
 import numpy as np
 
 from fullview.io.exports import SparseModel, split_models, write_colmap_model
-from fullview.sfm import manhattan, upright
+from fullview.sfm import manhattan
 from fullview.sfm.bundle import bundle_adjust, gravity_error_factor, gravity_prior_for_models, with_gravity_error
 from fullview.sfm.registration.free_blocks import camera_heights, camera_links, free_block_similarities
 from fullview.sfm.tracks import Tracks, build_tracks
@@ -28,8 +27,7 @@ from fullview.sfm.options import TriangulationOptions
 from fullview.sfm.triangulation import (filter_tracks, gather_bearings, longest_tracks_per_image,
                                         triangulate_multiview)
 from fullview.stages.geometry_pairs import geometry_matches
-from fullview.stages.filter import GRAVITY_WIDTH
-from fullview.stages.protocol import StageContext, thread_map
+from fullview.stages.protocol import StageContext
 from fullview.stages.registration import track_matches
 
 log = logging.getLogger(__name__)
@@ -70,7 +68,8 @@ def run(ctx: StageContext) -> dict:
     # The filter's gravity per image (absent from workspaces it wrote before it stored them: no prior).
     measured = (verified.extra.get("gravity"), verified.extra.get("gravity_std_rad"))
     measured = measured if measured[0] is not None and measured[1] is not None else None
-    headings = _manhattan_axes(ctx, measured, model_id) if config.manhattan_prior and measured is not None else None
+    headings = (_manhattan_axes(verified.extra, measured, model_id) if config.manhattan_prior and measured is not None
+                else None)
     # Where an image's Manhattan frame is found, its gravity is the frame's, fitted on the horizontal lines too.
     refined = measured if headings is None else (headings[2], headings[3])
     gravity = refined if config.gravity_prior else None
@@ -100,34 +99,22 @@ def run(ctx: StageContext) -> dict:
     return _write(ctx, obs, model_id, R, t, final, points, errors, geometry_pairs=len(extra))
 
 
-def _manhattan_axes(ctx: StageContext, gravity, model_id):
-    """Each registered image's Manhattan frame from its lines: its axis (`manhattan.manhattan_axis` about its measured
-    gravity), the axis's standard error (NaN where none: no gravity, too few lines, no dominant pair of directions),
-    and its gravity and the gravity's standard error, refined with the axis on the vertical and horizontal lines
-    (`manhattan.manhattan_frame`; the measured ones where no axis is found). None when no image has an axis."""
-    g, std = gravity
-    names = ctx.dataset.image_names
-    todo = np.flatnonzero((model_id >= 0) & np.isfinite(std) & (np.linalg.norm(np.nan_to_num(g), axis=1) > 0))
-    axis, sigma = np.full((len(names), 3), np.nan), np.full(len(names), np.nan)
-    g, std = g.copy(), std.copy()
-    # Images are independent and OpenCV's line detector releases the GIL: two at a time use both cores.
-    found = thread_map(partial(_image_frame, ctx.dataset), [(names[k], g[k]) for k in todo], threads=2)
-    for k, result in zip(todo, found):
-        if result is not None and np.isfinite(result[2]):
-            g[k], axis[k], std[k], sigma[k] = result
-    log.info("manhattan: %d of %d images measure a heading from their horizontal lines", np.isfinite(sigma).sum(),
-             len(todo))
-    return (axis, sigma, g, std) if np.isfinite(sigma).any() else None
-
-
-def _image_frame(dataset, item):
-    """`manhattan.manhattan_frame` of one image (read at most GRAVITY_WIDTH wide, as for its gravity), None without
-    an axis."""
-    name, gravity = item
-    image = dataset.load_image(name, width=min(GRAVITY_WIDTH, dataset.image_sizes[name][0]))
-    normals, lengths = upright.detect_line_normals(image)
-    found = manhattan.manhattan_axis(normals, lengths, gravity)
-    return None if found is None else manhattan.manhattan_frame(normals, lengths, gravity, found[0])
+def _manhattan_axes(filtered: dict, gravity, model_id):
+    """Each registered image's Manhattan frame, as the filter found it from the lines that gave its gravity: its axis
+    (`manhattan.manhattan_axis` about its measured gravity), the axis's standard error (NaN where none: no gravity,
+    too few lines, no dominant pair of directions), and its gravity and the gravity's standard error, refined with
+    the axis on the vertical and horizontal lines (`manhattan.manhattan_frame`; the measured ones where no axis is
+    found). None when no image has an axis (or the filter's artifact predates the frames)."""
+    if filtered.get("manhattan_axis_std_rad") is None:
+        return None
+    g, std = np.array(gravity[0], np.float64), np.array(gravity[1], np.float64)
+    measured = (model_id >= 0) & np.isfinite(std) & (np.linalg.norm(g, axis=1) > 0)
+    found = measured & np.isfinite(filtered["manhattan_axis_std_rad"])
+    axis, sigma = np.full(g.shape, np.nan), np.full(len(g), np.nan)
+    axis[found], sigma[found] = filtered["manhattan_axis"][found], filtered["manhattan_axis_std_rad"][found]
+    g[found], std[found] = filtered["manhattan_gravity"][found], filtered["manhattan_gravity_std_rad"][found]
+    log.info("manhattan: %d of %d images measure a heading from their horizontal lines", found.sum(), measured.sum())
+    return (axis, sigma, g, std) if found.any() else None
 
 
 def _model_down(R, model_id, gravity) -> np.ndarray | None:

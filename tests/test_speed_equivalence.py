@@ -10,25 +10,52 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fullview.io.dataset import Dataset
-from fullview.sfm import two_view, upright
+from fullview.sfm import manhattan, two_view, upright
 from fullview.sfm.camera import normalize
 from fullview.stages import filter as filter_stage
+from tests.test_upright import _render_room
 
 
 def test_gravity_in_threads_equals_serial(tiny_dataset):
     ds = Dataset(tiny_dataset)
     ctx = SimpleNamespace(dataset=ds, options=SimpleNamespace(seed=3))
-    gravity, std = filter_stage._gravity(ctx, "vanishing")
+    gravity, std, (axis, axis_std, refined, refined_std) = filter_stage._gravity(ctx, "vanishing")
     serial = []
     for name in ds.image_names:
         image = ds.load_image(name, width=min(filter_stage.GRAVITY_WIDTH, ds.image_sizes[name][0]))
-        serial.append(upright.estimate_gravity_with_std(image, min_lines=filter_stage.GRAVITY_MIN_LINES, seed=3))
-    assert any(found is not None for found in serial)  # the comparison must cover found gravities
-    for k, found in enumerate(serial):
+        serial.append((image, upright.estimate_gravity_with_std(image, min_lines=filter_stage.GRAVITY_MIN_LINES,
+                                                                seed=3)))
+    assert any(found is not None for _, found in serial)  # the comparison must cover found gravities
+    for k, (image, found) in enumerate(serial):
         if found is None:
-            assert np.isnan(gravity[k]).all() and np.isnan(std[k])
-        else:
-            assert np.array_equal(gravity[k], found[0]) and std[k] == found[2]
+            assert np.isnan(gravity[k]).all() and np.isnan(std[k]) and np.isnan(axis_std[k])
+            continue
+        assert np.array_equal(gravity[k], found[0]) and std[k] == found[2]
+        # the Manhattan frame, from the image's lines about that gravity, as triangulation's heading prior reads it
+        normals, lengths = upright.detect_line_normals(image)
+        found_axis = manhattan.manhattan_axis(normals, lengths, found[0])
+        if found_axis is None:
+            assert np.isnan(axis_std[k]) and np.isnan(refined[k]).all()
+            continue
+        g, a, g_std, a_std = manhattan.manhattan_frame(normals, lengths, found[0], found_axis[0])
+        assert np.array_equal(refined[k], g) and np.array_equal(axis[k], a)
+        assert refined_std[k] == g_std and axis_std[k] == a_std
+
+
+def test_the_filter_stores_the_manhattan_frame_of_the_lines_that_gave_its_gravity():
+    R = Rotation.from_euler("xyz", [2.0, 30.0, -1.0], degrees=True).as_matrix()
+    image = _render_room(R)
+    dataset = SimpleNamespace(image_sizes={"room.png": (image.shape[1], image.shape[0])},
+                              load_image=lambda name, width: image)
+    found, frame = filter_stage._image_gravity(dataset, 3, "room.png")
+    normals, lengths = upright.detect_line_normals(image)
+    axis = manhattan.manhattan_axis(normals, lengths, found[0])
+    assert axis is not None and frame is not None  # the box room's edges give one pair of wall directions
+    for stored, direct in zip(frame, manhattan.manhattan_frame(normals, lengths, found[0], axis[0])):
+        assert np.array_equal(stored, direct)
+    # the room's walls run along its world x and z axes: the axis, carried to the world, lies along one of them
+    world_axis = R.T @ frame[1]
+    assert min(abs(world_axis[0]), abs(world_axis[2])) < np.sin(np.radians(0.5))
 
 
 def test_epipoles_in_threads_equal_each_pair_alone(tiny_dataset, make_pipeline):
