@@ -55,7 +55,6 @@ from __future__ import annotations
 import ctypes
 import importlib
 import logging
-import resource
 import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
@@ -76,7 +75,7 @@ from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimat
 from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
 from fullview.sfm.options import DensifyOptions
 from fullview.stages import mesh_step
-from fullview.stages.protocol import StageContext, forked, thread_map
+from fullview.stages.protocol import StageContext, cpu_seconds, forked, thread_map
 
 log = logging.getLogger(__name__)
 
@@ -201,15 +200,10 @@ class _Clock:
 
     def __init__(self):
         self.phases: dict[str, dict[str, float]] = {}
-        self._last = (time.perf_counter(), self._cpu())
-
-    @staticmethod
-    def _cpu() -> float:
-        children = resource.getrusage(resource.RUSAGE_CHILDREN)
-        return time.process_time() + children.ru_utime + children.ru_stime
+        self._last = (time.perf_counter(), cpu_seconds())
 
     def lap(self, phase: str) -> None:
-        now = (time.perf_counter(), self._cpu())
+        now = (time.perf_counter(), cpu_seconds())
         self.phases[phase] = {"wall": round(now[0] - self._last[0], 2), "cpu": round(now[1] - self._last[1], 2)}
         self._last = now
 

@@ -14,7 +14,7 @@ from fullview.io.render import render_mesh
 from fullview.sfm.camera import camera_center, camera_up
 from fullview.sfm.dense.mesh import MeshParams, mesh_from_dense
 from fullview.sfm.options import DensifyOptions
-from fullview.stages.protocol import StageContext, fork_call
+from fullview.stages.protocol import StageContext, cpu_seconds, fork_call
 
 log = logging.getLogger(__name__)
 
@@ -24,12 +24,6 @@ def mesh_params(config: DensifyOptions) -> MeshParams:
                       max_distance_voxels=config.mesh_max_distance_voxels,
                       support_tolerance=config.mesh_support_tolerance, window_px=config.mesh_window_px,
                       min_component_triangles=config.mesh_min_component_triangles)
-
-
-def _cpu_seconds() -> float:
-    """This process's CPU seconds and its reaped children's (Poisson runs in one)."""
-    children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + children.ru_utime + children.ru_stime
 
 
 def write_dense_mesh(ctx: StageContext, points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
@@ -44,7 +38,7 @@ def write_dense_mesh(ctx: StageContext, points: np.ndarray, colors: np.ndarray, 
     if len(points) < 16:
         log.warning("densify: no mesh, the fused cloud has %d points", len(points))
         return None
-    t0, cpu0 = time.perf_counter(), _cpu_seconds()
+    t0, cpu0 = time.perf_counter(), cpu_seconds()
     cams = sorted(range_maps)
     maps = [np.where(range_maps[k][1], range_maps[k][0], np.nan) for k in cams]
     try:
@@ -62,7 +56,7 @@ def write_dense_mesh(ctx: StageContext, points: np.ndarray, colors: np.ndarray, 
                     up=camera_up(R_cam_from_world[cams]), cameras=centers,
                     title=f"{ctx.dataset.name}: mesh, {len(mesh.triangles)} triangles")
     summary = {**mesh.stats, "time_s": round(time.perf_counter() - t0, 2),
-               "cpu_time_s": round(_cpu_seconds() - cpu0, 2),  # the wall time depends on the machine's load
+               "cpu_time_s": round(cpu_seconds() - cpu0, 2),  # the wall time depends on the machine's load
                "process_peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
     log.info("densify: mesh of %d vertices, %d triangles (%.0f%% of Poisson's trimmed) in %.1f s",
              mesh.stats["vertices"], mesh.stats["triangles"], 100 * mesh.stats["trimmed_share"], summary["time_s"])

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import resource
 import sys
+import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -46,6 +48,13 @@ def process_map(fn: Callable[[Any], Any], items: Iterable[Any], *, processes: in
         yield from pool.imap(_call_forked, items, chunk)
         pool.close()
         pool.join()  # reaped: their CPU time is in RUSAGE_CHILDREN now
+
+
+def cpu_seconds() -> float:
+    """CPU seconds of every thread of this process and of its reaped child processes (a stage's forked workers,
+    `process_map`, `forked`)."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
 
 
 def fork_call(fn: Callable[..., Any], *args: Any) -> Any:

@@ -31,7 +31,7 @@ from fullview.io.dataset import Dataset
 from fullview.io.errors import FullviewError
 from fullview.io.workspace import StageWriter, Workspace
 from fullview.stages import PIPELINE
-from fullview.stages.protocol import Mapper, StageContext, thread_map
+from fullview.stages.protocol import Mapper, StageContext, cpu_seconds, thread_map
 
 log = logging.getLogger(__name__)
 
@@ -285,13 +285,6 @@ class Pipeline:
             })
         log.info("%-13s done in %.1f s %s", stage, manifest["wall_time_s"], _short(summary))
         return manifest
-
-
-def cpu_seconds() -> float:
-    """CPU seconds of every thread of this process and of its reaped child processes (a stage's forked workers,
-    `protocol.process_map`)."""
-    children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + children.ru_utime + children.ru_stime
 
 
 def peak_rss_mb() -> float:

@@ -11,7 +11,7 @@ import pytest
 
 from fullview.stages import filter as filter_stage
 from fullview.stages import protocol
-from fullview.stages.runner import cpu_seconds
+from fullview.stages.protocol import cpu_seconds
 
 
 def test_results_come_back_in_order_from_forked_workers():
