@@ -88,8 +88,12 @@ def _collect(values: dict, where: dict, section: Any, items: Any, source: str) -
 
 def checked_value(f: dataclasses.Field, value: Any, name: str) -> Any:
     """`value` converted to the field's type and checked against its bounds; ConfigError naming `name` if not."""
-    value = _typed(f, value, name)
     meta = f.metadata
+    if meta["choices"] is not None and isinstance(value, bool):
+        # YAML (and --set) read on/off/yes/no as booleans: name the choices rather than the type.
+        raise ConfigError(f"{name} must be one of {list(meta['choices'])}, got {value!r} "
+                          "(YAML reads on/off/yes/no as true/false)")
+    value = _typed(f, value, name)
     if meta["choices"] is not None:
         if value not in meta["choices"]:
             raise ConfigError(f"{name} must be one of {list(meta['choices'])}, got {value!r}")
