@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import csr_matrix
 
-from fullview.sfm.registration.free_blocks import FLOOR_MIN_ELEVATION_DEG, FLOOR_WINDOW, MIN_FLOOR_POINTS
+from fullview.sfm.registration.free_blocks import (FLOOR_MIN_ELEVATION_DEG, FLOOR_WINDOW, MIN_FLOOR_POINTS,
+                                                   biconnected_blocks, camera_links)
 
 # A camera whose floor height differs by more than this (relative, log scale) from the median of the cameras it
 # shares NEIGHBOUR_TRACKS tracks with took something else for the floor (furniture tops sit 20-50% higher).
@@ -90,6 +91,30 @@ def shared_tracks(track_ids: np.ndarray, image_ids: np.ndarray, n: int) -> np.nd
     return np.rint((incidence @ incidence.T).toarray()).astype(np.int64)
 
 
+def rigid_tracks(track_ids: np.ndarray, image_ids: np.ndarray, n: int) -> np.ndarray:
+    """(T,) tracks inside a block of three or more cameras (`free_blocks.biconnected_blocks` of the cameras that
+    share a track). The others lie in a block of two cameras that only two-view tracks join (a doorway): the
+    bearings leave that pair's baseline length free, and floor rows on its points (seen by both, each camera at its
+    own height) would set the length from the two heights' difference (new home s46: a doorway ×0.73 → ×0.17)."""
+    order = np.lexsort((image_ids, track_ids))
+    tracks, cams = track_ids[order], image_ids[order]
+    first = np.r_[True, tracks[1:] != tracks[:-1]]
+    rigid = np.zeros(int(track_ids.max(initial=-1)) + 1, bool)
+    big = [b for b in biconnected_blocks(n, camera_links(track_ids, image_ids)) if len(b) >= 3]
+    if not big:
+        return rigid
+    member = np.zeros((len(big), n), bool)
+    for k, block in enumerate(big):
+        member[k, block] = True
+    # a track is rigid when some big block holds all its cameras: its first and last camera (sorted) and all between
+    inside = member[:, cams]  # (B, observations)
+    starts = np.flatnonzero(first)
+    counts = np.add.reduceat(inside.astype(np.int64), starts, axis=1)  # (B, tracks present)
+    lengths = np.diff(np.r_[starts, len(cams)])
+    rigid[tracks[starts]] = (counts == lengths[None, :]).any(axis=0)
+    return rigid
+
+
 def consistent_cameras(heights: np.ndarray, shared: np.ndarray) -> np.ndarray:
     """(N,) cameras whose height agrees with the median height of the cameras they share NEIGHBOUR_TRACKS or more
     tracks with (same room, same local scale), within MAX_NEIGHBOUR_DEVIATION; a camera without such a neighbour
@@ -110,6 +135,8 @@ def height_prior(centers: np.ndarray, down: np.ndarray, points: np.ndarray, trac
     the cameras that disagree with their room (`consistent_cameras`). None when no model qualifies."""
     camera, point, heights = floor_rows(centers, down, points, track_ids, image_ids)
     keep = consistent_cameras(heights, shared_tracks(track_ids, image_ids, len(centers)))
+    rigid = rigid_tracks(track_ids, image_ids, len(centers))
+    camera, point = camera[rigid[point]], point[rigid[point]]
     for model in np.unique(model_id[model_id >= 0]):
         members = model_id == model
         measured = int((keep & members).sum())
@@ -136,3 +163,73 @@ def height_spread(centers: np.ndarray, points: np.ndarray, prior: HeightPrior) -
             logs = np.log(h)
             spread = max(spread, 1.4826 * float(np.median(np.abs(logs - np.median(logs)))))
     return spread
+
+
+def restore_bridges(centers_before: np.ndarray, centers: np.ndarray, points: np.ndarray, track_ids: np.ndarray,
+                    image_ids: np.ndarray, roots: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Cameras and points with every bridge's baseline back at its length in `centers_before`: a bridge is two
+    cameras that only two-view tracks join (a block of two, `free_blocks.biconnected_blocks`), so the bearings leave
+    its length free. Levenberg-Marquardt's diagonal damping lets the large steps of the height prior leak into that
+    free direction (new home s41: a doorway's 0.20 shrank to 0.0001 in the final adjustment); the length is not
+    measured by anything else, so it goes back to where registration put it. The side away from `roots` (each
+    model's fixed camera) moves along the bridge, its tracks with it, the bridge's own points scale about the near
+    camera: no bearing changes. Returns (centers, points, bridges restored)."""
+    n = len(centers)
+    links = camera_links(track_ids, image_ids)
+    bridges = [b for b in biconnected_blocks(n, links) if len(b) == 2]
+    if not bridges:
+        return centers, points, 0
+    centers, points = centers.copy(), points.copy()
+    adjacency = [set() for _ in range(n)]
+    for a, b in links:
+        adjacency[a].add(int(b)), adjacency[b].add(int(a))
+    order = np.lexsort((image_ids, track_ids))
+    cams = image_ids[order]
+    starts = np.flatnonzero(np.r_[True, track_ids[order][1:] != track_ids[order][:-1]])
+    track_of, lengths = track_ids[order][starts], np.diff(np.r_[starts, len(cams)])
+    depth = _hops(adjacency, roots, n)
+    for i, j in sorted(bridges, key=lambda b: min(depth[b[0]], depth[b[1]])):
+        near, far = (i, j) if depth[i] <= depth[j] else (j, i)
+        before = np.linalg.norm(centers_before[far] - centers_before[near])
+        now = np.linalg.norm(centers[far] - centers[near])
+        if not (now > 0 and before > 0):
+            continue
+        side = _side(adjacency, far, near)
+        shift = (before / now - 1.0) * (centers[far] - centers[near])
+        centers[side] += shift
+        in_side = np.isin(cams, side)
+        inside = np.add.reduceat(in_side.astype(np.int64), starts) == lengths
+        own = np.add.reduceat(((cams == near) | (cams == far)).astype(np.int64), starts) == lengths
+        own &= np.add.reduceat((cams == near).astype(np.int64), starts) > 0
+        own &= np.add.reduceat((cams == far).astype(np.int64), starts) > 0
+        points[track_of[inside]] += shift
+        points[track_of[own]] = centers[near] + before / now * (points[track_of[own]] - centers[near])
+    return centers, points, len(bridges)
+
+
+def _hops(adjacency, roots, n: int) -> np.ndarray:
+    """Link-graph distance of every camera from the nearest root (n where unreachable)."""
+    depth = np.full(n, n)
+    frontier = [int(r) for r in roots]
+    depth[frontier] = 0
+    while frontier:
+        nxt = []
+        for v in frontier:
+            for w in adjacency[v]:
+                if depth[w] > depth[v] + 1:
+                    depth[w] = depth[v] + 1
+                    nxt.append(w)
+        frontier = nxt
+    return depth
+
+
+def _side(adjacency, start: int, cut: int) -> np.ndarray:
+    """Cameras reached from `start` without passing `cut`'s link to it (the far side of a bridge)."""
+    seen, stack = {start}, [start]
+    while stack:
+        v = stack.pop()
+        for w in adjacency[v]:
+            if w not in seen and not (v == start and w == cut):
+                seen.add(w)
+                stack.append(w)
+    return np.array(sorted(seen), np.int64)

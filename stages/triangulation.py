@@ -221,9 +221,16 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
     _, first = np.unique(np.stack([model_id[cams], ~held]).T, axis=0, return_index=True)
     _, first_of_model = np.unique(model_id[cams][first], return_index=True)
     first = first[first_of_model]
+    obs_camera = local[tracks.image_ids]
+    # With a height prior the heights fix each block's scale; the scale gauge is then held on the camera that shares
+    # the most tracks with the fixed one. The default, the camera farthest from it, lies blocks away on a walk and
+    # ties the gauge to the free length of a doorway that only two-view tracks cross (registration's guess, which
+    # nothing else measures), which then takes up every change of the blocks' scales (new home s46: ×0.73 → ×0.17).
+    scale_camera = (_best_linked(obs_camera, tracks.track_ids, len(cams), int(first[0]))
+                    if height is not None and len(first) == 1 else None)
     result = bundle_adjust(
         R_cam_from_world=R[cams], t_cam_from_world=t[cams], points=points,
-        obs_camera=local[tracks.image_ids], obs_point=tracks.track_ids,
+        obs_camera=obs_camera, obs_point=tracks.track_ids, scale_camera=scale_camera,
         obs_bearings=gather_bearings(bearings, tracks.image_ids, tracks.feature_ids),
         fixed_cameras=tuple(first.tolist()), loss="soft_l1", loss_scale_rad=np.radians(config.ba_loss_scale_deg),
         max_nfev=config.ba_max_iterations, gravity_prior=prior, pose_tolerance_rad=pose_tolerance_rad,
@@ -233,8 +240,27 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
              0 if heading is None else len(heading.camera), len(points), result.initial_cost,
              result.final_cost, np.degrees(np.median(result.obs_error_rad)))
     R, t = R.copy(), t.copy()
+    points = result.points
+    if height is not None:  # the bridges' free lengths back where registration put them (`heights.restore_bridges`)
+        before = -np.einsum("nba,nb->na", R[cams], t[cams])
+        centers = -np.einsum("nba,nb->na", result.R_cam_from_world, result.t_cam_from_world)
+        _, roots = np.unique(model_id[cams], return_index=True)
+        centers, points, bridges = heights.restore_bridges(before, centers, points, tracks.track_ids, obs_camera,
+                                                           roots)
+        if bridges:
+            log.info("height prior: %d bridges (two cameras only two-view tracks join) kept at their lengths",
+                     bridges)
+        result = dataclasses.replace(result, t_cam_from_world=-np.einsum("nab,nb->na", result.R_cam_from_world,
+                                                                        centers))
     R[cams], t[cams] = result.R_cam_from_world, result.t_cam_from_world
-    return R, t, result.points, result.obs_error_rad
+    return R, t, points, result.obs_error_rad
+
+
+def _best_linked(obs_camera, track_ids, num_cameras: int, camera: int) -> int | None:
+    """The camera sharing the most tracks with `camera` (None if it shares none)."""
+    shared = heights.shared_tracks(track_ids, obs_camera, num_cameras)[camera]
+    shared[camera] = 0
+    return int(np.argmax(shared)) if shared.max() > 0 else None
 
 
 def _local_height(prior: heights.HeightPrior, local: np.ndarray) -> heights.HeightPrior:
