@@ -144,3 +144,45 @@ def test_height_spread_tells_a_tripod_tour_from_a_hand_held_one():
     hand_held = C.copy()
     hand_held[:, 1] += np.random.default_rng(1).uniform(-0.3, 0.3, 8)  # 1.2-1.8 m above the floor
     assert heights.height_spread(hand_held, X, prior) > 0.06
+
+
+def _bearings(R, C, X, cam, pt):
+    return normalize(np.einsum("kij,kj->ki", R[cam], X[pt] - C[cam]))
+
+
+def test_a_bridge_goes_back_to_its_length_without_changing_a_bearing():
+    """The doorway of `_two_rooms` (cameras 3 and 4, two-view tracks only) is a bridge: its length is free. Moved to
+    0.2 of it (the second room translated along it, the doorway's points scaled about camera 3: the same bearings),
+    `restore_bridges` puts it back exactly, every bearing unchanged; a scene without a bridge is left as it is."""
+    R, C, X, cam, pt, _ = _two_rooms(np.random.default_rng(2))
+    seen_by = np.zeros((len(X), 8), bool)
+    seen_by[pt, cam] = True
+    doorway = seen_by[:, 3] & seen_by[:, 4] & (seen_by.sum(1) == 2)
+    second = seen_by[:, 4:].all(1)
+    shift = -0.8 * (C[4] - C[3])
+    C1, X1 = C.copy(), X.copy()
+    C1[4:] += shift
+    X1[second] += shift
+    X1[doorway] = C[3] + 0.2 * (X[doorway] - C[3])
+    np.testing.assert_allclose(_bearings(R, C1, X1, cam, pt), _bearings(R, C, X, cam, pt), atol=1e-12)
+    C2, X2, bridges = heights.restore_bridges(C, C1, X1, pt, cam, np.array([0]))
+    assert bridges == 1
+    np.testing.assert_allclose(C2, C, atol=1e-12)
+    np.testing.assert_allclose(_bearings(R, C2, X2, cam, pt), _bearings(R, C, X, cam, pt), atol=1e-12)
+    # one three-view track across the doorway: no bridge, nothing moves
+    cam3, pt3 = np.r_[cam, 2], np.r_[pt, np.flatnonzero(doorway)[0]]
+    C3, X3, bridges = heights.restore_bridges(C, C1, X1, pt3, cam3, np.array([0]))
+    assert bridges == 0 and np.array_equal(C3, C1) and np.array_equal(X3, X1)
+
+
+def test_floor_rows_leave_out_a_bridges_points():
+    """Floor points seen only by the two cameras of a bridge get no rows: each camera's own height would set the
+    bridge's free length."""
+    R, C, X, cam, pt, _ = _two_rooms(np.random.default_rng(0))
+    doorway_floor = np.array([3.5, HEIGHT, 0.0]), np.array([4.5, HEIGHT, 0.3])
+    X2 = np.vstack([X, *doorway_floor])
+    cam2 = np.r_[cam, 3, 4, 3, 4]
+    pt2 = np.r_[pt, len(X), len(X), len(X) + 1, len(X) + 1]
+    prior = _prior(R, C, X2, cam2, pt2)
+    assert not np.isin(prior.point, [len(X), len(X) + 1]).any()
+    assert heights.rigid_tracks(pt2, cam2, 8)[:len(X)].sum() == len(X) - 20  # all but the 20 doorway tracks
