@@ -244,9 +244,8 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
     if height is not None:  # the bridges' free lengths back where registration put them (`heights.restore_bridges`)
         before = -np.einsum("nba,nb->na", R[cams], t[cams])
         centers = -np.einsum("nba,nb->na", result.R_cam_from_world, result.t_cam_from_world)
-        _, roots = np.unique(model_id[cams], return_index=True)
         centers, points, bridges = heights.restore_bridges(before, centers, points, tracks.track_ids, obs_camera,
-                                                           roots)
+                                                           first)  # the held cameras stay where they are
         if bridges:
             log.info("height prior: %d bridges (two cameras only two-view tracks join) kept at their lengths",
                      bridges)
