@@ -35,6 +35,11 @@ Both σ are estimated from the data, one variance component per group (Helmert/F
 residuals over their residual degrees of freedom (`_observation_sigma`), and the stated σ_g, a lower bound, scaled
 by how far the measured gravities lie from an adjusted model's up direction (`gravity_error_factor`).
 
+Height prior (optional, ``heights.HeightPrior``). Rows ``w (d · (X_f − C_i) − h)`` for camera i and each point f of
+the floor below it: ``d`` the model's down, ``h`` the model's common camera height (re-estimated between reweighting
+rounds), ``w = σ_obs / (σ_h h √n_i)``. Each row depends on one camera's centre and one point, like a bearing's, so
+the rows join the bearings' in the Schur system (`_rows`) and are eliminated with the points; see `heights` for why.
+
 Solver. Each weighted problem takes Levenberg-Marquardt steps (Marquardt's diagonal damping, Nielsen's
 damping update) solved through the Schur complement, as COLMAP/Ceres do: the 3×3 point blocks are
 inverted in one batch and eliminated, leaving the reduced camera system (6 unknowns per camera),
@@ -61,6 +66,7 @@ from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.linalg import spsolve
 
 from fullview.sfm import manhattan
+from fullview.sfm.heights import HeightPrior
 from fullview.sfm.camera import camera_center, normalize, skew, tangent_basis
 from fullview.sfm.triangulation import _pairs_within_tracks
 
@@ -172,6 +178,14 @@ class _Problem:
     # updated in place between reweighting rounds (`_update_world_axis`)
     heading_group: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (H,) cameras sharing an axis
     heading_sqrt_w: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (H,) σ_obs / σ_heading
+    height_camera: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (F,) camera of each floor
+    # row of the height prior (`heights`)
+    height_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (F,) its floor point
+    height_down: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (F, 3) its model's world down
+    height_group: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (F,) rows sharing a height
+    height_level: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (F,) the group's height, updated in
+    # place between reweighting rounds (`_update_height_level`)
+    height_sqrt_w: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (F,) σ_obs / (σ_h h √n_camera)
 
 
 def _so3_coefficients(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -339,6 +353,52 @@ def _residuals_of(x: np.ndarray, problem: _Problem, with_jacobian: bool, obs: sl
     return r, J
 
 
+def _height_residuals(x: np.ndarray, problem: _Problem, with_jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """(F, 2) weighted floor rows of the height prior, w (d · (X − C) − h) and a zero, and if asked their (F, 2, 9)
+    Jacobian blocks in the bearings' layout [ω or pad, C or sphere, X] (one camera and one point per row)."""
+    cam, pt = problem.height_camera, problem.height_point
+    if not len(cam):
+        return np.zeros((0, 2)), (np.zeros((0, 2, 9)) if with_jacobian else None)
+    _, centers, points, dC = _unpack(x, problem)
+    depth = np.einsum("fi,fi->f", points[pt] - centers[cam], problem.height_down)
+    r = np.zeros((len(cam), 2))
+    r[:, 0] = problem.height_sqrt_w * (depth - problem.height_level)
+    if not with_jacobian:
+        return r, None
+    lay = problem.layout
+    J = np.zeros((len(cam), 2, 9))
+    J_X = problem.height_sqrt_w[:, None] * problem.height_down
+    J[:, 0, 3:6] = -J_X
+    J[:, 0, 6:9] = J_X
+    on_sphere = cam == lay.scale_camera
+    J[on_sphere, 0, 3:5] = -J_X[on_sphere] @ dC
+    J[on_sphere, 0, 5] = 0.0
+    J[lay.cam_dof[cam] <= 2, :, 0:6] = 0.0  # a fixed camera's centre (and a tilt-free one's) does not move
+    return r, J
+
+
+def _update_height_level(x: np.ndarray, problem: _Problem) -> None:
+    """Each group's common height: the median over its cameras of their mean height above their floor rows (the
+    gauge holds the model's scale, so the level follows it)."""
+    cam = problem.height_camera
+    if not len(cam):
+        return
+    _, centers, points, _ = _unpack(x, problem)
+    depth = np.einsum("fi,fi->f", points[problem.height_point] - centers[cam], problem.height_down)
+    for group in np.unique(problem.height_group):
+        rows = problem.height_group == group
+        cams, index = np.unique(cam[rows], return_inverse=True)
+        problem.height_level[rows] = np.median(np.bincount(index, depth[rows]) / np.bincount(index))
+
+
+def _rows(problem: _Problem) -> tuple[np.ndarray, np.ndarray]:
+    """Camera and point of every row the points are eliminated from: the bearings', then the height prior's."""
+    if not len(problem.height_camera):
+        return problem.obs_camera, problem.obs_point
+    return (np.concatenate([problem.obs_camera, problem.height_camera]),
+            np.concatenate([problem.obs_point, problem.height_point]))
+
+
 def _prior_residuals(x: np.ndarray, problem: _Problem) -> tuple[np.ndarray, np.ndarray]:
     """(M, 2) weighted prior residuals and their (M, 2, 3) Jacobian blocks on the ω of `_prior_cameras`: the
     gravity prior's, then the heading prior's (one residual each, the second component zero)."""
@@ -431,7 +491,7 @@ def _update_world_up(x: np.ndarray, problem: _Problem) -> None:
 def _jacobian_structure(problem: _Problem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(K, 9) valid-slot mask broadcast to (K, 2, 9), CSR column indices and row pointers."""
     lay = problem.layout
-    cam, pt = problem.obs_camera, problem.obs_point
+    cam, pt = _rows(problem)
     cols = np.concatenate([lay.cam_col[cam, None] + np.arange(6), lay.point_col + 3 * pt[:, None] + np.arange(3)], 1)
     valid = np.concatenate([np.arange(6) < lay.cam_dof[cam, None], np.ones((len(cam), 3), dtype=bool)], 1)
     mask = np.broadcast_to(valid[:, None, :], (len(cam), 2, 9))
@@ -455,7 +515,7 @@ class _WeightedResiduals:
 
     def __init__(self, problem: _Problem):
         self.problem = problem
-        self.shape = (2 * len(problem.obs_camera), problem.layout.num_params)
+        self.shape = (2 * len(_rows(problem)[0]), problem.layout.num_params)
         self.sqrt_w = np.ones(len(problem.obs_camera))
         self.evaluations = 0
         self.damping = _LM_INITIAL_DAMPING  # Levenberg-Marquardt's λ, kept between reweighting rounds
@@ -473,14 +533,16 @@ class _WeightedResiduals:
         return np.linalg.norm(self.residuals(x), axis=1)
 
     def fun(self, x: np.ndarray) -> np.ndarray:
-        """(2K + 2M,) weighted residuals: the observations', then the gravity prior's."""
+        """(2K + 2F + 2M,) weighted residuals: the observations', the height prior's, then the gravity prior's."""
         return np.concatenate([(self.residuals(x) * self.sqrt_w[:, None]).ravel(),
+                               _height_residuals(x, self.problem, False)[0].ravel(),
                                _prior_residuals(x, self.problem)[0].ravel()])
 
     def prior_cost(self, x: np.ndarray) -> float:
-        """½|r|² of the gravity prior's residuals (0 without a prior)."""
+        """½|r|² of the priors' residuals, the height prior's too (0 without a prior)."""
         r = _prior_residuals(x, self.problem)[0]
-        return 0.5 * float((r**2).sum())
+        h = _height_residuals(x, self.problem, False)[0]
+        return 0.5 * float((r**2).sum() + (h**2).sum())
 
     def prior_blocks(self, x: np.ndarray) -> np.ndarray:
         """(M, 2, 3) Jacobian blocks of the gravity prior on ω."""
@@ -501,8 +563,12 @@ class _WeightedResiduals:
         return csr_matrix(scipy.sparse.vstack([obs, prior]))
 
     def jac_blocks(self, x: np.ndarray) -> np.ndarray:
-        """(K, 2, 9) weighted Jacobian blocks [ω or pad, C or sphere, X] (see `_residuals`)."""
-        return _residuals(x, self.problem, True)[1] * self.sqrt_w[:, None, None]
+        """(K + F, 2, 9) weighted Jacobian blocks [ω or pad, C or sphere, X] (see `_residuals`), the height
+        prior's rows last."""
+        J = _residuals(x, self.problem, True)[1] * self.sqrt_w[:, None, None]
+        if not len(self.problem.height_camera):
+            return J
+        return np.concatenate([J, _height_residuals(x, self.problem, True)[1]])
 
 
 class _SchurSystem:
@@ -516,7 +582,7 @@ class _SchurSystem:
 
     def __init__(self, problem: _Problem):
         lay = problem.layout
-        cam, pt = problem.obs_camera, problem.obs_point
+        cam, pt = _rows(problem)
         n, p, k = len(lay.cam_dof), (lay.num_params - lay.point_col) // 3, len(cam)
         self.cam, self.pt, self.num_cameras, self.num_points = cam, pt, n, p
         active = np.arange(6)[None, :] < lay.cam_dof[:, None]  # (N, 6) free Jacobian columns of each camera
@@ -745,6 +811,7 @@ def bundle_adjust(
     gravity_prior: GravityPrior | None = None,
     pose_tolerance_rad: float = 0.0,
     heading_prior: manhattan.HeadingPrior | None = None,
+    height_prior: HeightPrior | None = None,
 ) -> BundleResult:
     """Refine camera poses and points by minimising robust angular errors of observed bearings.
 
@@ -768,7 +835,8 @@ def bundle_adjust(
     problem = _Problem(R_init=R0, t_init=t0, C_init=C0, obs_camera=cam, obs_point=pt, bearings=z,
                        basis=tangent_basis(z), layout=layout,
                        **_prior_terms(gravity_prior, layout, R0, C0, X0, cam, pt, z),
-                       **_heading_terms(heading_prior, R0, C0, X0, cam, pt, z))
+                       **_heading_terms(heading_prior, R0, C0, X0, cam, pt, z),
+                       **_height_terms(height_prior, C0, R0, X0, cam, pt, z))
     if (few := np.bincount(pt, minlength=len(X0)) < 2).any():
         log.warning("bundle_adjust: %d points have fewer than 2 observations", few.sum())
     objective = _WeightedResiduals(problem)
@@ -916,6 +984,32 @@ def _heading_terms(prior: manhattan.HeadingPrior | None, R, C, X, cam, pt, beari
             "heading_sqrt_w": sigma_obs / sigma}
 
 
+def _height_terms(prior: HeightPrior | None, C, R, X, cam, pt, bearings) -> dict:
+    """The _Problem fields of the height prior: its floor rows, each group's starting height (the median of its
+    cameras' heights) and each row's weight σ_obs / (σ_h h √n), n the rows of its camera."""
+    if prior is None or not len(prior.camera):
+        return {}
+    camera, point = np.asarray(prior.camera, np.int64), np.asarray(prior.point, np.int64)
+    if camera.min() < 0 or camera.max() >= len(C) or point.min() < 0 or point.max() >= len(X):
+        raise ValueError(f"height_prior.camera values must be in [0, {len(C)}), point values in [0, {len(X)})")
+    if not prior.sigma_rel > 0:
+        raise ValueError(f"height_prior.sigma_rel={prior.sigma_rel} must be positive")
+    y = np.einsum("kij,kj->ki", R[cam], X[pt] - C[cam])
+    sigma_obs = _observation_sigma(np.arccos(np.clip(np.einsum("ki,ki->k", normalize(y), bearings), -1.0, 1.0)), pt)
+    down = normalize(np.asarray(prior.down_world, np.float64))
+    group = np.asarray(prior.group, np.int64)
+    terms = {"height_camera": camera, "height_point": point, "height_down": down, "height_group": group,
+             "height_level": np.zeros(len(camera)), "height_sqrt_w": np.zeros(len(camera))}
+    depth = np.einsum("fi,fi->f", X[point] - C[camera], down)
+    for g in np.unique(group):
+        rows = group == g
+        cams, index, counts = np.unique(camera[rows], return_inverse=True, return_counts=True)
+        level = float(np.median(np.bincount(index, depth[rows]) / counts))
+        terms["height_level"][rows] = level
+        terms["height_sqrt_w"][rows] = sigma_obs / (prior.sigma_rel * abs(level) * np.sqrt(counts[index]))
+    return terms
+
+
 def _irls(
     objective: _WeightedResiduals, x: np.ndarray, *, loss: str, f_target: float, max_nfev: int, ftol: float,
     pose_tolerance_rad: float = 0.0,
@@ -941,6 +1035,7 @@ def _irls(
         objective.sqrt_w = np.sqrt(_LOSSES[loss][1]((theta / f_scale) ** 2))
         _update_world_up(x, objective.problem)
         _update_world_axis(x, objective.problem)
+        _update_height_level(x, objective.problem)
         x_before = x
         x, rounds = _levenberg_marquardt(objective, system, x, min(_ROUND_NFEV, budget), ftol), rounds + 1
         theta = objective.errors(x)
@@ -1029,7 +1124,8 @@ def _result(x, nfev, converged, problem: _Problem, initial_cost, loss: str, f_sc
     t = -np.einsum("nij,nj->ni", R, centers)
     R[fixed], t[fixed] = problem.R_init[fixed], problem.t_init[fixed]  # exactly the input, no rounding
     obs_error = np.linalg.norm(_residuals(x, problem, False)[0], axis=1)
-    final_cost = _robust_cost(obs_error, loss, f_scale) + 0.5 * float((_prior_residuals(x, problem)[0] ** 2).sum())
+    final_cost = (_robust_cost(obs_error, loss, f_scale) + 0.5 * float((_prior_residuals(x, problem)[0] ** 2).sum())
+                  + 0.5 * float((_height_residuals(x, problem, False)[0] ** 2).sum()))
     message = "cost decrease below ftol" if converged else "max_nfev reached"
     log.info(
         "bundle_adjust: cost %.4g -> %.4g in %d evaluations, median error %.3g rad (%s)",

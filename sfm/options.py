@@ -177,6 +177,14 @@ class TriangulationOptions:
     manhattan_prior: bool = setting(True, "bundle adjustment holds each image's heading, modulo 90°, to its "
                                     "model's wall directions measured from its horizontal lines (needs a measured "
                                     "gravity; a model whose images do not agree on one pair of directions gets none)")
+    height_prior: bool = setting(True, "bundle adjustment holds every camera's height above its floor points to its "
+                                 "model's common height (a tripod tour; needs a measured gravity; cameras whose floor "
+                                 "disagrees with their room's and models without enough floors get none)")
+    height_prior_sigma: float = setting(0.03, "relative standard error of one camera's height above the floor",
+                                        gt=0.0, le=1.0)
+    height_prior_max_spread: float = setting(0.06, "after the pose round, a model whose heights above the floor still "
+                                             "spread more than this (relative, robust) gets no height prior in the "
+                                             "final adjustment", gt=0.0, le=10.0)
     free_block_min_pairs: int = setting(3, "after the final adjustment, blocks of cameras that share no track with "
                                         "the rest (meeting at one camera) and hold this many verified pairs are scaled "
                                         "to the block with the most pairs (free_block_scale)", ge=0, le=1_000_000,

@@ -4,7 +4,9 @@ Two rounds: triangulate with the registration's poses and keep tracks under a lo
 the poses on each image's longest of them, then re-triangulate every track with the refined poses, apply the
 configured bounds and bundle-adjust again. Both adjustments hold each image's tilt to its gravity and, where its
 lines show one dominant pair of horizontal directions, its heading modulo 90° to its model's wall axis
-(`triangulation.gravity_prior`, `manhattan_prior`; `sfm/manhattan.py`). Blocks of cameras that no track joins to
+(`triangulation.gravity_prior`, `manhattan_prior`; `sfm/manhattan.py`), and every camera's height above the floor
+points below it to its model's common height, where the models' cameras see their floors and, after the pose
+round, agree on one height (a tripod tour; `triangulation.height_prior`; `sfm/heights.py`). Blocks of cameras that no track joins to
 the rest (rooms meeting at one doorway camera) are then put at the root block's camera height above the floor, or
 one median pair baseline where a floor is not seen (`triangulation.free_block_min_pairs`, `free_block_scale`): the
 adjustment's cost is the same for any scale of such a block, so it kept registration's guesses.
@@ -14,12 +16,13 @@ never span two models, since only pairs inside one model are consistent) and wri
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
 
 from fullview.io.exports import SparseModel, split_models, write_colmap_model
-from fullview.sfm import manhattan
+from fullview.sfm import heights, manhattan
 from fullview.sfm.bundle import bundle_adjust, gravity_error_factor, gravity_prior_for_models, with_gravity_error
 from fullview.sfm.registration.free_blocks import camera_heights, camera_links, free_block_similarities
 from fullview.sfm.tracks import Tracks, build_tracks
@@ -77,13 +80,17 @@ def run(ctx: StageContext) -> dict:
     tracks_kept, points = tracks.subset(keep[0]), keep[1]
     if config.bundle_adjust and tracks_kept.num_tracks:
         pose_tracks = longest_tracks_per_image(tracks_kept, POSE_ROUND_TRACKS_PER_IMAGE)
-        R, t, _, _ = _bundle(tracks_kept.subset(pose_tracks), bearings, R, t, points[pose_tracks], model_id, config,
-                             gravity, pose_tolerance_rad=POSE_ROUND_TOLERANCE * max_err, headings=headings)
+        pose_set = tracks_kept.subset(pose_tracks)
+        floor = _height_prior(pose_set, R, t, points[pose_tracks], model_id, measured, config)
+        R, t, _, _ = _bundle(pose_set, bearings, R, t, points[pose_tracks], model_id, config,
+                             gravity, pose_tolerance_rad=POSE_ROUND_TOLERANCE * max_err, headings=headings,
+                             height=floor)
     mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
     final = tracks.subset(mask)
     if config.bundle_adjust and final.num_tracks:
+        floor = _height_prior(final, R, t, points, model_id, measured, config, check=tracks_kept.num_tracks > 0)
         R, t, points, errors = _bundle(final, bearings, R, t, points, model_id, config, gravity,
-                                       gravity_error=tracks_kept.num_tracks > 0, headings=headings)
+                                       gravity_error=tracks_kept.num_tracks > 0, headings=headings, height=floor)
         # The last adjustment moved the points: drop the few tracks it left beyond the bound, so the stored
         # errors describe the stored points.
         worst = np.full(final.num_tracks, 0.0)
@@ -115,6 +122,30 @@ def _manhattan_axes(filtered: dict, gravity, model_id):
     g[found], std[found] = filtered["manhattan_gravity"][found], filtered["manhattan_gravity_std_rad"][found]
     log.info("manhattan: %d of %d images measure a heading from their horizontal lines", found.sum(), measured.sum())
     return (axis, sigma, g, std) if found.any() else None
+
+
+def _height_prior(tracks: Tracks, R, t, points, model_id, gravity, config, check: bool = False):
+    """The camera-height prior of the adjustment's tracks (`heights.height_prior`, the models' down from the
+    measured gravities), or None (`triangulation.height_prior` off, no gravity, no model measures its floor). With
+    `check` (the poses were adjusted with it once), None too where the adjusted heights still disagree by more than
+    `height_prior_max_spread` (not a tripod tour: the prior would bend the model, not straighten it)."""
+    sigma, limit = config.height_prior_sigma, config.height_prior_max_spread
+    if not config.height_prior or gravity is None or not tracks.num_tracks:
+        return None
+    down = _model_down(R, model_id, gravity)
+    centers = -np.einsum("nba,nb->na", R, t)
+    prior = heights.height_prior(centers, down, points, tracks.track_ids, tracks.image_ids, model_id, sigma)
+    if prior is None:
+        log.info("height prior: no model measures its floor from enough cameras")
+        return None
+    spread = heights.height_spread(centers, points, prior)
+    log.info("height prior: %d cameras measure their height above the floor (%d floor points), spread %.3f",
+             len(np.unique(prior.camera)), len(prior.camera), spread)
+    if check and spread > limit:
+        log.info("height prior: the adjusted heights disagree (spread %.3f > %.3f): none in the final adjustment",
+                 spread, limit)
+        return None
+    return prior
 
 
 def _model_down(R, model_id, gravity) -> np.ndarray | None:
@@ -161,7 +192,7 @@ def _triangulate_and_filter(tracks: Tracks, bearings, R, t, max_err, min_angle):
 
 
 def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=None, pose_tolerance_rad=0.0,
-            gravity_error=False, headings=None):
+            gravity_error=False, headings=None, height=None):
     """Bundle adjustment over the cameras of every model (reindexed), the first camera of each model fixed; with
     `gravity` ((N, 3) gravity per image in its frame, (N,) its standard error), each image's tilt is held to it.
     With `gravity_error` (R already adjusted once: the pose round), the standard errors are first widened by how far
@@ -190,20 +221,50 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
     _, first = np.unique(np.stack([model_id[cams], ~held]).T, axis=0, return_index=True)
     _, first_of_model = np.unique(model_id[cams][first], return_index=True)
     first = first[first_of_model]
+    obs_camera = local[tracks.image_ids]
+    # With a height prior the heights fix each block's scale; the scale gauge is then held on the camera that shares
+    # the most tracks with the fixed one. The default, the camera farthest from it, lies blocks away on a walk and
+    # ties the gauge to the free length of a doorway that only two-view tracks cross (registration's guess, which
+    # nothing else measures), which then takes up every change of the blocks' scales (new home s46: ×0.73 → ×0.17).
+    scale_camera = (_best_linked(obs_camera, tracks.track_ids, len(cams), int(first[0]))
+                    if height is not None and len(first) == 1 else None)
     result = bundle_adjust(
         R_cam_from_world=R[cams], t_cam_from_world=t[cams], points=points,
-        obs_camera=local[tracks.image_ids], obs_point=tracks.track_ids,
+        obs_camera=obs_camera, obs_point=tracks.track_ids, scale_camera=scale_camera,
         obs_bearings=gather_bearings(bearings, tracks.image_ids, tracks.feature_ids),
         fixed_cameras=tuple(first.tolist()), loss="soft_l1", loss_scale_rad=np.radians(config.ba_loss_scale_deg),
         max_nfev=config.ba_max_iterations, gravity_prior=prior, pose_tolerance_rad=pose_tolerance_rad,
-        heading_prior=heading)
+        heading_prior=heading, height_prior=None if height is None else _local_height(height, local))
     log.info("bundle adjustment: %d cameras (%d with a gravity prior, %d with a heading prior), %d points, cost "
              "%.4g -> %.4g, median error %.4f deg", len(cams), 0 if prior is None else len(prior.camera),
              0 if heading is None else len(heading.camera), len(points), result.initial_cost,
              result.final_cost, np.degrees(np.median(result.obs_error_rad)))
     R, t = R.copy(), t.copy()
+    points = result.points
+    if height is not None:  # the bridges' free lengths back where registration put them (`heights.restore_bridges`)
+        before = -np.einsum("nba,nb->na", R[cams], t[cams])
+        centers = -np.einsum("nba,nb->na", result.R_cam_from_world, result.t_cam_from_world)
+        centers, points, bridges = heights.restore_bridges(before, centers, points, tracks.track_ids, obs_camera,
+                                                           first)  # the held cameras stay where they are
+        if bridges:
+            log.info("height prior: %d bridges (two cameras only two-view tracks join) kept at their lengths",
+                     bridges)
+        result = dataclasses.replace(result, t_cam_from_world=-np.einsum("nab,nb->na", result.R_cam_from_world,
+                                                                        centers))
     R[cams], t[cams] = result.R_cam_from_world, result.t_cam_from_world
-    return R, t, result.points, result.obs_error_rad
+    return R, t, points, result.obs_error_rad
+
+
+def _best_linked(obs_camera, track_ids, num_cameras: int, camera: int) -> int | None:
+    """The camera sharing the most tracks with `camera` (None if it shares none)."""
+    shared = heights.shared_tracks(track_ids, obs_camera, num_cameras)[camera]
+    shared[camera] = 0
+    return int(np.argmax(shared)) if shared.max() > 0 else None
+
+
+def _local_height(prior: heights.HeightPrior, local: np.ndarray) -> heights.HeightPrior:
+    """The prior with its cameras renumbered as the adjustment's (registered cameras only)."""
+    return dataclasses.replace(prior, camera=local[prior.camera])
 
 
 def _write(ctx: StageContext, obs, model_id, R, t, tracks: Tracks, points, errors, geometry_pairs: int) -> dict:
