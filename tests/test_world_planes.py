@@ -602,3 +602,47 @@ def test_a_run_within_reach_is_what_the_mask_keeps_at_the_last_bit():
         values = np.sort(np.concatenate([edges, near_edges, edges, rng.uniform(centre - 2, centre + 2, 20)]))
         lo, hi = world_planes._run_within(values, centre, reach)
         np.testing.assert_array_equal(values[lo:hi], values[np.abs(values - centre) <= reach])
+
+
+def test_the_modes_of_many_slabs_at_once_are_each_slabs_own_mode():
+    """``_WallSide.offsets`` (every slab's mode in one vectorised pass) gives, slab for slab, the mode of the
+    sorted reference side: slabs on points' offsets, empty and reversed ones, a grid of quarter bands with ties and
+    duplicates, a far point with a wide tolerance, tiny slabs (fewer than three points: the middle)."""
+    rng = np.random.default_rng(13)
+    for trial in range(6):
+        flat = np.round(rng.uniform(-3, 3, (2500, 2)), 2 if trial % 2 else 6)
+        flat = np.vstack([flat, flat[:150], [[300.0, 200.0]]])
+        seen_from = flat + rng.normal(0, 1, flat.shape)
+        tolerance = np.where(rng.random(len(flat)) < 0.02, 0.5, 0.03) * rng.uniform(0.5, 1.5, len(flat))
+        azimuth = rng.uniform(-np.pi, np.pi)
+        fast = world_planes._WallSide(flat, seen_from, tolerance, azimuth)
+        slow = _ReferenceWallSide(flat, seen_from, tolerance, azimuth)
+        centres = np.concatenate([rng.uniform(-4, 4, 30), slow.d[rng.integers(0, len(slow.d), 30)]])
+        widths = rng.choice([0.0, 1e-4, 0.03, 0.12, 0.5, -0.05], len(centres))
+        lows, highs = centres - widths, centres + widths
+        expected = [slow.offset(low, high, 0.04) for low, high in zip(lows, highs)]
+        assert fast.offsets(lows, highs, 0.04).tolist() == expected
+        # and the offsets the wall fit asks a side for, at once, are those of one slab after the other
+        for band, values in ((0.04, slow.d), (1e-4, np.sort(rng.normal(0, 1e-3, 60) + 1e6))):
+            starts = rng.integers(0, len(values) - 3, 25)
+            stops = np.minimum(starts + rng.integers(3, 400, 25), len(values))
+            got = world_planes._modes_of_runs(values, starts, stops, band)
+            assert got.tolist() == [_reference_mode(values[a:b], band) for a, b in zip(starts, stops)]
+
+
+def test_runs_within_reach_at_once_are_what_the_masks_keep_at_the_last_bit():
+    """``_runs_within`` on many runs at once: each run's values within reach as the mask keeps them, with values
+    a few ulps from both bounds and runs that end inside the reach."""
+    rng = np.random.default_rng(17)
+    for _ in range(100):
+        centre, reach = rng.uniform(-10, 10), rng.uniform(0, 1)
+        edges = [centre - reach, centre + reach]
+        near_edges = [np.nextafter(e, np.inf * s) for e in edges for s in (-1, 1)]
+        near_edges += [np.nextafter(np.nextafter(e, np.inf * s), np.inf * s) for e in edges for s in (-1, 1)]
+        values = np.sort(np.concatenate([edges, near_edges, edges, rng.uniform(centre - 2, centre + 2, 20)]))
+        starts = np.array([0, 0, 3, len(values) // 2, 5])
+        stops = np.array([len(values), len(values) // 2, len(values) - 3, len(values), 6])
+        lo, hi = world_planes._runs_within(values, starts, stops, np.full(5, centre), reach)
+        for a, b, low, high in zip(starts, stops, lo, hi):
+            run = values[a:b]
+            np.testing.assert_array_equal(values[low:high], run[np.abs(run - centre) <= reach])
