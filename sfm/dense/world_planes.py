@@ -918,24 +918,32 @@ def _sweep_walls(planes: list[WorldPlane], points: np.ndarray, tolerance: np.nda
         edges = np.arange(values.min(), values.max() + 2 * band, band)
         counts = np.histogram(values, edges)[0]
         pairs = counts[:-1] + counts[1:]  # about ± one band around each inner edge
+        # the side's points sorted by offset (ties in row order): each candidate reads a run of them, not all
+        order = np.argsort(values, kind="stable")
+        ranked, rows, reach = values[order], np.flatnonzero(front)[order], tolerance[front][order]
+        widest = 2 * float(reach.max())  # twice: a slab wider than any point's own test, rounding included
         for i in np.argsort(-pairs, kind="stable"):
             if pairs[i] < need:
                 break
             offset = float(edges[i + 1])
             if any(abs(offset - o) < 2 * band for o in taken):
                 continue
-            for shrink in SNAP_SHRINK:
-                near = np.abs(values - offset) <= shrink * 2 * band
-                offset = float(np.median(values[near]))
-            inliers = front & (np.abs(offsets - offset) <= tolerance)
-            if inliers.sum() < need:
+            for shrink in SNAP_SHRINK:  # the median of the values within the band (np.median of the mask's)
+                lo, hi = _run_within(ranked, offset, shrink * 2 * band)
+                offset = _median_of_sorted(ranked[lo:hi]) if hi > lo else float("nan")
+            if offset != offset:  # no value within the band: np.median's NaN supports nothing
+                continue
+            slab = slice(np.searchsorted(ranked, offset - widest, "left"),
+                         np.searchsorted(ranked, offset + widest, "right"))
+            inliers = np.sort(rows[slab][np.abs(ranked[slab] - offset) <= reach[slab]])  # as a mask's rows
+            if len(inliers) < need:
                 continue
             taken.append(offset)
             origin, axes, extent, fallback = _extent(points[inliers], normal, offset, options.cell,
                                                      options.extent_closing_cells, options.extent_hull,
                                                      options.extent, up)
             found.append(WorldPlane(normal=normal, offset=offset, origin=origin, axes=axes, cell=options.cell,
-                                    extent=extent, support=int(inliers.sum()), fallback=fallback, front=1))
+                                    extent=extent, support=len(inliers), fallback=fallback, front=1))
     return found
 
 
