@@ -602,3 +602,120 @@ def test_a_run_within_reach_is_what_the_mask_keeps_at_the_last_bit():
         values = np.sort(np.concatenate([edges, near_edges, edges, rng.uniform(centre - 2, centre + 2, 20)]))
         lo, hi = world_planes._run_within(values, centre, reach)
         np.testing.assert_array_equal(values[lo:hi], values[np.abs(values - centre) <= reach])
+
+
+def test_the_modes_of_many_slabs_at_once_are_each_slabs_own_mode():
+    """``_WallSide.offsets`` (every slab's mode in one vectorised pass) gives, slab for slab, the mode of the
+    sorted reference side: slabs on points' offsets, empty and reversed ones, a grid of quarter bands with ties and
+    duplicates, a far point with a wide tolerance, tiny slabs (fewer than three points: the middle)."""
+    rng = np.random.default_rng(13)
+    for trial in range(6):
+        flat = np.round(rng.uniform(-3, 3, (2500, 2)), 2 if trial % 2 else 6)
+        flat = np.vstack([flat, flat[:150], [[300.0, 200.0]]])
+        seen_from = flat + rng.normal(0, 1, flat.shape)
+        tolerance = np.where(rng.random(len(flat)) < 0.02, 0.5, 0.03) * rng.uniform(0.5, 1.5, len(flat))
+        azimuth = rng.uniform(-np.pi, np.pi)
+        fast = world_planes._WallSide(flat, seen_from, tolerance, azimuth)
+        slow = _ReferenceWallSide(flat, seen_from, tolerance, azimuth)
+        centres = np.concatenate([rng.uniform(-4, 4, 30), slow.d[rng.integers(0, len(slow.d), 30)]])
+        widths = rng.choice([0.0, 1e-4, 0.03, 0.12, 0.5, -0.05], len(centres))
+        lows, highs = centres - widths, centres + widths
+        expected = [slow.offset(low, high, 0.04) for low, high in zip(lows, highs)]
+        assert fast.offsets(lows, highs, 0.04).tolist() == expected
+        # and the offsets the wall fit asks a side for, at once, are those of one slab after the other
+        for band, values in ((0.04, slow.d), (1e-4, np.sort(rng.normal(0, 1e-3, 60) + 1e6))):
+            starts = rng.integers(0, len(values) - 3, 25)
+            stops = np.minimum(starts + rng.integers(3, 400, 25), len(values))
+            got = world_planes._modes_of_runs(values, starts, stops, band)
+            assert got.tolist() == [_reference_mode(values[a:b], band) for a, b in zip(starts, stops)]
+
+
+def test_runs_within_reach_at_once_are_what_the_masks_keep_at_the_last_bit():
+    """``_runs_within`` on many runs at once: each run's values within reach as the mask keeps them, with values
+    a few ulps from both bounds and runs that end inside the reach."""
+    rng = np.random.default_rng(17)
+    for _ in range(100):
+        centre, reach = rng.uniform(-10, 10), rng.uniform(0, 1)
+        edges = [centre - reach, centre + reach]
+        near_edges = [np.nextafter(e, np.inf * s) for e in edges for s in (-1, 1)]
+        near_edges += [np.nextafter(np.nextafter(e, np.inf * s), np.inf * s) for e in edges for s in (-1, 1)]
+        values = np.sort(np.concatenate([edges, near_edges, edges, rng.uniform(centre - 2, centre + 2, 20)]))
+        starts = np.array([0, 0, 3, len(values) // 2, 5])
+        stops = np.array([len(values), len(values) // 2, len(values) - 3, len(values), 6])
+        lo, hi = world_planes._runs_within(values, starts, stops, np.full(5, centre), reach)
+        for a, b, low, high in zip(starts, stops, lo, hi):
+            run = values[a:b]
+            np.testing.assert_array_equal(values[low:high], run[np.abs(run - centre) <= reach])
+
+
+def _reference_sweep_walls(planes_, points, tolerance, up, observers, options):
+    """``_sweep_walls`` as first written: every candidate judged by passes over all the side's points."""
+    up = up / np.linalg.norm(up)
+    upright = [p for p in planes_ if abs(p.normal @ up) < 1e-9]
+    azimuth = world_planes.dominant_wall_azimuth(np.array([p.normal for p in upright]).reshape(-1, 3),
+                                                 np.array([p.support for p in upright], np.float64), up)
+    if azimuth is None:
+        return []
+    e1, e2 = world_planes._horizontal_basis(up)
+    band = float(np.median(tolerance))
+    found, kept = [], []
+    for quarter in range(4):
+        a = azimuth + quarter * np.pi / 2
+        normal = np.cos(a) * e1 + np.sin(a) * e2
+        offsets = points @ normal
+        front = observers @ normal > offsets
+        values = offsets[front]
+        need = world_planes.SWEEP_SUPPORT_FACTOR * options.min_support
+        if len(values) < need:
+            continue
+        taken = [(p.offset if p.normal @ normal > 0 else -p.offset) for p in planes_ + found
+                 if abs(p.normal @ normal) > 0.999 and (p.front == 0 or p.front * np.sign(p.normal @ normal) > 0)]
+        edges = np.arange(values.min(), values.max() + 2 * band, band)
+        counts = np.histogram(values, edges)[0]
+        pairs = counts[:-1] + counts[1:]
+        for i in np.argsort(-pairs, kind="stable"):
+            if pairs[i] < need:
+                break
+            offset = float(edges[i + 1])
+            if any(abs(offset - o) < 2 * band for o in taken):
+                continue
+            with np.errstate(invalid="ignore"):
+                for shrink in world_planes.SNAP_SHRINK:
+                    near = np.abs(values - offset) <= shrink * 2 * band
+                    offset = float(np.median(values[near])) if near.any() else float("nan")
+            inliers = front & (np.abs(offsets - offset) <= tolerance)
+            if inliers.sum() < need:
+                continue
+            taken.append(offset)
+            found.append(replace(planes_[0], normal=normal, offset=offset, front=1, level=False))
+            kept.append((offset, np.flatnonzero(inliers)))
+    return kept
+
+
+def test_swept_walls_read_off_sorted_offsets_are_those_of_passes_over_all_points(monkeypatch):
+    """The sweep's walls (offset, support, extent from the same points in the same order) equal the straightforward
+    version's, on a yawed box room with walls RANSAC was not given, points on a coarse grid (ties), duplicates and
+    far points with wide tolerances."""
+    for seed, yaw in ((0, 20.0), (1, 0.0), (2, -35.0)):
+        points, ranges, observers, rot = _yawed_room_points(yaw, seed)
+        rng = np.random.default_rng(seed)
+        if seed == 1:
+            points = np.round(points, 2)
+        points = np.vstack([points, points[:300], rng.uniform(-30, 30, (20, 3))])
+        observers = np.zeros_like(points)
+        tolerance = 0.015 * np.linalg.norm(points, axis=1)
+        options = world_planes.WorldPlaneOptions(distance=0.015, cell=CELL, min_support=60, max_planes=8)
+        floor = world_planes.WorldPlane(normal=UP.astype(float), offset=1.2, origin=np.zeros(3),
+                                        axes=np.eye(3)[[0, 2]], cell=CELL, extent=np.ones((2, 2), bool), support=1,
+                                        level=True)
+        walls = [replace(floor, normal=rot[:, 0].copy(), offset=4.0, level=False, front=-1)]
+        seen = []
+        monkeypatch.setattr(world_planes, "_extent", lambda support, *a, **k: (seen.append(support.copy()),
+                                                                              (np.zeros(3), np.eye(3)[:2],
+                                                                               np.ones((1, 1), bool), None))[1])
+        found = world_planes._sweep_walls([floor] + walls, points, tolerance, UP.astype(float), observers, options)
+        expected = _reference_sweep_walls([floor] + walls, points, tolerance, UP.astype(float), observers, options)
+        assert len(found) == len(expected) >= 2
+        for plane, support, (offset, rows) in zip(found, seen, expected):
+            assert plane.offset == offset and plane.support == len(rows)
+            np.testing.assert_array_equal(support, points[rows])
