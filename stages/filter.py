@@ -59,7 +59,7 @@ def run(ctx: StageContext) -> dict:
     num_sift = [int(o["num_sift"]) for o in obs]
     guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)
     verify = partial(_filter_pair, ctx, options, obs, num_sift, raw, gravity, descriptors, guided,
-                     options.min_inliers_upright, frames if options.wall_check else None)
+                     options.min_inliers_upright, frames=frames if options.wall_check else None)
     # Pairs are independent and their random seeds fixed per pair: forked workers keep both cores busy and the results
     # are the same as in one thread. Not threads: between its numpy calls a pair's estimation holds the GIL, and two
     # threads of it used the two cores only 1.4 times, spending a quarter more CPU time on the handovers.
@@ -98,8 +98,9 @@ def run(ctx: StageContext) -> dict:
 
 
 def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, gravity, descriptors,
-                 guided: MatchesOptions, min_upright: int, frames, k: int) -> _PairResult:
-    """Verify pair k of the raw matches: fit, guided additions, the no-baseline and enough-inliers checks."""
+                 guided: MatchesOptions, min_upright: int, k: int, *, frames=None) -> _PairResult:
+    """Verify pair k of the raw matches: fit, guided additions, the no-baseline and enough-inliers checks (frames:
+    the images' Manhattan frames from `_gravity`, for the wall check; None: no check)."""
     i, j = raw.pairs[k]
     hand = (ctx.dataset.hand_pair_matches(num_sift, i, j) if options.use_hand_points
             else np.zeros((0, 2), int))
