@@ -104,6 +104,9 @@ class FilterOptions:
     min_inliers_upright: int = setting(15, "pairs fitted by the upright model (3 unknowns, not 5) are kept from this "
                                        "many inliers", ge=8, le=1_000_000)
     seed: int = setting(0, "RANSAC random seed (pair k uses seed + k)", ge=0, le=2**31)
+    wall_check: bool = setting(True, "upright pairs whose yaw contradicts both images' wall directions (modulo 90 "
+                               "degrees, upright: vanishing) are fitted again under the yaws the walls allow; that "
+                               "pose replaces the fit when it explains 90% as many matches")
     guided_matching: bool = setting(False, "rematch a pair's features along the epipolar circles of its F estimate "
                                     "(more inliers on weak pairs)")
     guided_ratio: float = setting(0.9, "ratio test of guided matching, among the candidates near the circle",
@@ -150,6 +153,11 @@ class RegistrationOptions:
     weak_join_guided: bool = setting(True, "where no three weak pairs agree, each one's rotation guides 2-unknown "
                                      "baseline fits of the other pairs between the models, and three of them that "
                                      "place the models consistently join them")
+    weak_join_rematch: bool = setting(True, "where the weak joins find nothing, each weak pair's fit is a pose under "
+                                      "which its descriptors are matched again along the epipolar circles (ratio "
+                                      "test among the circle's features); two or more pairs so confirmed (20+ "
+                                      "matches, twice those under the pose turned by 90, 180 or 270 degrees) that "
+                                      "place the models consistently join them")
     unjoined_parts: str = setting("keep", "a part whose scale neither the pair directions nor shared points fix: "
                                   "separate: placed again by points or left a model of its own; keep: a guess "
                                   "(scaled to main's median baseline; a camera tied by one pair at the median "

@@ -15,7 +15,7 @@ from functools import lru_cache, partial
 import numpy as np
 from tqdm import tqdm
 
-from fullview.sfm import manhattan, two_view, upright
+from fullview.sfm import manhattan, two_view, upright, wall_check
 from fullview.sfm.baseline import has_no_baseline
 from fullview.sfm.matching import epipolar_candidates, match_descriptors
 from fullview.sfm.options import FilterOptions, MatchesOptions
@@ -44,6 +44,7 @@ class _PairResult:
     weak: bool  # verified with fewer than min_inliers (hand points that fix the pose)
     early_rejected: bool  # too few matches to try
     guided_added: int | None  # matches guided matching added (None: not run)
+    wall_fitted: bool = False  # its fit contradicted the images' walls and the pose they allow explained as much
 
 
 def run(ctx: StageContext) -> dict:
@@ -58,7 +59,7 @@ def run(ctx: StageContext) -> dict:
     num_sift = [int(o["num_sift"]) for o in obs]
     guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)
     verify = partial(_filter_pair, ctx, options, obs, num_sift, raw, gravity, descriptors, guided,
-                     options.min_inliers_upright)
+                     options.min_inliers_upright, frames=frames if options.wall_check else None)
     # Pairs are independent and their random seeds fixed per pair: forked workers keep both cores busy and the results
     # are the same as in one thread. Not threads: between its numpy calls a pair's estimation holds the GIL, and two
     # threads of it used the two cores only 1.4 times, spending a quarter more CPU time on the handovers.
@@ -92,12 +93,14 @@ def run(ctx: StageContext) -> dict:
             "no_baseline_pairs": [[names[i], names[j]] for (i, j), r in zip(raw.pairs, results) if r.no_baseline],
             "guided_matches_added": int(sum(r.guided_added or 0 for r in results)),
             "early_rejected_pairs": int(sum(r.early_rejected for r in results)),
+            "wall_fitted_pairs": [[names[i], names[j]] for (i, j), r in zip(raw.pairs, results) if r.wall_fitted],
             "upright_images": int(np.isfinite(gravity).all(axis=1).sum())}
 
 
 def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, gravity, descriptors,
-                 guided: MatchesOptions, min_upright: int, k: int) -> _PairResult:
-    """Verify pair k of the raw matches: fit, guided additions, the no-baseline and enough-inliers checks."""
+                 guided: MatchesOptions, min_upright: int, k: int, *, frames=None) -> _PairResult:
+    """Verify pair k of the raw matches: fit, guided additions, the no-baseline and enough-inliers checks (frames:
+    the images' Manhattan frames from `_gravity`, for the wall check; None: no check)."""
     i, j = raw.pairs[k]
     hand = (ctx.dataset.hand_pair_matches(num_sift, i, j) if options.use_hand_points
             else np.zeros((0, 2), int))
@@ -115,6 +118,10 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
                                threshold, options, seed=options.seed + k, gravity=(gravity[i], gravity[j]),
                                # the hand points (fewer than a seed) count towards the pair's inliers
                                needed=max(1, min(minimum, options.min_inliers) - len(hand)))
+    walled = False
+    if upright_pair and frames is not None and keep.sum() >= min(minimum, options.min_inliers):
+        F, keep, walled = _checked_against_walls(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], F, keep,
+                                                 frames, i, j, threshold, options.seed + k, options.min_inliers)
     good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
     added = None
     if descriptors is not None and len(good) >= options.min_inliers:
@@ -129,7 +136,31 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
     if not enough or flat:
         good = good[:0]
     return _PairResult(F=F, inliers=good, seeded=use_seed, num_hand=len(hand), no_baseline=flat,
-                       weak=0 < len(good) < options.min_inliers, early_rejected=early, guided_added=added)
+                       weak=0 < len(good) < options.min_inliers, early_rejected=early, guided_added=added,
+                       wall_fitted=walled)
+
+
+def _checked_against_walls(bear_i, bear_j, matches, F, keep, frames, i: int, j: int, threshold: float, seed: int,
+                           strong: int):
+    """(F, inlier mask, replaced): the upright fit, or the pose the two images' walls allow where the fit's yaw
+    contradicts them (modulo 90°) and that pose explains nearly as many matches, or the fit has fewer than `strong`
+    inliers (`wall_check`; the pair then verifies only if the walls' pose has enough)."""
+    axis, axis_std, wall_gravity = frames[0], frames[1], frames[2]
+    if not (np.isfinite(axis[i]).all() and np.isfinite(axis[j]).all()):
+        return F, keep, False
+    b_i, b_j = bear_i[matches[:, 0]], bear_j[matches[:, 1]]
+    try:
+        pose = two_view.relative_pose_from_f(F, b_i[keep], b_j[keep])
+    except ValueError:
+        return F, keep, False
+    residual = wall_check.wall_residual_deg(pose.R_j_from_i, axis[i], axis[j], wall_gravity[j])
+    if abs(residual) <= wall_check.tolerance_deg(axis_std[i], axis_std[j]):
+        return F, keep, False
+    R, t, inliers = wall_check.pose_the_walls_allow(b_i, b_j, pose.R_j_from_i, axis[i], axis[j], wall_gravity[j],
+                                                    threshold, seed)
+    if inliers.sum() < wall_check.AMBIGUOUS_SHARE * keep.sum() and keep.sum() >= strong:
+        return F, keep, False
+    return wall_check.f_of_pose(R, t), inliers, True
 
 
 def _gravity(ctx: StageContext, mode: str):

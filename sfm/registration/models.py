@@ -20,6 +20,7 @@ Models are numbered by size, largest first (ties: lowest image id). Pure geometr
 from __future__ import annotations
 
 import logging
+from functools import partial
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -31,6 +32,7 @@ from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.metrics import umeyama
 from fullview.sfm.options import MatchesOptions, RegistrationOptions
 from fullview.sfm.registration.driver import register
+from fullview.sfm.registration.rematch_join import join_by_rematching
 from fullview.sfm.registration.rigid_parts import estimate_join, rigid_parts
 from fullview.sfm.registration.view_graph import bridges, component_labels, largest_component
 from fullview.sfm.registration.weak_joins import (MIN_AGREEING_PAIRS, MIN_PAIR_INLIERS, CrossPair,
@@ -141,9 +143,9 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
             pass
     if (options.join_by_weak_pairs and pair_matches is not None and gravity is not None
             and weak_join_threshold_rad is not None):
-        guided = options.weak_join_guided
+        guided, rematch = options.weak_join_guided, options.weak_join_rematch
         while _join_once_by_weak_pairs(state, links, pair_matches, bearings, gravity, weak_join_threshold_rad,
-                                       options, descriptors, guided):
+                                       options, descriptors, guided, rematch):
             pass
     _renumber(state)
     if pair_matches is not None and options.min_weak_pair_inliers:
@@ -760,9 +762,10 @@ def _similarity_of_poses(R_b, C_b, R_a, C_a, max_rotation_deg: float = 1.0, max_
 # --------------------------------------------------------------------------------------------- weak joins
 def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: dict[tuple[int, int], np.ndarray],
                              bearings, gravity: np.ndarray, threshold_rad: float, options: RegistrationOptions,
-                             descriptors=None, guided: bool = False) -> bool:
+                             descriptors=None, guided: bool = False, rematch: bool = False) -> bool:
     """Join the first pair of models (largest first) that several weak pairs between them agree on
-    (`weak_joins.join_by_weak_pairs`; with ``guided``, single fits' rotations guide the other pairs): the smaller
+    (`weak_joins.join_by_weak_pairs`; with ``guided``, single fits' rotations guide the other pairs; with
+    ``rematch``, pairs rematched along their epipolar circles, `rematch_join`): the smaller
     one moves into the larger by the join's similarity, the agreeing pairs' inlier matches join the final tracks (as
     weak pairs' do), and the model grows again. True if joined."""
     order = _by_size(state)
@@ -774,12 +777,14 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                 continue
             cams_a, cams_b = np.flatnonzero(state.model_id == a), np.flatnonzero(state.model_id == b)
             step_a, step_b = steps[a], steps[b] if np.isfinite(steps[b]) else steps[a]
-            join = join_by_weak_pairs(R_a={int(k): state.R_cam_from_world[k] for k in cams_a},
-                                      C_a={int(k): state.centers[k] for k in cams_a},
-                                      R_b={int(k): state.R_cam_from_world[k] for k in cams_b},
-                                      C_b={int(k): state.centers[k] for k in cams_b}, gravity=gravity, cross=cross,
-                                      threshold_rad=threshold_rad, step_a=float(step_a), step_b=float(step_b),
-                                      seed=options.seed, guided=guided)
+            frames = dict(R_a={int(k): state.R_cam_from_world[k] for k in cams_a},
+                          C_a={int(k): state.centers[k] for k in cams_a},
+                          R_b={int(k): state.R_cam_from_world[k] for k in cams_b},
+                          C_b={int(k): state.centers[k] for k in cams_b}, gravity=gravity,
+                          threshold_rad=threshold_rad, step_a=float(step_a), step_b=float(step_b), seed=options.seed)
+            rematching = (partial(join_by_rematching, cross=cross, bearings=bearings, descriptors=descriptors, **frames)
+                          if rematch and descriptors is not None else None)
+            join = join_by_weak_pairs(cross=cross, guided=guided, rematch=rematching, **frames)
             if join is None:
                 continue
             state.R_cam_from_world[cams_b] = state.R_cam_from_world[cams_b] @ join.M.T

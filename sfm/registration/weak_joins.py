@@ -63,12 +63,14 @@ class WeakJoin:
 
 def join_by_weak_pairs(*, R_a: dict[int, np.ndarray], C_a: dict[int, np.ndarray], R_b: dict[int, np.ndarray],
                        C_b: dict[int, np.ndarray], gravity: np.ndarray, cross: list[CrossPair], threshold_rad: float,
-                       step_a: float, step_b: float, seed: int = 0, guided: bool = False) -> WeakJoin | None:
+                       step_a: float, step_b: float, seed: int = 0, guided: bool = False,
+                       rematch=None) -> WeakJoin | None:
     """The join of model b into model a that several weak cross pairs agree on, or None (see the module doc).
 
     R_a, C_a (R_b, C_b): rotations (cam from world) and centres of the models' cameras by image; gravity (N, 3) per
     image in its camera frame (zero rows: unknown, such pairs are skipped); step_a, step_b: the models' median
-    used-pair baselines (the scale guess); guided: try each fit's rotation on the other pairs when none agree."""
+    used-pair baselines (the scale guess); guided: try each fit's rotation on the other pairs when none agree;
+    rematch: last, `rematch(fits)` -> (M, chosen fits, placement, inlier rows) or None (`rematch_join`)."""
     fits = []
     for n, pair in enumerate(cross):
         fit = _upright_pair(pair, gravity, threshold_rad, seed + n)
@@ -86,7 +88,12 @@ def join_by_weak_pairs(*, R_a: dict[int, np.ndarray], C_a: dict[int, np.ndarray]
     else:
         found = _guided_join(fits, cross, R_a, C_a, R_b, C_b, threshold_rad, step_a, step_b, seed) if guided else None
         if found is None:
-            return None
+            found = rematch(fits) if rematch is not None else None
+            if found is None:
+                return None
+            M, chosen, placed, rows = found
+            return WeakJoin(M=M, scale=placed[0], shift=placed[1], pairs=[(f[0].k, f[0].l, len(f[3])) for f in chosen],
+                            inlier_matches=rows, scale_guessed=placed[2])
         M, chosen, placed = found
     scale, shift, guessed = placed
     rows = [(f[0].k, int(a), f[0].l, int(b)) for f in chosen for a, b in f[0].matches[f[3]]]

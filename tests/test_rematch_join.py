@@ -1,0 +1,121 @@
+"""Doorway pairs rematched along their epipolar circles under a pose hypothesis (fullview.sfm.registration.rematch_join)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fullview.sfm.camera import normalize
+from fullview.sfm.matching import match_descriptors
+from fullview.sfm.options import MatchesOptions
+from fullview.sfm.registration.rematch_join import (MIN_REMATCHED, confirmed_pose, join_by_rematching, rematched)
+from fullview.sfm.registration.weak_joins import CrossPair
+from fullview.sfm.rotations import rotation_angle_deg
+
+THRESHOLD = np.radians(0.35)
+DOWN = np.array([0.0, 1.0, 0.0])
+
+
+def _yaw(deg: float) -> np.ndarray:
+    return Rotation.from_euler("y", deg, degrees=True).as_matrix()
+
+
+def _descriptors(rng, n: int) -> np.ndarray:
+    return normalize(rng.normal(size=(n, 128))).astype(np.float32)
+
+
+def _views(rng, R, C, X, D, lookalikes: int, noise: float = 0.25, alike_share: float = 1.0):
+    """Per camera: bearings of the points X (descriptors D plus noise) and, for the first `alike_share` of the
+    points, `lookalikes` features each of nearly the same descriptor at random directions (a plain wall's repeated
+    texture), and as many unrelated ones."""
+    out = []
+    for R_k, C_k in zip(R, C):
+        b = normalize((X - C_k) @ R_k.T)
+        d = normalize(D + noise / np.sqrt(128) * rng.normal(size=D.shape))
+        alike_of = np.repeat(D[:int(round(alike_share * len(D)))], lookalikes, axis=0)
+        alike = normalize(alike_of + noise / np.sqrt(128) * rng.normal(size=alike_of.shape))
+        other = _descriptors(rng, len(alike))
+        b_all = np.concatenate([b, normalize(rng.normal(size=(2 * len(alike), 3)))])
+        out.append((b_all, np.concatenate([d, alike, other]).astype(np.float32)))
+    return out
+
+
+def _doorway(rng, n=40, lookalikes=2):
+    R = [_yaw(25.0), _yaw(-70.0)]
+    C = [np.zeros(3), np.array([1.7, 0.04, 0.5])]
+    X = rng.uniform([-4, -1, -4], [5, 1.2, 4], (n, 3))
+    (b_k, d_k), (b_l, d_l) = _views(rng, R, C, X, _descriptors(rng, n), lookalikes)
+    return b_k, d_k, b_l, d_l, R[1] @ R[0].T, R[1] @ (C[0] - C[1]), (R, C)
+
+
+def test_the_rematch_under_the_true_pose_finds_the_matches_the_global_ratio_test_drops():
+    rng = np.random.default_rng(0)
+    b_k, d_k, b_l, d_l, R_lk, t_lk, _ = _doorway(rng)
+    plain = match_descriptors(d_k, d_l, MatchesOptions(ratio=0.8, mutual=True))
+    true_plain = int(((plain[:, 0] == plain[:, 1]) & (plain[:, 0] < 40)).sum())
+    found = rematched(b_k, b_l, d_k, d_l, R_lk, t_lk, THRESHOLD)
+    true_found = int(((found[:, 0] == found[:, 1]) & (found[:, 0] < 40)).sum())
+    assert true_plain < 20 and true_found >= 36 and len(found) - true_found <= 10  # chance matches along the band
+    turned = _yaw(90.0) @ R_lk  # the pose a quarter turn off: band matches by chance only
+    assert len(rematched(b_k, b_l, d_k, d_l, turned, t_lk, THRESHOLD)) < true_found / 2
+
+
+def test_a_near_hypothesis_is_confirmed_at_the_true_pose_and_an_unrelated_pair_is_not():
+    rng = np.random.default_rng(1)
+    b_k, d_k, b_l, d_l, R_lk, t_lk, _ = _doorway(rng)
+    start_R = _yaw(0.3) @ R_lk
+    start_t = Rotation.from_rotvec([0.0, np.radians(2.0), 0.0]).apply(normalize(t_lk))
+    raw = match_descriptors(d_k, d_l, MatchesOptions(ratio=0.8, mutual=True))
+    g_k, g_l = DOWN, DOWN  # level cameras
+    found = confirmed_pose(b_k, b_l, d_k, d_l, start_R, start_t, THRESHOLD, g_k=g_k, g_l=g_l, free_rotation=True,
+                           raw=(b_k[raw[:, 0]], b_l[raw[:, 1]]))
+    assert found is not None
+    R, t, m = found
+    assert rotation_angle_deg(R, R_lk) < 0.05 and normalize(t) @ normalize(t_lk) > np.cos(np.radians(0.3))
+    assert len(m) >= MIN_REMATCHED
+    # descriptors of another room: nothing to confirm under any pose
+    other = _descriptors(rng, len(d_l))
+    assert confirmed_pose(b_k, b_l, d_k, other, start_R, start_t, THRESHOLD, g_k=g_k, g_l=g_l, free_rotation=True,
+                          raw=(b_k[raw[:, 0]], b_l[raw[:, 1]])) is None
+
+
+def test_a_seed_fit_and_a_companion_through_one_doorway_join_two_models_at_the_truth():
+    rng = np.random.default_rng(2)
+    # model a: cameras 0, 1 (true frame); model b: camera 2 (and 3, seeing nothing of a), frame x_a = M0 x_b + T0
+    R = [_yaw(10.0), _yaw(-35.0), _yaw(70.0), _yaw(150.0)]
+    C = [np.zeros(3), np.array([1.6, 0.02, 0.2]), np.array([1.0, 0.03, 1.8]), np.array([2.2, 0.0, 3.5])]
+    M0, T0 = _yaw(41.0), np.array([0.7, 0.0, -0.4])
+    R_b = {k: R[k] @ M0 for k in (2, 3)}
+    C_b = {k: M0.T @ (C[k] - T0) for k in (2, 3)}
+    X = rng.uniform([-3, -1, -1], [4, 1.2, 4], (40, 3))
+    D = _descriptors(rng, 40)
+    views = _views(rng, R, C, X, D, lookalikes=2, alike_share=0.7)  # raw: about 12 true matches of 40
+    views[3] = (views[3][0], _descriptors(rng, len(views[3][1])))  # camera 3 sees another room
+    bearings = [v[0] for v in views]
+    descriptors = [v[1] for v in views]
+    cross = []
+    for k, l in ((2, 0), (2, 1), (3, 0), (3, 1)):
+        raw = match_descriptors(descriptors[k], descriptors[l], MatchesOptions(ratio=0.8, mutual=True))
+        cross.append(CrossPair(k=k, l=l, b_k=bearings[k][raw[:, 0]], b_l=bearings[l][raw[:, 1]], matches=raw))
+    # the seed: pair (2, 0)'s rough fit, 0.3° off in yaw
+    R_a = {0: R[0], 1: R[1]}
+    C_a = {0: C[0], 1: C[1]}
+    M_seed = _yaw(0.3) @ M0
+    u = normalize(C[2] - C[0])
+    fits = [(cross[0], M_seed, u, np.ones(8, bool))]
+    gravity = np.array([R_k @ DOWN for R_k in R])
+    join = join_by_rematching(fits, cross, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, gravity=gravity, bearings=bearings,
+                              descriptors=descriptors, threshold_rad=THRESHOLD, step_a=1.6, step_b=1.6)
+    assert join is not None
+    M, chosen, (scale, shift, guessed), rows = join
+    assert rotation_angle_deg(M, M0) < 0.05
+    assert {(f[0].k, f[0].l) for f in chosen} == {(2, 0), (2, 1)} and guessed
+    assert np.linalg.norm(scale * M @ C_b[2] + shift - C[2]) < 0.02
+    # the same rooms with the doorway closed (camera 2 sees another room too): no join
+    descriptors[2] = _descriptors(rng, len(descriptors[2]))
+    for pair in cross[:2]:
+        pair.matches = match_descriptors(descriptors[pair.k], descriptors[pair.l],
+                                         MatchesOptions(ratio=0.8, mutual=True))
+        pair.b_k, pair.b_l = bearings[pair.k][pair.matches[:, 0]], bearings[pair.l][pair.matches[:, 1]]
+    assert join_by_rematching(fits, cross, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, gravity=gravity, bearings=bearings,
+                              descriptors=descriptors, threshold_rad=THRESHOLD, step_a=1.6, step_b=1.6) is None

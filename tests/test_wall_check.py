@@ -1,0 +1,90 @@
+"""A pair's yaw checked against its images' wall directions (fullview.sfm.wall_check, filter._checked_against_walls)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fullview.sfm import two_view
+from fullview.sfm.camera import normalize
+from fullview.sfm.rotations import rotation_angle_deg
+from fullview.sfm.wall_check import f_of_pose, pose_the_walls_allow, turn, wall_residual_deg
+from fullview.stages.filter import _checked_against_walls
+
+THRESHOLD = np.radians(0.35)
+DOWN = np.array([0.0, 1.0, 0.0])  # world y down
+WALL = np.array([1.0, 0.0, 0.0])  # the world's walls run along x and z
+
+
+def _camera(yaw_deg: float, tilt_deg: float = 0.0) -> np.ndarray:
+    """R cam from world: a yaw about the vertical, then a small tilt (an inexact zenith correction)."""
+    return (Rotation.from_euler("x", tilt_deg, degrees=True).as_matrix()
+            @ Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix())
+
+
+def _pair(rng, n_true: int, n_junk: int, yaw_i=20.0, yaw_j=-65.0):
+    R_i, R_j = _camera(yaw_i, 0.4), _camera(yaw_j, -0.3)
+    C_i, C_j = np.zeros(3), np.array([1.4, 0.03, 0.6])
+    X = rng.uniform([-4, -1, -4], [4, 1.2, 4], (n_true, 3))
+    b_i = normalize((X - C_i) @ R_i.T)
+    b_j = normalize((X - C_j) @ R_j.T)
+    b_i = np.concatenate([b_i, normalize(rng.normal(size=(n_junk, 3)))])
+    b_j = np.concatenate([b_j, normalize(rng.normal(size=(n_junk, 3)))])
+    R_ji = R_j @ R_i.T
+    frames = dict(axis_i=R_i @ WALL, axis_j=R_j @ WALL, gravity_j=R_j @ DOWN)
+    return b_i, b_j, R_ji, R_j @ (C_i - C_j), frames, (R_i, R_j)
+
+
+def test_the_residual_is_the_yaw_error_modulo_90_and_turning_by_it_aligns_the_walls():
+    rng = np.random.default_rng(0)
+    _, _, R_ji, _, f, (R_i, R_j) = _pair(rng, 5, 0)
+    assert abs(wall_residual_deg(R_ji, f["axis_i"], f["axis_j"], f["gravity_j"])) < 1e-9
+    for error in (7.0, -23.0, 90.0, 101.8, -178.0):
+        wrong = turn(f["gravity_j"], error) @ R_ji
+        residual = wall_residual_deg(wrong, f["axis_i"], f["axis_j"], f["gravity_j"])
+        assert abs(residual - ((-error + 45.0) % 90.0 - 45.0)) < 1e-9  # minus the error, modulo 90°
+        fixed = turn(f["gravity_j"], residual) @ wrong
+        assert abs(wall_residual_deg(fixed, f["axis_i"], f["axis_j"], f["gravity_j"])) < 1e-9
+        # a multiple of 90° from the truth: the walls cannot tell it apart
+        assert min(rotation_angle_deg(turn(f["gravity_j"], 90.0 * q) @ fixed, R_ji) for q in range(4)) < 1e-6
+
+
+def test_the_pose_the_walls_allow_is_the_true_one_from_a_wrong_yaw():
+    rng = np.random.default_rng(1)
+    b_i, b_j, R_ji, t_ji, f, _ = _pair(rng, n_true=14, n_junk=30)
+    for error in (5.7, 88.3, 118.3, -101.8):
+        wrong = turn(f["gravity_j"], error) @ R_ji
+        R, t, inliers = pose_the_walls_allow(b_i, b_j, wrong, f["axis_i"], f["axis_j"], f["gravity_j"], THRESHOLD)
+        assert rotation_angle_deg(R, R_ji) < 1e-6
+        assert np.degrees(np.arccos(np.clip(normalize(t) @ normalize(t_ji), -1, 1))) < 0.2
+        assert inliers[:14].all() and inliers[14:].sum() <= 3
+
+
+def _frames(f, n=2):
+    axis = np.array([f["axis_i"], f["axis_j"]])
+    gravity = np.array([f["gravity_j"], f["gravity_j"]])  # the check reads j's
+    return axis, np.full(n, np.radians(0.05)), gravity, np.full(n, np.radians(0.05))
+
+
+def test_a_weak_pair_fitted_at_a_wrong_yaw_takes_the_walls_pose_and_a_strong_clear_fit_stays():
+    rng = np.random.default_rng(2)
+    b_i, b_j, R_ji, t_ji, f, _ = _pair(rng, n_true=16, n_junk=30)
+    matches = np.column_stack([np.arange(len(b_i))] * 2)
+    wrong = turn(f["gravity_j"], 118.0) @ R_ji
+    t_wrong, keep = two_view.baseline_given_rotation(b_i, b_j, wrong, THRESHOLD)
+    F, kept, replaced = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(f), 0, 1,
+                                               THRESHOLD, 0, strong=30)
+    assert replaced and kept[:16].all()
+    pose = two_view.relative_pose_from_f(F, b_i[kept], b_j[kept])
+    assert rotation_angle_deg(pose.R_j_from_i, R_ji) < 0.05
+    # the true fit of a strong pair is left alone
+    true_keep = two_view.consistent_with_pose(b_i, b_j, R_ji, t_ji, THRESHOLD)
+    F_true = f_of_pose(R_ji, t_ji)
+    F2, kept2, replaced2 = _checked_against_walls(b_i, b_j, matches, F_true, true_keep, _frames(f), 0, 1, THRESHOLD,
+                                                  0, strong=10)
+    assert not replaced2 and F2 is F_true and (kept2 == true_keep).all()
+    # a strong pair whose walls are not those of the images' axes (a room at an angle): the matches decide
+    skewed = dict(f, axis_j=turn(f["gravity_j"], 30.0) @ f["axis_j"])
+    F3, kept3, replaced3 = _checked_against_walls(b_i, b_j, matches, F_true, true_keep, _frames(skewed), 0, 1,
+                                                  THRESHOLD, 0, strong=10)
+    assert not replaced3 and (kept3 == true_keep).all()
