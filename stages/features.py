@@ -40,8 +40,8 @@ def run(ctx: StageContext) -> dict:
 
 def extract_image(dataset: Dataset, options, out: StageWriter, name: str, *, short_faces: set[int] | None = None
                   ) -> tuple[str, int, float]:
-    """Detect and save one image's features; returns (name, count, sensor noise). A task of its own: picklable arguments, and it
-    writes only its own file into the transaction's folder (a retried task rewrites it whole)."""
+    """Detect and save one image's features; returns (name, count, sensor noise). A task of its own: picklable
+    arguments, and it writes only its own file into the transaction's folder (a retried task rewrites it whole)."""
     full_w, full_h = dataset.image_sizes[name]
     # Never upsample: a working width above the native width means "native".
     image = dataset.load_image(name, width=min(options.working_width or full_w, full_w))
