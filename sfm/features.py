@@ -51,11 +51,12 @@ class Features:
     descriptors: np.ndarray  # (N, 128) float32 descriptors
     scales: np.ndarray  # (N,) float32 keypoint size in face pixels
     faces: np.ndarray  # (N,) uint8 index into FACE_NAMES of the detecting face
+    noise: float = 0.0  # the working panorama's sensor noise, grey levels (`noise_sigma`): the matches' ratio test
 
     def subset(self, keep: np.ndarray) -> "Features":
         """The features where `keep` (N,) bool is True."""
         return Features(pixels=self.pixels[keep], bearings=self.bearings[keep], descriptors=self.descriptors[keep],
-                        scales=self.scales[keep], faces=self.faces[keep])
+                        scales=self.scales[keep], faces=self.faces[keep], noise=self.noise)
 
 
 def computed_once(func):
@@ -133,7 +134,7 @@ def noise_sigma(grey: np.ndarray) -> float:
     return float(median / (_MAD_TO_SIGMA * 6.0))
 
 
-def denoised(grey: np.ndarray, options: FeaturesOptions) -> np.ndarray:
+def denoised(grey: np.ndarray, options: FeaturesOptions, noise: float | None = None) -> np.ndarray:
     """The grey panorama SIFT sees. With more sensor noise than `denoise_min_noise`, non-local means of strength
     1.5 sigma (5 px patches, 11 px search): a room's faint texture repeats over many pixels, the noise does not, so
     the texture survives while the noise's own DoG blobs go, which would otherwise fill the plain faces (detected at
@@ -142,7 +143,7 @@ def denoised(grey: np.ndarray, options: FeaturesOptions) -> np.ndarray:
     of the true matches the noise costs (README, "Sensor noise in the features stage")."""
     if not options.denoise_min_noise:
         return grey
-    noise = noise_sigma(grey)
+    noise = noise_sigma(grey) if noise is None else noise
     if noise <= options.denoise_min_noise:
         return grey
     return cv2.fastNlMeansDenoising(grey, None, h=1.5 * noise, templateWindowSize=5, searchWindowSize=11)
@@ -219,7 +220,9 @@ def detect_features(image: np.ndarray, options: FeaturesOptions, short_faces: se
     of the faces that kept fewer than `min_features_per_face` keypoints at the first threshold in the last image,
     updated here; they are detected the way that suits such a face (`detect_on_face`). Ceilings and bare walls tend
     to stay plain across a tour."""
-    grey = denoised(image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), options)
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    noise = noise_sigma(grey)
+    grey = denoised(grey, options, noise)
     height, width = grey.shape
     face_size = options.face_size or native_face_size(width, options.margin_deg)
     faces, focal = render_faces(grey, face_size, options.margin_deg)
@@ -246,4 +249,4 @@ def detect_features(image: np.ndarray, options: FeaturesOptions, short_faces: se
     if options.root_sift and len(desc):
         desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)
     return Features(pixels=bearings_to_pixels(bearings[keep], width, height), bearings=bearings[keep],
-                    descriptors=desc, scales=sizes[keep], faces=face_ids[keep])
+                    descriptors=desc, scales=sizes[keep], faces=face_ids[keep], noise=noise)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import replace
 from functools import cache
 
 import numpy as np
@@ -66,6 +67,16 @@ def project_descriptors(desc: np.ndarray, basis: np.ndarray | None) -> np.ndarra
     projected = desc @ basis
     residual_sq = np.einsum("ij,ij->i", desc, desc) - np.einsum("ij,ij->i", projected, projected)
     return np.column_stack([projected, np.sqrt(np.maximum(residual_sq, 0.0))]).astype(np.float32)
+
+
+def options_for_pair(options: MatchesOptions, noise_i: float, noise_j: float) -> MatchesOptions:
+    """The matching options of a pair whose images measure `noise_i`, `noise_j` grey levels of sensor noise: the
+    `noisy_ratio` test when the noisier one exceeds `noisy_min_noise`. Why: noise adds about the same energy to
+    the nearest and the second nearest descriptor distance, pushing true matches' ratios towards 1 (README,
+    "homenoise")."""
+    if max(noise_i, noise_j) <= options.noisy_min_noise or not options.noisy_ratio:
+        return options
+    return replace(options, ratio=options.noisy_ratio)
 
 
 def pair_blocks(pairs: list[tuple[int, int]], block_images: int) -> list[list[int]]:

@@ -29,16 +29,19 @@ def run(ctx: StageContext) -> dict:
     # has its own); at first the ceiling only, the face most often plain (360_Flat's in every image; the rooms' none).
     jobs = ctx.map(partial(extract_image, ctx.dataset, ctx.options, ctx.out, short_faces={FACE_NAMES.index("up")}),
                    names, threads=2)
-    counts = dict(tqdm(jobs, total=len(names), desc="features", unit="image"))
-    log.info("features per image: min %d, median %d, max %d", min(counts.values()),
-             int(np.median(list(counts.values()))), max(counts.values()))
-    return {"images": len(counts), "min_features": min(counts.values()), "per_image": counts}
+    found = list(tqdm(jobs, total=len(names), desc="features", unit="image"))
+    counts = {name: count for name, count, _ in found}
+    noise = {name: round(sigma, 3) for name, _, sigma in found}
+    log.info("features per image: min %d, median %d, max %d; sensor noise (grey levels) median %.2f, max %.2f",
+             min(counts.values()), int(np.median(list(counts.values()))), max(counts.values()),
+             np.median(list(noise.values())), max(noise.values()))
+    return {"images": len(counts), "min_features": min(counts.values()), "per_image": counts, "noise": noise}
 
 
 def extract_image(dataset: Dataset, options, out: StageWriter, name: str, *, short_faces: set[int] | None = None
-                  ) -> tuple[str, int]:
-    """Detect and save one image's features; returns (name, count). A task of its own: picklable arguments, and it
-    writes only its own file into the transaction's folder (a retried task rewrites it whole)."""
+                  ) -> tuple[str, int, float]:
+    """Detect and save one image's features; returns (name, count, sensor noise). A task of its own: picklable
+    arguments, and it writes only its own file into the transaction's folder (a retried task rewrites it whole)."""
     full_w, full_h = dataset.image_sizes[name]
     # Never upsample: a working width above the native width means "native".
     image = dataset.load_image(name, width=min(options.working_width or full_w, full_w))
@@ -47,8 +50,9 @@ def extract_image(dataset: Dataset, options, out: StageWriter, name: str, *, sho
     feats = keep_unmasked(feats, dataset.load_mask(name), scale)
     colors = sample_colors(image, feats.pixels)  # detection pixels are working-image pixels
     out.save_features(name, pixels=feats.pixels * scale, bearings=feats.bearings, descriptors=feats.descriptors,
-                      scales=feats.scales * scale, colors=colors, image_size=np.array([full_w, full_h]))
-    return name, len(feats.bearings)
+                      scales=feats.scales * scale, colors=colors, image_size=np.array([full_w, full_h]),
+                      noise_sigma=np.float64(feats.noise))
+    return name, len(feats.bearings), feats.noise
 
 
 def keep_unmasked(feats: Features, keep: np.ndarray | None, scale: float) -> Features:

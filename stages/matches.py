@@ -27,8 +27,8 @@ import numpy as np
 from tqdm import tqdm
 
 from fullview.io.workspace import Workspace
-from fullview.sfm.matching import (basis_from_moments, match_descriptors, pair_blocks, project_descriptors,
-                                   second_moment)
+from fullview.sfm.matching import (basis_from_moments, match_descriptors, options_for_pair, pair_blocks,
+                                   project_descriptors, second_moment)
 from fullview.sfm.options import MatchesOptions
 from fullview.sfm.pairs import first_loop_proposals, loop_rounds, plan_pairs, uses_gps
 from fullview.stages.protocol import StageContext, thread_map
@@ -131,8 +131,12 @@ def match_block(ws_root: Path, names: list[str], options: MatchesOptions, pairs:
     """The matches of `pairs`, reading the features of their images from the workspace itself (a top-level function
     of picklable arguments: a cluster task of its own), searched on `basis`'s components when given."""
     ws = Workspace(Path(ws_root).parent, Path(ws_root).name)
-    full = {i: ws.load_descriptors(names[i]) for i in sorted({i for p in pairs for i in p})}
+    images = sorted({i for p in pairs for i in p})
+    full = {i: ws.load_descriptors(names[i]) for i in images}
+    noise = {i: float(ws.load_features(names[i], ("noise_sigma",))["noise_sigma"]) for i in images}
+    pair_options = {p: options_for_pair(options, noise[p[0]], noise[p[1]]) for p in pairs}
     if basis is None:
-        return [match_descriptors(full[i], full[j], options) for i, j in pairs]
+        return [match_descriptors(full[i], full[j], pair_options[i, j]) for i, j in pairs]
     projected = {i: project_descriptors(d, basis) for i, d in full.items()}
-    return [match_descriptors(projected[i], projected[j], options, full=(full[i], full[j])) for i, j in pairs]
+    return [match_descriptors(projected[i], projected[j], pair_options[i, j], full=(full[i], full[j]))
+            for i, j in pairs]

@@ -181,3 +181,9 @@ def test_sensor_noise_does_not_fill_a_plain_panorama_with_keypoints():
     assert near_clean.mean() > 0.8
     # below the noise level that calls for it, the panorama is left exactly as it is
     assert ft.denoised(noisy, FeaturesOptions(denoise_min_noise=2.5)) is noisy
+
+
+def test_features_carry_the_working_panoramas_noise():
+    assert ft.detect_features(_spotted_panorama(2.0), FeaturesOptions()).noise == pytest.approx(2.0, rel=0.05)
+    clean = ft.detect_features(_spotted_panorama(0.0), FeaturesOptions())
+    assert clean.noise < 0.15 and clean.subset(np.arange(len(clean.bearings)) < 5).noise == clean.noise

@@ -1,5 +1,9 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
+
+from fullview.io.dataset import Dataset
 
 from fullview.sfm.matching import descriptor_basis, match_descriptors, project_descriptors
 from fullview.sfm.pairs import pair_list
@@ -216,3 +220,31 @@ def test_the_stored_int8_graph_is_the_one_onnx_builds():
     model.ir_version = 8
     onnx.checker.check_model(model)
     assert model.SerializeToString() == _MATMUL_INTEGER_ONNX
+
+
+def test_noisy_ratio_applies_to_a_pair_with_one_noisy_image_only():
+    from fullview.sfm.matching import options_for_pair
+    options = MatchesOptions(ratio=0.8, noisy_ratio=0.85, noisy_min_noise=0.3)
+    assert options_for_pair(options, 0.08, 0.1) is options  # clean renders: the test as configured
+    assert options_for_pair(options, 0.08, 0.55).ratio == 0.85  # a Theta S image on either side
+    assert options_for_pair(options, 0.55, 0.5).ratio == 0.85
+    unchanged = replace(options, noisy_ratio=0.0)  # the default: the ratio test whatever the noise
+    assert options_for_pair(unchanged, 0.55, 0.55) is unchanged
+
+
+def test_matches_stage_takes_each_pairs_ratio_from_its_images_noise(tiny_dataset, make_pipeline, tmp_path):
+    """The features stage stores each panorama's noise estimate; the matches stage matches a pair at noisy_ratio
+    exactly when its noisier image measures above noisy_min_noise."""
+    runs = {}
+    for tag, extra in {"base": [], "looser": ["matches.ratio=0.9"],
+                       "clean": ["matches.noisy_ratio=0.9", "matches.noisy_min_noise=5"],
+                       "all noisy": ["matches.noisy_ratio=0.9", "matches.noisy_min_noise=0"]}.items():
+        pipe = make_pipeline(tiny_dataset, extra, workspace=tmp_path / tag.replace(" ", "_"))
+        pipe.run(until="matches")
+        runs[tag] = pipe.ws
+    names = Dataset(tiny_dataset).image_names
+    noise = [float(runs["base"].load_features(n, ("noise_sigma",))["noise_sigma"]) for n in names]
+    assert all(0.0 < s < 5 for s in noise)
+    matches = {tag: ws.load_matches().matches for tag, ws in runs.items()}
+    same = lambda a, b: all(np.array_equal(x, y) for x, y in zip(matches[a], matches[b]))  # noqa: E731
+    assert same("clean", "base") and same("all noisy", "looser") and not same("looser", "base")
