@@ -20,7 +20,7 @@ log = logging.getLogger(__name__)
 
 
 def mesh_params(config: DensifyOptions) -> MeshParams:
-    return MeshParams(depth=config.mesh_depth, density_quantile=config.mesh_density_quantile,
+    return MeshParams(depth=config.mesh_depth, cell_voxels=config.mesh_cell_voxels, density_quantile=config.mesh_density_quantile,
                       max_distance_voxels=config.mesh_max_distance_voxels,
                       support_tolerance=config.mesh_support_tolerance, window_px=config.mesh_window_px,
                       min_component_triangles=config.mesh_min_component_triangles)

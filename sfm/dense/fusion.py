@@ -106,9 +106,13 @@ def fuse_depth_maps(
         pts = (x_cam - t_all[i]) @ R_all[i]  # world = Rᵀ (x_cam − t)
         count = np.zeros(len(pts), dtype=np.int32)
         others = neighbors[i] if neighbors is not None else range(n_views)
+        # only a point still short of min_consistent supports is checked by the next view: a point already kept
+        # stays kept whatever the others say, so the kept set is the one counting every view gives
+        short = np.arange(len(pts)) if min_consistent > 0 else np.zeros(0, np.intp)
         for k in others:
-            if k != i:
-                count += _support(pts, maps[k], R_all[k], t_all[k], rel_tol)
+            if k != i and len(short):
+                count[short] += _support(pts[short], maps[k], R_all[k], t_all[k], rel_tol)
+                short = short[count[short] < min_consistent]
         ok = count >= min_consistent
         log.debug("fusion: view %d keeps %d / %d points", i, ok.sum(), len(ok))
         all_pts.append(pts[ok])
