@@ -47,15 +47,13 @@ def colorize_range(range_map: np.ndarray, valid: np.ndarray | None = None, *,
         ok = np.isfinite(rng) & (rng > 0)
     if valid is not None:
         ok &= np.asarray(valid, bool)
-    out = np.zeros(rng.shape + (3,), np.uint8)
     if not ok.any():
-        return out
-    inv = np.zeros_like(rng)
-    inv[ok] = 1.0 / rng[ok]
+        return np.zeros(rng.shape + (3,), np.uint8)
+    # whole-image operations (no boolean gathers and scatters of the picture: a third of the time)
+    inv = np.divide(np.float32(1.0), rng, out=np.zeros_like(rng), where=ok)
     lo, hi = np.percentile(inv[ok], [2, 98])
     grey = np.clip((inv - lo) / max(hi - lo, 1e-12) * 255, 0, 255).astype(np.uint8)
-    out[ok] = cv2.applyColorMap(grey, colormap)[ok]
-    return out
+    return cv2.applyColorMap(grey, colormap) * ok[..., None].view(np.uint8)
 
 
 def _up_and_axes(points: np.ndarray, up: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -14,7 +14,7 @@ from fullview.io.render import render_mesh
 from fullview.sfm.camera import camera_center, camera_up
 from fullview.sfm.dense.mesh import MeshParams, mesh_from_dense
 from fullview.sfm.options import DensifyOptions
-from fullview.stages.protocol import StageContext, cpu_seconds, fork_call
+from fullview.stages.protocol import StageContext, cpu_seconds, forked
 
 log = logging.getLogger(__name__)
 
@@ -42,10 +42,10 @@ def write_dense_mesh(ctx: StageContext, points: np.ndarray, colors: np.ndarray, 
     cams = sorted(range_maps)
     maps = [np.where(range_maps[k][1], range_maps[k][0], np.nan) for k in cams]
     try:
-        # Poisson in a child process: open3d holds the GIL for its 2-4 s, and the stage's side thread has the
-        # cloud's preview and the maps to write meanwhile
+        # Poisson in a child process: open3d holds the GIL for its 1-2 s, and the stage's side thread has the
+        # cloud's preview and the maps to write meanwhile (and this thread the trims' nearest-point tree)
         mesh = mesh_from_dense(points, colors, normals, R_cam_from_world[cams], t_cam_from_world[cams], maps,
-                               voxel_size=voxel_size, params=mesh_params(config), poisson=fork_call)
+                               voxel_size=voxel_size, params=mesh_params(config), poisson=forked)
     except ValueError as e:  # a degenerate cloud: the cloud and range maps stand without a mesh
         log.warning("densify: no mesh: %s", e)
         return {"error": str(e)}

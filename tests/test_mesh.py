@@ -7,7 +7,7 @@ import pytest
 from fullview.sfm.camera import pixel_grid_bearings
 from fullview.sfm.dense.mesh import MeshParams, mesh_from_dense, view_support
 from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
-from fullview.stages.protocol import fork_call
+from fullview.stages.protocol import forked
 
 ROOM_MIN, ROOM_MAX = np.array([-3.0, -1.5, -2.5]), np.array([3.0, 1.5, 2.5])  # a box room, y down
 CENTERS = np.array([[-1.2, 0.0, -0.8], [1.0, 0.1, -0.5], [0.2, -0.1, 1.1]])
@@ -112,7 +112,7 @@ def test_poisson_in_a_child_process_gives_the_same_mesh(room):
     points, colors, normals, R, t, maps = room
     here = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6))
     child = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6),
-                            poisson=fork_call)
+                            poisson=forked)
     for a, b in ((here.vertices, child.vertices), (here.triangles, child.triangles),
                  (here.vertex_colors, child.vertex_colors)):
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes()

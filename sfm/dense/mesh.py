@@ -21,8 +21,10 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from types import SimpleNamespace
+from typing import Any, Callable, ContextManager, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -58,9 +60,11 @@ class Mesh:
 
 def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray, R_cam_from_world: np.ndarray,
                     t_cam_from_world: np.ndarray, range_maps: Sequence[np.ndarray | None], *, voxel_size: float,
-                    params: MeshParams = MeshParams(), poisson: Callable[..., tuple] | None = None) -> Mesh:
-    """The trimmed, coloured Poisson mesh of a fused cloud. ``poisson``: how ``poisson_surface`` is called (the
-    stage calls it in a child process: open3d holds the GIL throughout), by default here.
+                    params: MeshParams = MeshParams(),
+                    poisson: Callable[..., ContextManager] | None = None) -> Mesh:
+    """The trimmed, coloured Poisson mesh of a fused cloud. ``poisson``: how ``poisson_surface`` is started,
+    ``poisson(fn, *args)`` giving a context whose value's ``result()`` is ``fn(*args)`` (the stage's
+    ``protocol.forked``: a child process, open3d holds the GIL throughout); by default here, when asked.
 
     ``points`` / ``colors`` (uint8 RGB) / ``normals`` (N, 3): the fused cloud (the normals' signs do not matter:
     they are turned towards the cameras that see the points); ``R_cam_from_world`` (K, 3, 3), ``t_cam_from_world`` (K, 3) and ``range_maps[k]`` (H, W) ranges
@@ -73,8 +77,9 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
     depth = params.depth or auto_poisson_depth(points, voxel_size, params.cell_voxels)
     normals = orient_normals_to_views(points, normals, R_cam_from_world, t_cam_from_world, range_maps,
                                       tolerance=params.support_tolerance, window_px=params.window_px)
-    call = poisson or (lambda fn, *args: fn(*args))
-    vertices, triangles, density = call(poisson_surface, points, normals, depth)
+    with (poisson or _when_asked)(poisson_surface, points, normals, depth) as job:
+        tree = cKDTree(points)  # the distance trim's and the colours' nearest points, made while Poisson runs
+        vertices, triangles, density = job.result()
     stats = {"poisson_depth": int(depth), "poisson_vertices": int(len(vertices)),
              "poisson_triangles": int(len(triangles))}
     if len(triangles) == 0:
@@ -82,7 +87,7 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
     keep = np.ones(len(triangles), bool)
     low = density < np.quantile(density, params.density_quantile)
     keep &= _drop("density", ~low[triangles].any(1), keep, stats)
-    near = _near_points(vertices, points, params.max_distance_voxels * voxel_size)
+    near = _near_points(vertices, tree, params.max_distance_voxels * voxel_size)
     keep &= _drop("distance", near[triangles].all(1), keep, stats)
     supported = np.ones(len(triangles), bool)
     if any(m is not None for m in range_maps):  # without any range map there is nothing to check against
@@ -91,7 +96,7 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
     keep &= _drop("visibility", supported, keep, stats)
     keep &= _drop("small_pieces", _large_components(triangles, keep, params.min_component_triangles), keep, stats)
     vertices, triangles = _compact(vertices, triangles[keep])
-    vertex_colors = _nearest_colors(vertices, points, colors)
+    vertex_colors = _nearest_colors(vertices, tree, colors)
     stats.update(vertices=int(len(vertices)), triangles=int(len(triangles)),
                  trimmed_share=float(1.0 - len(triangles) / max(stats["poisson_triangles"], 1)))
     log.info("mesh: Poisson depth %d, %d triangles, %d kept (trimmed: %s)", depth, stats["poisson_triangles"],
@@ -239,8 +244,14 @@ def _window_ranges(rng: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray
     return near, far, through
 
 
-def _near_points(vertices: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
-    dist, _ = cKDTree(points).query(vertices, distance_upper_bound=radius)
+@contextmanager
+def _when_asked(fn: Callable[..., Any], *args: Any) -> Iterator[Any]:
+    """A job whose ``result()`` is ``fn(*args)``, computed here when asked (``mesh_from_dense``'s default)."""
+    yield SimpleNamespace(result=lambda: fn(*args))
+
+
+def _near_points(vertices: np.ndarray, tree: cKDTree, radius: float) -> np.ndarray:
+    dist, _ = tree.query(vertices, distance_upper_bound=radius)
     return np.isfinite(dist)
 
 
@@ -279,8 +290,8 @@ def _compact(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, n
     return vertices[used], renumber[triangles].reshape(-1, 3)
 
 
-def _nearest_colors(vertices: np.ndarray, points: np.ndarray, colors: np.ndarray) -> np.ndarray:
+def _nearest_colors(vertices: np.ndarray, tree: cKDTree, colors: np.ndarray) -> np.ndarray:
     if len(vertices) == 0:
         return np.zeros((0, 3), np.uint8)
-    _, idx = cKDTree(points).query(vertices)
+    _, idx = tree.query(vertices)
     return np.asarray(colors, np.uint8).reshape(-1, 3)[idx]
