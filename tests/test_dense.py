@@ -361,3 +361,18 @@ def test_fusion_stops_checking_a_point_once_kept_with_the_kept_set_of_counting_e
         assert np.array_equal(got[src == i], expected)
         kept, total = kept + len(expected), total + len(pts)
     assert 0.05 * total < kept < 0.95 * total  # the checks decided: neither all kept nor all dropped
+
+
+def test_clean_point_cloud_names_the_rows_it_keeps():
+    """Without down-sampling the cleaned points are input rows, in order (the stage finds each point's observing
+    camera on the merged cloud while it is cleaned and keeps these rows of it)."""
+    rng = np.random.default_rng(1)
+    pts = np.vstack([np.c_[rng.uniform(-1, 1, (3000, 2)), np.zeros(3000)], rng.uniform(-1, 1, (30, 3)) + [0, 0, 3]])
+    pts = pts[rng.permutation(len(pts))]
+    cols = rng.integers(0, 255, (len(pts), 3), dtype=np.uint8)
+    p, c, n, kept = dense.clean_point_cloud(pts, cols, voxel_size=0.0, nb_neighbors=20, std_ratio=2.0,
+                                            normal_radius=0.1, return_index=True)
+    assert np.array_equal(p, pts[kept]) and np.array_equal(c, cols[kept]) and np.all(np.diff(kept) > 0)
+    assert len(kept) == 3000 and np.abs(p[:, 2]).max() < 1e-9
+    with pytest.raises(ValueError, match="voxel_size 0"):
+        dense.clean_point_cloud(pts, cols, voxel_size=0.02, return_index=True)

@@ -119,6 +119,28 @@ def test_poisson_in_a_child_process_gives_the_same_mesh(room):
     assert here.stats == child.stats
 
 
+def test_observing_cameras_found_beforehand_give_the_same_mesh(room):
+    """The stage finds each point's observing camera while the cloud is cleaned and hands them over."""
+    from fullview.sfm.dense.mesh import nearest_observing_cameras
+
+    points, colors, normals, R, t, maps = room
+    observers = nearest_observing_cameras(points, R, t, maps, tolerance=0.03, window_px=3)
+    assert (observers >= 0).mean() > 0.95
+    here = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6))
+    given = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6),
+                            observers=observers)
+    assert here.vertices.tobytes() == given.vertices.tobytes() and here.triangles.tobytes() == given.triangles.tobytes()
+    # they are what turns the normals: a camera outside the room (no map), named for every point, turns the wall
+    # facing it outwards
+    from fullview.sfm.dense.mesh import orient_normals_to_views
+
+    R4, t4 = np.concatenate([R, R[:1]]), np.concatenate([t, [[0.0, 0.0, -10.0]]])
+    inward = orient_normals_to_views(points, normals, R4, t4, list(maps) + [None], tolerance=0.03, window_px=3)
+    outward = orient_normals_to_views(points, normals, R4, t4, list(maps) + [None], tolerance=0.03, window_px=3,
+                                      observers=np.full(len(points), 3))
+    assert np.mean(np.einsum("na,na->n", inward, outward) < 0) > 0.05  # the wall between them and it
+
+
 def _nearest(a, b, reverse=False):
     from scipy.spatial import cKDTree
     return cKDTree(a).query(b) if not reverse else cKDTree(b).query(a)

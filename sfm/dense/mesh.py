@@ -61,13 +61,15 @@ class Mesh:
 def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray, R_cam_from_world: np.ndarray,
                     t_cam_from_world: np.ndarray, range_maps: Sequence[np.ndarray | None], *, voxel_size: float,
                     params: MeshParams = MeshParams(),
-                    poisson: Callable[..., ContextManager] | None = None) -> Mesh:
+                    poisson: Callable[..., ContextManager] | None = None,
+                    observers: np.ndarray | None = None) -> Mesh:
     """The trimmed, coloured Poisson mesh of a fused cloud. ``poisson``: how ``poisson_surface`` is started,
     ``poisson(fn, *args)`` giving a context whose value's ``result()`` is ``fn(*args)`` (the stage's
     ``protocol.forked``: a child process, open3d holds the GIL throughout); by default here, when asked.
 
     ``points`` / ``colors`` (uint8 RGB) / ``normals`` (N, 3): the fused cloud (the normals' signs do not matter:
-    they are turned towards the cameras that see the points); ``R_cam_from_world`` (K, 3, 3), ``t_cam_from_world`` (K, 3) and ``range_maps[k]`` (H, W) ranges
+    they are turned towards the cameras that see the points; ``observers``: ``nearest_observing_cameras`` of the
+    points, when already found); ``R_cam_from_world`` (K, 3, 3), ``t_cam_from_world`` (K, 3) and ``range_maps[k]`` (H, W) ranges
     (NaN or ≤ 0: invalid; None: no map) of the same cameras; ``voxel_size``: the cloud's spacing."""
     points = np.asarray(points, np.float64).reshape(-1, 3)
     if len(points) < 16:
@@ -76,7 +78,8 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
         raise ValueError(f"voxel_size must be > 0, got {voxel_size}")
     depth = params.depth or auto_poisson_depth(points, voxel_size, params.cell_voxels)
     normals = orient_normals_to_views(points, normals, R_cam_from_world, t_cam_from_world, range_maps,
-                                      tolerance=params.support_tolerance, window_px=params.window_px)
+                                      tolerance=params.support_tolerance, window_px=params.window_px,
+                                      observers=observers)
     with (poisson or _when_asked)(poisson_surface, points, normals, depth) as job:
         tree = cKDTree(points)  # the distance trim's and the colours' nearest points, made while Poisson runs
         vertices, triangles, density = job.result()
@@ -115,15 +118,16 @@ def auto_poisson_depth(points: np.ndarray, voxel_size: float, cell_voxels: float
 
 def orient_normals_to_views(points: np.ndarray, normals: np.ndarray, R_cam_from_world: np.ndarray,
                             t_cam_from_world: np.ndarray, range_maps: Sequence[np.ndarray | None], *,
-                            tolerance: float, window_px: int) -> np.ndarray:
+                            tolerance: float, window_px: int, observers: np.ndarray | None = None) -> np.ndarray:
     """Normals turned towards the nearest camera that observes each point (its range map ranges it within
-    ``tolerance``), else towards the nearest camera. One viewpoint for the whole cloud (what outlier removal
+    ``tolerance``; ``observers``: those cameras when already found, ``nearest_observing_cameras``), else towards
+    the nearest camera. One viewpoint for the whole cloud (what outlier removal
     used) turns the walls between rooms the wrong way, and Poisson then inflates them into closed bubbles."""
     normals = np.asarray(normals, np.float64).reshape(-1, 3).copy()
     centers = -np.einsum("kba,kb->ka", np.asarray(R_cam_from_world, np.float64),
                          np.asarray(t_cam_from_world, np.float64))
-    chosen = nearest_observing_cameras(points, R_cam_from_world, t_cam_from_world, range_maps, tolerance=tolerance,
-                                       window_px=window_px)
+    chosen = observers if observers is not None else nearest_observing_cameras(
+        points, R_cam_from_world, t_cam_from_world, range_maps, tolerance=tolerance, window_px=window_px)
     towards = np.zeros_like(normals)
     found = chosen >= 0
     towards[found] = centers[chosen[found]] - points[found]
