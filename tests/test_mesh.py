@@ -221,3 +221,22 @@ def test_automatic_poisson_depth_gives_cells_of_about_the_asked_width(cell_voxel
     for voxel in (0.005, 0.01, 0.013, 0.02):
         cell = extent / 2 ** auto_poisson_depth(points, voxel, cell_voxels)
         assert cell_voxels / 2 < cell / voxel <= cell_voxels
+
+
+@pytest.mark.parametrize("window", [1, 3, 5])
+def test_window_extremes_at_pixels_are_the_filtered_maps_values(window):
+    """The nearest / farthest valid range of a pixel's window read off its pixels equals the filtered maps' value
+    there, at the seam (columns wrap), at the poles (rows clamp) and next to invalid pixels (NaN, 0, negative)."""
+    from fullview.sfm.dense.mesh import _window_extremes_at, _window_ranges
+
+    rng = np.random.default_rng(window)
+    rmap = rng.uniform(1.0, 5.0, (40, 80)).astype(np.float32)
+    rmap[rng.random(rmap.shape) < 0.2] = np.nan
+    rmap[rng.random(rmap.shape) < 0.05] = 0.0
+    rmap[rng.random(rmap.shape) < 0.05] = -1.0
+    rmap[8:17, 18:27] = np.nan  # a window with no valid range
+    idx = np.concatenate([rng.integers(0, rmap.size, 500), [0, 79, 80 * 39, rmap.size - 1, 12 * 80 + 22]])
+    near, far, _ = _window_ranges(rmap, window)
+    got_near, got_far = _window_extremes_at(rmap, idx, window)
+    assert np.array_equal(got_near, near.ravel()[idx]) and np.array_equal(got_far, far.ravel()[idx])
+    assert np.isinf(got_near[-1]) and got_near.dtype == np.float32

@@ -154,8 +154,6 @@ def nearest_observing_cameras(points: np.ndarray, R_cam_from_world: np.ndarray, 
         # each point asks its cameras nearest first (ties: the lower index) and stops at the first that observes
         # it: the camera a pass over all of them keeps, for about one projection per point instead of one per view
         order = np.argsort(dist, axis=1, kind="stable")
-        windows = dict(zip(range(len(views)), _map_views(  # each view's window extremes, made once (16 MB at 2048)
-            lambda v: _window_ranges(np.asarray(range_maps[views[v]]), window_px)[:2], list(range(len(views))))))
         pending = np.arange(len(points))
         for rank in range(len(views)):
             asked = order[pending, rank]
@@ -165,10 +163,10 @@ def nearest_observing_cameras(points: np.ndarray, R_cam_from_world: np.ndarray, 
             def observed(group: tuple[int, np.ndarray]) -> np.ndarray:
                 v, sub = group
                 k = views[v]
-                near, far = windows[v]
                 idx = _pixel_index(points[sub] @ R[k].T + t_cam_from_world[k], range_maps[k].shape)
+                near, far = _window_extremes_at(np.asarray(range_maps[k]), idx, window_px)
                 d = dist[sub, v]
-                return (near.ravel()[idx] <= d * (1 + tolerance)) & (far.ravel()[idx] >= d * (1 - tolerance))
+                return (near <= d * (1 + tolerance)) & (far >= d * (1 - tolerance))
 
             for (v, sub), seen in zip(groups, _map_views(observed, groups)):
                 chosen[sub[seen]] = views[v]
@@ -252,6 +250,27 @@ def _window_ranges(rng: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray
 def _when_asked(fn: Callable[..., Any], *args: Any) -> Iterator[Any]:
     """A job whose ``result()`` is ``fn(*args)``, computed here when asked (``mesh_from_dense``'s default)."""
     yield SimpleNamespace(result=lambda: fn(*args))
+
+
+def _window_extremes_at(rng: np.ndarray, idx: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """``_window_ranges``' nearest and farthest valid range at the flat pixels ``idx`` only, read off the window's
+    pixels (columns wrapping, rows clamped): the same values without filtering every pixel of the map (nor
+    holding a view's filtered maps while the points are asked nearest camera first)."""
+    height, width = rng.shape
+    rows, cols = np.divmod(idx, width)
+    flat = rng.ravel()
+    near = np.full(len(idx), np.inf, rng.dtype)
+    far = np.full(len(idx), -np.inf, rng.dtype)
+    pad = window // 2
+    for dr in range(-pad, pad + 1):
+        base = np.clip(rows + dr, 0, height - 1) * width
+        for dc in range(-pad, pad + 1):
+            values = flat[base + (cols + dc) % width]
+            with np.errstate(invalid="ignore"):
+                valid = np.isfinite(values) & (values > 0)
+            np.minimum(near, np.where(valid, values, np.inf), out=near)
+            np.maximum(far, np.where(valid, values, -np.inf), out=far)
+    return near, far
 
 
 def _near_points(vertices: np.ndarray, tree: cKDTree, radius: float) -> np.ndarray:
