@@ -109,8 +109,8 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
 
 def auto_poisson_depth(points: np.ndarray, voxel_size: float, cell_voxels: float = 4.0) -> int:
     """Octree depth whose cells are at most ``cell_voxels`` voxels of the cloud wide (more than half that). Four
-    voxels (0.8% of the scene at the default voxel) keep the mesh within τ = 1% of the surface as two did, at a
-    quarter of the Poisson time and of the triangles (README, dmesh); finer only fits noise."""
+    (cells of 2-4 voxels, 0.4-0.8% of the scene at the default voxel) keep the mesh within τ = 1% of the surface as
+    two did, at a quarter of the Poisson time and of the triangles (README, dmesh); finer only fits noise."""
     extent = float(np.max(points.max(0) - points.min(0))) * POISSON_SCALE
     depth = int(np.ceil(np.log2(max(extent / (cell_voxels * voxel_size), 1.0))))
     return int(np.clip(depth, MIN_POISSON_DEPTH, MAX_POISSON_DEPTH))
