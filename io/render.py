@@ -47,15 +47,13 @@ def colorize_range(range_map: np.ndarray, valid: np.ndarray | None = None, *,
         ok = np.isfinite(rng) & (rng > 0)
     if valid is not None:
         ok &= np.asarray(valid, bool)
-    out = np.zeros(rng.shape + (3,), np.uint8)
     if not ok.any():
-        return out
-    inv = np.zeros_like(rng)
-    inv[ok] = 1.0 / rng[ok]
+        return np.zeros(rng.shape + (3,), np.uint8)
+    # whole-image operations (no boolean gathers and scatters of the picture: a third of the time)
+    inv = np.divide(np.float32(1.0), rng, out=np.zeros_like(rng), where=ok)
     lo, hi = np.percentile(inv[ok], [2, 98])
     grey = np.clip((inv - lo) / max(hi - lo, 1e-12) * 255, 0, 255).astype(np.uint8)
-    out[ok] = cv2.applyColorMap(grey, colormap)[ok]
-    return out
+    return cv2.applyColorMap(grey, colormap) * ok[..., None].view(np.uint8)
 
 
 def _up_and_axes(points: np.ndarray, up: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -215,7 +213,7 @@ def _put_text_centred(image: np.ndarray, text: str, centre_x: int, baseline_y: i
 
 def render_mesh(path: Path, vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray, **kwargs) -> Path:
     """Render a triangle mesh (RGB uint8 vertex ``colors``) like `render_point_cloud`: each triangle is splatted at
-    its centre with its mean colour, shaded by the angle of its normal to the scene's up direction (so that walls,
+    its centre and halfway to its corners with its mean colour, shaded by the angle of its normal to the scene's up direction (so that walls,
     floor and edges read as surfaces), and back faces are culled. Keywords as for `render_point_cloud`."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     tri = np.asarray(triangles, np.int64).reshape(-1, 3)
@@ -228,5 +226,9 @@ def render_mesh(path: Path, vertices: np.ndarray, triangles: np.ndarray, colors:
     light = up + 0.5 * e1
     shade = 0.55 + 0.45 * np.abs(normals @ (light / np.linalg.norm(light)))
     cols = np.asarray(colors, np.float64).reshape(-1, 3)[tri].mean(1) * shade[:, None]
-    return render_point_cloud(path, corners.mean(1), np.clip(cols, 0, 255).astype(np.uint8), normals=normals,
-                              **kwargs)
+    # the centre and the three points halfway to the corners: a coarse mesh's large triangles read as surfaces,
+    # not as a grid of dots
+    centres = corners.mean(1)
+    samples = np.concatenate([centres[:, None], 0.5 * (corners + centres[:, None])], axis=1).reshape(-1, 3)
+    return render_point_cloud(path, samples, np.repeat(np.clip(cols, 0, 255).astype(np.uint8), 4, axis=0),
+                              normals=np.repeat(normals, 4, axis=0), **kwargs)

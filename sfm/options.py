@@ -322,7 +322,10 @@ class DensifyOptions:
     mesh: bool = setting(True, "write densify/dense_mesh.ply: a Poisson mesh of the fused cloud, trimmed to what the "
                          "views support")
     mesh_depth: int = setting(0, "Poisson octree depth of the mesh", ge=5, le=12,
-                              zero_means="cells about two voxels wide (at most 11)")
+                              zero_means="cells about mesh_cell_voxels voxels wide (at most 11)")
+    mesh_cell_voxels: float = setting(4.0, "with mesh_depth 0: Poisson's octree cells about this many voxels of the "
+                                      "fused cloud wide (2: a finer mesh, 4 to 5 times the Poisson time)",
+                                      ge=1.0, le=64.0)
     mesh_density_quantile: float = setting(0.02, "mesh vertices below this quantile of Poisson density are dropped",
                                            ge=0.0, lt=1.0)
     mesh_max_distance_voxels: float = setting(3.0, "mesh triangles with a vertex farther than this many voxels from "

@@ -43,8 +43,10 @@ Panoramas are never upsampled: the working width is at most the native width.
 
 Threads: pairs run two at a time, the per-panorama steps (region fill, world fill, confirmation, fusion) on a pool
 of local threads, the world planes are found in a forked child process while the stereo check and the region fill
-run, open3d is imported on a side thread while the fusion checks the points, the maps are saved on one while the
-mesh's Poisson runs in a child process, and BLAS keeps one thread; every result is gathered in a fixed order, so
+run, open3d is imported on a side thread while the fusion checks the points, the cloud is cleaned in a child
+process while the maps are saved on the side thread and each point's observing camera (the mesh's normals) is found,
+the cloud's preview is drawn on the side thread while the mesh's Poisson runs in a child process, and BLAS keeps one
+thread; every result is gathered in a fixed order, so
 the outputs are the same bytes on any number of threads (``tests/test_densify_stage.py``). ``phases_s`` in the
 summary gives each phase's wall and CPU seconds (the process's and its reaped children's: a side thread's or a
 child's count in the phase it ends in).
@@ -56,9 +58,10 @@ import ctypes
 import importlib
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import nullcontext
 from functools import partial
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -151,23 +154,31 @@ def _run(ctx: StageContext) -> dict:
         # plotting packages it imports too: imported on the side thread while the panoramas' points are checked, not
         # on the serial cleaning (not earlier either: its 0.17 GB would come on top of the stereo's peak); a failed
         # import fails again where open3d is used
-        side.submit(importlib.import_module, "open3d")
-        points, colors, normals, voxel = _fuse(config, images, maps, R, t, centers, sparse)
-        clock.lap("fusion")
+        imported = side.submit(importlib.import_module, "open3d")
+        saved = []
+
+        def while_cleaning(merged: np.ndarray) -> np.ndarray | None:
+            # the maps are saved on the side thread and each point's observing camera (the mesh's normals) found
+            # here while the cloud is cleaned in a child process (open3d holds the GIL throughout)
+            saved.append(side.submit(lambda: [ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k]))
+                                              for k in sorted(maps)]))
+            return mesh_step.observing_cameras(ctx, merged, R, t, maps)
+
+        points, colors, normals, voxel, observers = _fuse(config, images, maps, R, t, centers, sparse, imported,
+                                                          while_cleaning)
+        clock.lap("fusion_and_saving")
         _release_freed_memory()
-        # the mesh's Poisson runs on one thread (reproducible): meanwhile the side thread draws the cloud's preview
-        # and saves the maps (all three only read the cloud and the maps)
+        # the mesh's Poisson runs on one thread (reproducible), in a child process: meanwhile the side thread draws
+        # the cloud's preview (both only read the cloud)
         preview = side.submit(render_point_cloud, ctx.out.path("dense_preview"), points, colors, normals=normals,
                               up=camera_up(R[cams]), cameras=centers[cams],
                               title=f"{ctx.dataset.name}: {len(points)} points") \
             if config.preview and len(points) >= 3 else None
-        saved = side.submit(lambda: [ctx.out.save_depth(names[k], *maps[k], colorize_range(*maps[k]))
-                                     for k in sorted(maps)])
-        mesh = mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel)
-        for job in (preview, saved):
+        mesh = mesh_step.write_dense_mesh(ctx, points, colors, normals, R, t, maps, voxel, observers)
+        for job in (preview, *saved):
             if job is not None:
                 job.result()
-    clock.lap("mesh_previews_and_saving")
+    clock.lap("mesh_and_previews")
     log.info("densify phases (wall / CPU s): %s", ", ".join(f"{k} {v['wall']} / {v['cpu']}" for k, v in clock.phases.items()))
     summary = {
         "pairs": int(len(pairs)), "panoramas": len(maps), "points": int(len(points)), "voxel_size": voxel,
@@ -529,9 +540,12 @@ def _observable(config: DensifyOptions, mask: np.ndarray | None, shape: tuple[in
 
 
 # ------------------------------------------------------------------------------------------------ fusion
-def _fuse(config: DensifyOptions, images, maps, R, t, centers, sparse):
-    """Consistency-checked, voxel-merged, cleaned cloud: (points, RGB colours, normals, voxel size). Each
-    panorama's points are checked and down-sampled on local threads, then merged in panorama order."""
+def _fuse(config: DensifyOptions, images, maps, R, t, centers, sparse, imported: Future | None = None,
+          while_cleaning: Callable[[np.ndarray], np.ndarray | None] | None = None):
+    """Consistency-checked, voxel-merged, cleaned cloud: (points, RGB colours, normals, voxel size, what
+    ``while_cleaning`` gave for the merged points, at the kept ones). Each panorama's points are checked and
+    down-sampled on local threads, then merged in panorama order; the cleaning (open3d, ``imported`` on the side
+    thread) runs in a child process forked once no other thread is at work, ``while_cleaning`` here meanwhile."""
     cams = sorted(maps)
     voxel = config.voxel_size or DEFAULT_VOXEL_SHARE * scene_size(centers[cams], sparse["points"])
     ranges = [maps[k][0] for k in cams]
@@ -549,7 +563,12 @@ def _fuse(config: DensifyOptions, images, maps, R, t, centers, sparse):
     points, colors = voxel_downsample(np.concatenate([part[0] for part in parts]), voxel,
                                       np.concatenate([part[1] for part in parts]))
     log.info("fusion: %d consistent points, %d after voxel merging (voxel %.4g)", raw, len(points), voxel)
-    points, colors, normals = dense.clean_point_cloud(
-        points, colors, voxel_size=0.0, nb_neighbors=config.outlier_neighbours,
-        std_ratio=config.outlier_std_ratio, normal_radius=3.0 * voxel, viewpoint=centers[cams].mean(0))
-    return points, colors, normals, float(voxel)
+    clean = partial(dense.clean_point_cloud, voxel_size=0.0, nb_neighbors=config.outlier_neighbours,
+                    std_ratio=config.outlier_std_ratio, normal_radius=3.0 * voxel, viewpoint=centers[cams].mean(0),
+                    return_index=True)
+    if imported is not None:
+        wait([imported])  # no thread at work when forking (a failed import fails again in the cleaning)
+    with forked(clean, points, colors) as cleaned:
+        found = while_cleaning(points) if while_cleaning is not None else None
+        points, colors, normals, kept = cleaned.result()
+    return points, colors, normals, float(voxel), (found[kept] if found is not None else None)

@@ -12,26 +12,45 @@ import numpy as np
 
 from fullview.io.render import render_mesh
 from fullview.sfm.camera import camera_center, camera_up
-from fullview.sfm.dense.mesh import MeshParams, mesh_from_dense
+from fullview.sfm.dense.mesh import MeshParams, mesh_from_dense, nearest_observing_cameras
 from fullview.sfm.options import DensifyOptions
-from fullview.stages.protocol import StageContext, cpu_seconds, fork_call
+from fullview.stages.protocol import StageContext, cpu_seconds, forked
 
 log = logging.getLogger(__name__)
 
 
 def mesh_params(config: DensifyOptions) -> MeshParams:
-    return MeshParams(depth=config.mesh_depth, density_quantile=config.mesh_density_quantile,
+    return MeshParams(depth=config.mesh_depth, cell_voxels=config.mesh_cell_voxels, density_quantile=config.mesh_density_quantile,
                       max_distance_voxels=config.mesh_max_distance_voxels,
                       support_tolerance=config.mesh_support_tolerance, window_px=config.mesh_window_px,
                       min_component_triangles=config.mesh_min_component_triangles)
 
 
+def _mesh_maps(range_maps: dict) -> list[np.ndarray]:
+    """The range maps (``{camera index: (range, valid)}``) as the mesh reads them, in camera order: NaN where
+    invalid."""
+    return [np.where(range_maps[k][1], range_maps[k][0], np.nan) for k in sorted(range_maps)]
+
+
+def observing_cameras(ctx: StageContext, points: np.ndarray, R_cam_from_world: np.ndarray,
+                      t_cam_from_world: np.ndarray, range_maps: dict) -> np.ndarray | None:
+    """Each point's nearest observing camera (``sfm.dense.mesh.nearest_observing_cameras``, positions in camera
+    order), which turns the mesh's normals, found before the normals are (None: no mesh is made)."""
+    config: DensifyOptions = ctx.options
+    if not config.mesh or len(points) < 16:
+        return None
+    cams = sorted(range_maps)
+    return nearest_observing_cameras(np.asarray(points, np.float64), R_cam_from_world[cams],
+                                     t_cam_from_world[cams], _mesh_maps(range_maps),
+                                     tolerance=config.mesh_support_tolerance, window_px=config.mesh_window_px)
+
+
 def write_dense_mesh(ctx: StageContext, points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
                      R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, range_maps: dict,
-                     voxel_size: float) -> dict | None:
+                     voxel_size: float, observers: np.ndarray | None = None) -> dict | None:
     """Mesh the fused cloud, trim it by the range maps (``{camera index: (range, valid)}``), save it through the
     stage writer and return its summary figures (None when ``densify.mesh`` is off or the cloud is too small; the
-    reason when meshing fails)."""
+    reason when meshing fails). ``observers``: each point's ``observing_cameras``, when already found."""
     config: DensifyOptions = ctx.options
     if not config.mesh:
         return None
@@ -40,12 +59,13 @@ def write_dense_mesh(ctx: StageContext, points: np.ndarray, colors: np.ndarray, 
         return None
     t0, cpu0 = time.perf_counter(), cpu_seconds()
     cams = sorted(range_maps)
-    maps = [np.where(range_maps[k][1], range_maps[k][0], np.nan) for k in cams]
+    maps = _mesh_maps(range_maps)
     try:
-        # Poisson in a child process: open3d holds the GIL for its 2-4 s, and the stage's side thread has the
-        # cloud's preview and the maps to write meanwhile
+        # Poisson in a child process: open3d holds the GIL for its 1-2 s, and the stage's side thread has the
+        # cloud's preview and the maps to write meanwhile (and this thread the trims' nearest-point tree)
         mesh = mesh_from_dense(points, colors, normals, R_cam_from_world[cams], t_cam_from_world[cams], maps,
-                               voxel_size=voxel_size, params=mesh_params(config), poisson=fork_call)
+                               voxel_size=voxel_size, params=mesh_params(config), poisson=forked,
+                               observers=observers)
     except ValueError as e:  # a degenerate cloud: the cloud and range maps stand without a mesh
         log.warning("densify: no mesh: %s", e)
         return {"error": str(e)}

@@ -331,3 +331,48 @@ def test_partner_in_another_direction_removes_the_epipole_stripe():
     assert ok[near_x_epipole].mean() > 0.5  # filled by the other partner
     rel = np.abs(both[ok] - gt0[ok]) / gt0[ok]
     assert np.median(rel) < 0.02 and np.mean(rel < 0.1) > 0.9
+
+
+@pytest.mark.parametrize("min_consistent", [1, 2])
+def test_fusion_stops_checking_a_point_once_kept_with_the_kept_set_of_counting_every_view(min_consistent):
+    """A point is checked by the next view only while short of min_consistent supports: the kept points are the ones
+    counting every view's support gives (the reference written out here), whatever the views' disagreements."""
+    from fullview.sfm.camera import pixels_to_bearings
+    from fullview.sfm.dense.fusion import _pixel_centers, _support, _valid_range
+
+    imgs, ranges, Rs, ts = _fusion_scene()
+    rng = np.random.default_rng(3)
+    noisy = [r * np.where(rng.random(r.shape) < 0.3, 1.05, 1.0).astype(np.float32) for r in ranges]
+    noisy += [ranges[0] * np.float32(1.3)]
+    R4, t4 = np.concatenate([Rs, Rs[:1]]), np.concatenate([ts, ts[:1] + 0.05])
+    imgs4 = list(imgs) + [imgs[0]]
+    got, _, src = dense.fuse_depth_maps(noisy, imgs4, R4, t4, min_consistent=min_consistent, rel_tol=0.02,
+                                        return_sources=True)
+    kept = total = 0
+    for i, rmap in enumerate(noisy):
+        rows, cols = _pixel_centers(*rmap.shape, 1)
+        keep = _valid_range(rmap[rows, cols])
+        rows, cols = rows[keep], cols[keep]
+        x_cam = pixels_to_bearings(np.stack([cols + 0.5, rows + 0.5], 1), rmap.shape[1], rmap.shape[0]) \
+            * rmap[rows, cols][:, None]
+        pts = (x_cam - t4[i]) @ R4[i]
+        count = sum(_support(pts, noisy[k], R4[k], t4[k], 0.02).astype(int) for k in range(len(noisy)) if k != i)
+        expected = pts[count >= min_consistent]
+        assert np.array_equal(got[src == i], expected)
+        kept, total = kept + len(expected), total + len(pts)
+    assert 0.05 * total < kept < 0.95 * total  # the checks decided: neither all kept nor all dropped
+
+
+def test_clean_point_cloud_names_the_rows_it_keeps():
+    """Without down-sampling the cleaned points are input rows, in order (the stage finds each point's observing
+    camera on the merged cloud while it is cleaned and keeps these rows of it)."""
+    rng = np.random.default_rng(1)
+    pts = np.vstack([np.c_[rng.uniform(-1, 1, (3000, 2)), np.zeros(3000)], rng.uniform(-1, 1, (30, 3)) + [0, 0, 3]])
+    pts = pts[rng.permutation(len(pts))]
+    cols = rng.integers(0, 255, (len(pts), 3), dtype=np.uint8)
+    p, c, n, kept = dense.clean_point_cloud(pts, cols, voxel_size=0.0, nb_neighbors=20, std_ratio=2.0,
+                                            normal_radius=0.1, return_index=True)
+    assert np.array_equal(p, pts[kept]) and np.array_equal(c, cols[kept]) and np.all(np.diff(kept) > 0)
+    assert len(kept) == 3000 and np.abs(p[:, 2]).max() < 1e-9
+    with pytest.raises(ValueError, match="voxel_size 0"):
+        dense.clean_point_cloud(pts, cols, voxel_size=0.02, return_index=True)

@@ -158,7 +158,7 @@ def test_fusion_drops_a_corrupted_panorama(reconstructed):
     acc = {}
     for min_consistent in (1, 0):
         options = dataclasses.replace(config, min_consistent=min_consistent)
-        pts, _, _, _ = densify._fuse(options, images, maps, R, t, centers, sparse)
+        pts = densify._fuse(options, images, maps, R, t, centers, sparse)[0]
         m = dense_metrics(range_est=[None] * 3, valid_est=[None] * 3, range_gt=gt, R_gt_cam_from_world=R_gt,
                           t_gt_cam_from_world=t_gt, sim=sim, points=pts, scene_size=scene, names=names)
         acc[min_consistent] = m["cloud"]["accuracy"]

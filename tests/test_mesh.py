@@ -7,7 +7,7 @@ import pytest
 from fullview.sfm.camera import pixel_grid_bearings
 from fullview.sfm.dense.mesh import MeshParams, mesh_from_dense, view_support
 from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
-from fullview.stages.protocol import fork_call
+from fullview.stages.protocol import forked
 
 ROOM_MIN, ROOM_MAX = np.array([-3.0, -1.5, -2.5]), np.array([3.0, 1.5, 2.5])  # a box room, y down
 CENTERS = np.array([[-1.2, 0.0, -0.8], [1.0, 0.1, -0.5], [0.2, -0.1, 1.1]])
@@ -112,11 +112,33 @@ def test_poisson_in_a_child_process_gives_the_same_mesh(room):
     points, colors, normals, R, t, maps = room
     here = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6))
     child = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6),
-                            poisson=fork_call)
+                            poisson=forked)
     for a, b in ((here.vertices, child.vertices), (here.triangles, child.triangles),
                  (here.vertex_colors, child.vertex_colors)):
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
     assert here.stats == child.stats
+
+
+def test_observing_cameras_found_beforehand_give_the_same_mesh(room):
+    """The stage finds each point's observing camera while the cloud is cleaned and hands them over."""
+    from fullview.sfm.dense.mesh import nearest_observing_cameras
+
+    points, colors, normals, R, t, maps = room
+    observers = nearest_observing_cameras(points, R, t, maps, tolerance=0.03, window_px=3)
+    assert (observers >= 0).mean() > 0.95
+    here = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6))
+    given = mesh_from_dense(points, colors, normals, R, t, maps, voxel_size=VOXEL, params=MeshParams(depth=6),
+                            observers=observers)
+    assert here.vertices.tobytes() == given.vertices.tobytes() and here.triangles.tobytes() == given.triangles.tobytes()
+    # they are what turns the normals: a camera outside the room (no map), named for every point, turns the wall
+    # facing it outwards
+    from fullview.sfm.dense.mesh import orient_normals_to_views
+
+    R4, t4 = np.concatenate([R, R[:1]]), np.concatenate([t, [[0.0, 0.0, -10.0]]])
+    inward = orient_normals_to_views(points, normals, R4, t4, list(maps) + [None], tolerance=0.03, window_px=3)
+    outward = orient_normals_to_views(points, normals, R4, t4, list(maps) + [None], tolerance=0.03, window_px=3,
+                                      observers=np.full(len(points), 3))
+    assert np.mean(np.einsum("na,na->n", inward, outward) < 0) > 0.05  # the wall between them and it
 
 
 def _nearest(a, b, reverse=False):
@@ -149,3 +171,72 @@ def test_mesh_samples_are_uniform_on_the_surface():
     hist = np.histogram2d(samples[:, 0], samples[:, 1], bins=(4, 2), range=((0, 2), (0, 1)))[0]
     assert hist.min() > 0.8 * hist.mean()
     assert np.array_equal(samples, sample_mesh_surface(vertices, triangles, 0.02))
+
+
+def test_normals_turn_to_the_nearest_observing_camera_as_a_pass_over_every_view_finds(room):
+    """Each point asks its cameras nearest first and stops at the first that observes it: the same normals as the
+    pass over every view written out here (the nearest observing camera, ties to the lower index; none observing:
+    the nearest camera), with a blob no map observes, a camera twice (a tie) and a view without a map."""
+    from scipy.spatial import cKDTree
+
+    from fullview.sfm.dense.mesh import (_pixel_index, _window_ranges, nearest_observing_cameras,
+                                         orient_normals_to_views)
+
+    points, _, normals, R, t, maps = room
+    rng = np.random.default_rng(1)
+    blob = BLOB_CENTER + BLOB_RADIUS * rng.normal(size=(500, 3)) / 2
+    points = np.concatenate([points, blob])
+    normals = np.concatenate([normals, rng.normal(size=(500, 3))]) * rng.choice([-1.0, 1.0], (len(points), 1))
+    R4, t4 = np.concatenate([R, R[:1], R[:1]]), np.concatenate([t, t[:1], t[:1] + 0.3])
+    maps4 = list(maps) + [maps[0], None]  # camera 3 is camera 0 again; camera 4 has no map
+    got = orient_normals_to_views(points, normals, R4, t4, maps4, tolerance=0.03, window_px=3)
+    chosen = nearest_observing_cameras(points, R4, t4, maps4, tolerance=0.03, window_px=3)
+    centers = -np.einsum("kba,kb->ka", R4, t4)
+    best, towards = np.full(len(points), np.inf), np.zeros_like(points)
+    camera = np.full(len(points), -1)
+    for k, rmap in enumerate(maps4):
+        if rmap is None:
+            continue
+        near, far, _ = _window_ranges(rmap, 3)
+        dist = np.linalg.norm(centers[k] - points, axis=1)
+        idx = _pixel_index(points @ R4[k].T + t4[k], rmap.shape)
+        seen = (near.ravel()[idx] <= dist * 1.03) & (far.ravel()[idx] >= dist * 0.97)
+        better = seen & (dist < best)
+        best[better], towards[better], camera[better] = dist[better], centers[k] - points[better], k
+    assert np.array_equal(chosen, camera) and np.sum(camera == 3) == 0 and np.sum(camera == 0) > 100
+    assert len(np.unique(camera)) == 4  # -1 and the three room cameras
+    unseen = ~np.isfinite(best)
+    assert 100 < unseen.sum() < len(blob) + 0.05 * len(points)  # the blob, and a few points on the room's edges
+    towards[unseen] = centers[cKDTree(centers).query(points[unseen])[1]] - points[unseen]
+    expected = np.where((np.einsum("na,na->n", normals, towards) < 0)[:, None], -normals, normals)
+    assert np.array_equal(got, expected)
+
+
+@pytest.mark.parametrize("cell_voxels", [2.0, 4.0, 5.5])
+def test_automatic_poisson_depth_gives_cells_of_about_the_asked_width(cell_voxels):
+    from fullview.sfm.dense.mesh import POISSON_SCALE, auto_poisson_depth
+
+    points = np.random.default_rng(0).uniform(-3.0, 3.0, (1000, 3))
+    extent = float(np.max(points.max(0) - points.min(0))) * POISSON_SCALE
+    for voxel in (0.005, 0.01, 0.013, 0.02):
+        cell = extent / 2 ** auto_poisson_depth(points, voxel, cell_voxels)
+        assert cell_voxels / 2 < cell / voxel <= cell_voxels
+
+
+@pytest.mark.parametrize("window", [1, 3, 5])
+def test_window_extremes_at_pixels_are_the_filtered_maps_values(window):
+    """The nearest / farthest valid range of a pixel's window read off its pixels equals the filtered maps' value
+    there, at the seam (columns wrap), at the poles (rows clamp) and next to invalid pixels (NaN, 0, negative)."""
+    from fullview.sfm.dense.mesh import _window_extremes_at, _window_ranges
+
+    rng = np.random.default_rng(window)
+    rmap = rng.uniform(1.0, 5.0, (40, 80)).astype(np.float32)
+    rmap[rng.random(rmap.shape) < 0.2] = np.nan
+    rmap[rng.random(rmap.shape) < 0.05] = 0.0
+    rmap[rng.random(rmap.shape) < 0.05] = -1.0
+    rmap[8:17, 18:27] = np.nan  # a window with no valid range
+    idx = np.concatenate([rng.integers(0, rmap.size, 500), [0, 79, 80 * 39, rmap.size - 1, 12 * 80 + 22]])
+    near, far, _ = _window_ranges(rmap, window)
+    got_near, got_far = _window_extremes_at(rmap, idx, window)
+    assert np.array_equal(got_near, near.ravel()[idx]) and np.array_equal(got_far, far.ravel()[idx])
+    assert np.isinf(got_near[-1]) and got_near.dtype == np.float32

@@ -106,9 +106,13 @@ def fuse_depth_maps(
         pts = (x_cam - t_all[i]) @ R_all[i]  # world = Rᵀ (x_cam − t)
         count = np.zeros(len(pts), dtype=np.int32)
         others = neighbors[i] if neighbors is not None else range(n_views)
+        # only a point still short of min_consistent supports is checked by the next view: a point already kept
+        # stays kept whatever the others say, so the kept set is the one counting every view gives
+        short = np.arange(len(pts)) if min_consistent > 0 else np.zeros(0, np.intp)
         for k in others:
-            if k != i:
-                count += _support(pts, maps[k], R_all[k], t_all[k], rel_tol)
+            if k != i and len(short):
+                count[short] += _support(pts[short], maps[k], R_all[k], t_all[k], rel_tol)
+                short = short[count[short] < min_consistent]
         ok = count >= min_consistent
         log.debug("fusion: view %d keeps %d / %d points", i, ok.sum(), len(ok))
         all_pts.append(pts[ok])
@@ -232,12 +236,14 @@ def clean_point_cloud(
     std_ratio: float = DensifyOptions.outlier_std_ratio,
     normal_radius: float | None = None,
     viewpoint: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return_index: bool = False,
+):
     """Voxel down-sampling, statistical outlier removal and normal estimation with open3d.
 
     ``colors`` are uint8 (N, 3) (returned as uint8) or floats in [0, 1] (returned as float64). Normals are estimated
     from neighbours within ``normal_radius`` (default 3 · voxel_size, at most 30) and, if ``viewpoint`` (3,) is given,
-    oriented towards it. Returns (points (M, 3), colours (M, 3), normals (M, 3)).
+    oriented towards it. Returns (points (M, 3), colours (M, 3), normals (M, 3)[, the kept input rows (M,), in
+    order: only without down-sampling, ``voxel_size`` 0]).
     """
     import open3d as o3d
 
@@ -248,10 +254,14 @@ def clean_point_cloud(
     is_u8 = cols.dtype == np.uint8
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pcd.colors = o3d.utility.Vector3dVector(cols.astype(np.float64) / (255.0 if is_u8 else 1.0))
+    if return_index and voxel_size > 0:
+        raise ValueError("clean_point_cloud: return_index needs voxel_size 0 (a down-sampled point has no input row)")
     if voxel_size > 0:
         pcd = pcd.voxel_down_sample(voxel_size)
+    kept = np.arange(len(pcd.points))
     if nb_neighbors > 0 and len(pcd.points) > nb_neighbors:
-        pcd, _ = pcd.remove_statistical_outlier(nb_neighbors=nb_neighbors, std_ratio=std_ratio)
+        pcd, index = pcd.remove_statistical_outlier(nb_neighbors=nb_neighbors, std_ratio=std_ratio)
+        kept = np.asarray(index, np.int64)
     radius = normal_radius or 3.0 * voxel_size
     if len(pcd.points) >= 3:
         search = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30) if radius > 0 else (
@@ -264,6 +274,8 @@ def clean_point_cloud(
     out_cols = np.clip(np.rint(out_cols * 255), 0, 255).astype(np.uint8) if is_u8 else out_cols
     normals = np.asarray(pcd.normals) if pcd.has_normals() else np.zeros((len(pcd.points), 3))
     log.info("clean_point_cloud: %d -> %d points", len(pts), len(pcd.points))
+    if return_index:
+        return np.asarray(pcd.points), out_cols, normals, kept
     return np.asarray(pcd.points), out_cols, normals
 
 

@@ -21,8 +21,10 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from types import SimpleNamespace
+from typing import Any, Callable, ContextManager, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -39,7 +41,8 @@ POISSON_SCALE = 1.1  # open3d's default: the octree spans the cloud's box times 
 
 @dataclass(kw_only=True)
 class MeshParams:
-    depth: int = 0  # Poisson octree depth; 0 = cells about two voxels wide
+    depth: int = 0  # Poisson octree depth; 0 = cells about cell_voxels voxels wide
+    cell_voxels: float = 4.0  # with depth 0: the octree cells' width in voxels of the cloud
     density_quantile: float = 0.02  # vertices below this quantile of Poisson density are dropped
     max_distance_voxels: float = 3.0  # triangles with a vertex farther than this from a dense point are dropped
     support_tolerance: float = 0.03  # relative range tolerance of a view's support / free-space test
@@ -57,23 +60,29 @@ class Mesh:
 
 def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray, R_cam_from_world: np.ndarray,
                     t_cam_from_world: np.ndarray, range_maps: Sequence[np.ndarray | None], *, voxel_size: float,
-                    params: MeshParams = MeshParams(), poisson: Callable[..., tuple] | None = None) -> Mesh:
-    """The trimmed, coloured Poisson mesh of a fused cloud. ``poisson``: how ``poisson_surface`` is called (the
-    stage calls it in a child process: open3d holds the GIL throughout), by default here.
+                    params: MeshParams = MeshParams(),
+                    poisson: Callable[..., ContextManager] | None = None,
+                    observers: np.ndarray | None = None) -> Mesh:
+    """The trimmed, coloured Poisson mesh of a fused cloud. ``poisson``: how ``poisson_surface`` is started,
+    ``poisson(fn, *args)`` giving a context whose value's ``result()`` is ``fn(*args)`` (the stage's
+    ``protocol.forked``: a child process, open3d holds the GIL throughout); by default here, when asked.
 
     ``points`` / ``colors`` (uint8 RGB) / ``normals`` (N, 3): the fused cloud (the normals' signs do not matter:
-    they are turned towards the cameras that see the points); ``R_cam_from_world`` (K, 3, 3), ``t_cam_from_world`` (K, 3) and ``range_maps[k]`` (H, W) ranges
+    they are turned towards the cameras that see the points; ``observers``: ``nearest_observing_cameras`` of the
+    points, when already found); ``R_cam_from_world`` (K, 3, 3), ``t_cam_from_world`` (K, 3) and ``range_maps[k]`` (H, W) ranges
     (NaN or ≤ 0: invalid; None: no map) of the same cameras; ``voxel_size``: the cloud's spacing."""
     points = np.asarray(points, np.float64).reshape(-1, 3)
     if len(points) < 16:
         raise ValueError(f"a mesh needs at least 16 dense points, got {len(points)}")
     if not voxel_size > 0:
         raise ValueError(f"voxel_size must be > 0, got {voxel_size}")
-    depth = params.depth or auto_poisson_depth(points, voxel_size)
+    depth = params.depth or auto_poisson_depth(points, voxel_size, params.cell_voxels)
     normals = orient_normals_to_views(points, normals, R_cam_from_world, t_cam_from_world, range_maps,
-                                      tolerance=params.support_tolerance, window_px=params.window_px)
-    call = poisson or (lambda fn, *args: fn(*args))
-    vertices, triangles, density = call(poisson_surface, points, normals, depth)
+                                      tolerance=params.support_tolerance, window_px=params.window_px,
+                                      observers=observers)
+    with (poisson or _when_asked)(poisson_surface, points, normals, depth) as job:
+        tree = cKDTree(points)  # the distance trim's and the colours' nearest points, made while Poisson runs
+        vertices, triangles, density = job.result()
     stats = {"poisson_depth": int(depth), "poisson_vertices": int(len(vertices)),
              "poisson_triangles": int(len(triangles))}
     if len(triangles) == 0:
@@ -81,7 +90,7 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
     keep = np.ones(len(triangles), bool)
     low = density < np.quantile(density, params.density_quantile)
     keep &= _drop("density", ~low[triangles].any(1), keep, stats)
-    near = _near_points(vertices, points, params.max_distance_voxels * voxel_size)
+    near = _near_points(vertices, tree, params.max_distance_voxels * voxel_size)
     keep &= _drop("distance", near[triangles].all(1), keep, stats)
     supported = np.ones(len(triangles), bool)
     if any(m is not None for m in range_maps):  # without any range map there is nothing to check against
@@ -90,7 +99,7 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
     keep &= _drop("visibility", supported, keep, stats)
     keep &= _drop("small_pieces", _large_components(triangles, keep, params.min_component_triangles), keep, stats)
     vertices, triangles = _compact(vertices, triangles[keep])
-    vertex_colors = _nearest_colors(vertices, points, colors)
+    vertex_colors = _nearest_colors(vertices, tree, colors)
     stats.update(vertices=int(len(vertices)), triangles=int(len(triangles)),
                  trimmed_share=float(1.0 - len(triangles) / max(stats["poisson_triangles"], 1)))
     log.info("mesh: Poisson depth %d, %d triangles, %d kept (trimmed: %s)", depth, stats["poisson_triangles"],
@@ -98,42 +107,73 @@ def mesh_from_dense(points: np.ndarray, colors: np.ndarray, normals: np.ndarray,
     return Mesh(vertices=vertices, triangles=triangles.astype(np.int32), vertex_colors=vertex_colors, stats=stats)
 
 
-def auto_poisson_depth(points: np.ndarray, voxel_size: float) -> int:
-    """Octree depth whose cells are about two voxels of the cloud wide (finer only fits noise)."""
+def auto_poisson_depth(points: np.ndarray, voxel_size: float, cell_voxels: float = 4.0) -> int:
+    """Octree depth whose cells are at most ``cell_voxels`` voxels of the cloud wide (more than half that). Four
+    (cells of 2-4 voxels, 0.4-0.8% of the scene at the default voxel) keep the mesh within τ = 1% of the surface as
+    two did, at a quarter of the Poisson time and of the triangles (README, dmesh); finer only fits noise."""
     extent = float(np.max(points.max(0) - points.min(0))) * POISSON_SCALE
-    depth = int(np.ceil(np.log2(max(extent / (2.0 * voxel_size), 1.0))))
+    depth = int(np.ceil(np.log2(max(extent / (cell_voxels * voxel_size), 1.0))))
     return int(np.clip(depth, MIN_POISSON_DEPTH, MAX_POISSON_DEPTH))
 
 
 def orient_normals_to_views(points: np.ndarray, normals: np.ndarray, R_cam_from_world: np.ndarray,
                             t_cam_from_world: np.ndarray, range_maps: Sequence[np.ndarray | None], *,
-                            tolerance: float, window_px: int) -> np.ndarray:
+                            tolerance: float, window_px: int, observers: np.ndarray | None = None) -> np.ndarray:
     """Normals turned towards the nearest camera that observes each point (its range map ranges it within
-    ``tolerance``), else towards the nearest camera. One viewpoint for the whole cloud (what outlier removal
+    ``tolerance``; ``observers``: those cameras when already found, ``nearest_observing_cameras``), else towards
+    the nearest camera. One viewpoint for the whole cloud (what outlier removal
     used) turns the walls between rooms the wrong way, and Poisson then inflates them into closed bubbles."""
     normals = np.asarray(normals, np.float64).reshape(-1, 3).copy()
-    R = np.asarray(R_cam_from_world, np.float64)
-    centers = -np.einsum("kba,kb->ka", R, np.asarray(t_cam_from_world, np.float64))
-    best = np.full(len(points), np.inf)  # distance to the nearest observing camera
+    centers = -np.einsum("kba,kb->ka", np.asarray(R_cam_from_world, np.float64),
+                         np.asarray(t_cam_from_world, np.float64))
+    chosen = observers if observers is not None else nearest_observing_cameras(
+        points, R_cam_from_world, t_cam_from_world, range_maps, tolerance=tolerance, window_px=window_px)
     towards = np.zeros_like(normals)
-
-    def observed(k: int) -> tuple[np.ndarray, np.ndarray]:
-        near, far, _ = _window_ranges(np.asarray(range_maps[k]), window_px)
-        dist = np.linalg.norm(centers[k] - points, axis=1)
-        idx = _pixel_index(points @ R[k].T + t_cam_from_world[k], range_maps[k].shape)
-        return dist, (near.ravel()[idx] <= dist * (1 + tolerance)) & (far.ravel()[idx] >= dist * (1 - tolerance))
-
-    views = [k for k, rng in enumerate(range_maps) if rng is not None]
-    for k, (dist, seen) in zip(views, _map_views(observed, views)):  # merged in view order: the same result
-        better = seen & (dist < best)
-        best[better], towards[better] = dist[better], centers[k] - points[better]
-    unseen = ~np.isfinite(best)
+    found = chosen >= 0
+    towards[found] = centers[chosen[found]] - points[found]
+    unseen = ~found
     if unseen.any():
         _, nearest = cKDTree(centers).query(points[unseen])
         towards[unseen] = centers[nearest] - points[unseen]
     flip = np.einsum("na,na->n", normals, towards) < 0
     normals[flip] *= -1
     return normals
+
+
+def nearest_observing_cameras(points: np.ndarray, R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray,
+                              range_maps: Sequence[np.ndarray | None], *, tolerance: float, window_px: int
+                              ) -> np.ndarray:
+    """(N,) index of the nearest camera whose range map observes each point (ranges it within ``tolerance`` in
+    the pixel window around its ray; equal distances: the lower index), -1 where none does."""
+    R = np.asarray(R_cam_from_world, np.float64)
+    centers = -np.einsum("kba,kb->ka", R, np.asarray(t_cam_from_world, np.float64))
+    views = [k for k, rng in enumerate(range_maps) if rng is not None]
+    chosen = np.full(len(points), -1, np.intp)  # the nearest observing camera (-1: none)
+    if views:
+        dist = np.stack([np.linalg.norm(centers[k] - points, axis=1) for k in views], axis=1)
+        # each point asks its cameras nearest first (ties: the lower index) and stops at the first that observes
+        # it: the camera a pass over all of them keeps, for about one projection per point instead of one per view
+        order = np.argsort(dist, axis=1, kind="stable")
+        pending = np.arange(len(points))
+        for rank in range(len(views)):
+            asked = order[pending, rank]
+            groups = [(v, pending[asked == v]) for v in range(len(views))]
+            groups = [(v, sub) for v, sub in groups if len(sub)]
+
+            def observed(group: tuple[int, np.ndarray]) -> np.ndarray:
+                v, sub = group
+                k = views[v]
+                idx = _pixel_index(points[sub] @ R[k].T + t_cam_from_world[k], range_maps[k].shape)
+                near, far = _window_extremes_at(np.asarray(range_maps[k]), idx, window_px)
+                d = dist[sub, v]
+                return (near <= d * (1 + tolerance)) & (far >= d * (1 - tolerance))
+
+            for (v, sub), seen in zip(groups, _map_views(observed, groups)):
+                chosen[sub[seen]] = views[v]
+            pending = pending[chosen[pending] < 0]
+            if not len(pending):
+                break
+    return chosen
 
 
 def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int
@@ -206,8 +246,35 @@ def _window_ranges(rng: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray
     return near, far, through
 
 
-def _near_points(vertices: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
-    dist, _ = cKDTree(points).query(vertices, distance_upper_bound=radius)
+@contextmanager
+def _when_asked(fn: Callable[..., Any], *args: Any) -> Iterator[Any]:
+    """A job whose ``result()`` is ``fn(*args)``, computed here when asked (``mesh_from_dense``'s default)."""
+    yield SimpleNamespace(result=lambda: fn(*args))
+
+
+def _window_extremes_at(rng: np.ndarray, idx: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """``_window_ranges``' nearest and farthest valid range at the flat pixels ``idx`` only, read off the window's
+    pixels (columns wrapping, rows clamped): the same values without filtering every pixel of the map (nor
+    holding a view's filtered maps while the points are asked nearest camera first)."""
+    height, width = rng.shape
+    rows, cols = np.divmod(idx, width)
+    flat = rng.ravel()
+    near = np.full(len(idx), np.inf, rng.dtype)
+    far = np.full(len(idx), -np.inf, rng.dtype)
+    pad = window // 2
+    for dr in range(-pad, pad + 1):
+        base = np.clip(rows + dr, 0, height - 1) * width
+        for dc in range(-pad, pad + 1):
+            values = flat[base + (cols + dc) % width]
+            with np.errstate(invalid="ignore"):
+                valid = np.isfinite(values) & (values > 0)
+            np.minimum(near, np.where(valid, values, np.inf), out=near)
+            np.maximum(far, np.where(valid, values, -np.inf), out=far)
+    return near, far
+
+
+def _near_points(vertices: np.ndarray, tree: cKDTree, radius: float) -> np.ndarray:
+    dist, _ = tree.query(vertices, distance_upper_bound=radius)
     return np.isfinite(dist)
 
 
@@ -246,8 +313,8 @@ def _compact(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, n
     return vertices[used], renumber[triangles].reshape(-1, 3)
 
 
-def _nearest_colors(vertices: np.ndarray, points: np.ndarray, colors: np.ndarray) -> np.ndarray:
+def _nearest_colors(vertices: np.ndarray, tree: cKDTree, colors: np.ndarray) -> np.ndarray:
     if len(vertices) == 0:
         return np.zeros((0, 3), np.uint8)
-    _, idx = cKDTree(points).query(vertices)
+    _, idx = tree.query(vertices)
     return np.asarray(colors, np.uint8).reshape(-1, 3)[idx]
