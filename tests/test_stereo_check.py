@@ -125,3 +125,39 @@ def test_a_range_behind_another_views_surface_is_dropped_with_its_points(room):
     outside = np.ones(with_points.shape, bool)
     outside[patch] = False
     assert with_points[outside].mean() < 0.02
+
+
+def test_pixel_indices_and_nearest_range_where_equal_the_full_splat():
+    """The stereo check's projections (``fusion.pixel_rows_cols``, ``fusion.nearest_range_where``) give the
+    pixels ``bearings_to_pixels`` gives and, at every wanted pixel, the value ``splat_nearest`` gives, to the
+    last bit: points across the seam and the poles, several on one pixel, one at the camera centre."""
+    from fullview.sfm.camera import bearings_to_pixels
+    from fullview.sfm.dense.fusion import nearest_range_where, pixel_rows_cols
+    from fullview.sfm.dense_metrics import splat_nearest
+    rng = np.random.default_rng(3)
+    height, width = 64, 128
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    R *= np.sign(np.linalg.det(R))
+    t = rng.normal(size=3)
+    center = -R.T @ t
+    points = center + rng.normal(size=(20000, 3)) * rng.uniform(0.1, 5.0, size=(20000, 1))
+    points[:50] = points[50:100]  # duplicates: ties on one pixel
+    points[100] = center  # no direction: skipped by both
+    pole = R.T @ np.array([0.0, -1.0, 0.0])
+    points[101:110] = center + np.outer(np.linspace(1, 2, 9), pole)
+    seam = R.T @ np.array([-1e-12, 0.0, -1.0])
+    points[110:120] = center + np.outer(np.linspace(1, 2, 10), seam)
+    x_cam = points @ R.T + t
+    norm = np.linalg.norm(x_cam, axis=1)
+    seen = norm > 0
+    pix = bearings_to_pixels(x_cam[seen], width, height)
+    rows, cols = pixel_rows_cols(x_cam[seen], norm[seen], width, height)
+    assert np.array_equal(rows, np.clip(pix[:, 1].astype(np.intp), 0, height - 1))
+    assert np.array_equal(cols, np.clip(pix[:, 0].astype(np.intp), 0, width - 1))
+    full = splat_nearest(points, R, t, (height, width))
+    wanted = rng.random((height, width)) < 0.3
+    wanted.ravel()[rows * width + cols] |= rng.random(len(rows)) < 0.5  # many wanted pixels that points hit
+    near = nearest_range_where(points, R, t, wanted)
+    assert np.array_equal(near[wanted.ravel()], full[wanted.ravel()])
+    assert np.isinf(near[~wanted.ravel()]).all()
+    assert np.isfinite(near[wanted.ravel()]).sum() > 1000

@@ -15,7 +15,6 @@ from fullview.sfm.options import DensifyOptions
 
 from fullview.sfm.camera import bearings_to_pixels, pixels_to_bearings
 from fullview.sfm.dense.depth import sample_edge_aware
-from fullview.sfm.dense_metrics import splat_nearest
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +124,37 @@ def fuse_depth_maps(
     return points, colors
 
 
+def pixel_rows_cols(x_cam: np.ndarray, norm: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) intp indices of the equirectangular pixel each (N, 3) camera-frame point falls in, given its
+    norm (``np.linalg.norm(x_cam, axis=1)``, > 0): the clipped integer parts of ``camera.bearings_to_pixels``,
+    the same operations element for element, without its second norm and its stacked (N, 2) copy."""
+    lon = np.arctan2(x_cam[:, 0], x_cam[:, 2])
+    lat = np.arcsin(np.clip(-x_cam[:, 1] / norm, -1.0, 1.0))
+    x = np.mod((lon / (2.0 * np.pi) + 0.5) * width, width)
+    y = (0.5 - lat / np.pi) * height
+    return np.clip(y.astype(np.intp), 0, height - 1), np.clip(x.astype(np.intp), 0, width - 1)
+
+
+def nearest_range_where(points: np.ndarray, R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray,
+                        wanted: np.ndarray) -> np.ndarray:
+    """``dense_metrics.splat_nearest`` read only where it is asked: (H·W,) the nearest range of the world
+    ``points`` projecting into each pixel of a camera's equirectangular grid where ``wanted`` ((H, W) bool) is
+    set, +inf elsewhere. The same values at the wanted pixels (a minimum is exact in any
+    order); the points that land elsewhere are never scattered (the stereo check reads a quarter of the pixels)."""
+    height, width = wanted.shape
+    x_cam = points @ np.asarray(R_cam_from_world).T + t_cam_from_world
+    dist = np.linalg.norm(x_cam, axis=1)
+    ok = dist > 0
+    if not ok.all():
+        x_cam, dist = x_cam[ok], dist[ok]
+    rows, cols = pixel_rows_cols(x_cam, dist, width, height)
+    flat = rows * width + cols
+    hit = wanted.ravel()[flat]
+    best = np.full(height * width, np.inf)
+    np.minimum.at(best, flat[hit], dist[hit])
+    return best
+
+
 def seen_through_single_estimates(
     range_maps: Sequence[np.ndarray], single_partners: Sequence[np.ndarray], cameras: Sequence[int],
     R_cam_from_world: np.ndarray, t_cam_from_world: np.ndarray, neighbors: Sequence[Sequence[int]], rel_tol: float,
@@ -160,9 +190,11 @@ def seen_through_single_estimates(
                                                    neighbors[i], rel_tol)
             if points is not None:
                 r_own = rmap[rows, cols]
+                wanted = np.zeros((height, width), bool)
+                wanted[rows, cols] = True
                 for k in neighbors[i]:
                     if k != i:
-                        nearest = splat_nearest(points[k], R_all[i], t_all[i], (height, width))
+                        nearest = nearest_range_where(points[k], R_all[i], t_all[i], wanted)
                         beyond += (nearest[rows * width + cols] < (1 - rel_tol) * r_own) \
                             & (single_partners[i][rows, cols] != cameras[k])
             bad = (beyond > 0) & (confirmed == 0)
@@ -186,11 +218,10 @@ def _independent_votes(points: np.ndarray, partner: np.ndarray, camera: int, ran
         x_k = points @ R_all[k].T + t_all[k]
         r_pred = np.linalg.norm(x_k, axis=1)
         h_k, w_k = np.shape(range_maps[k])
-        pix = bearings_to_pixels(x_k, w_k, h_k)
-        row = np.clip(pix[:, 1].astype(np.intp), 0, h_k - 1)
-        col = np.clip(pix[:, 0].astype(np.intp), 0, w_k - 1)
-        r_obs = np.asarray(range_maps[k])[row, col]
-        same_pair = (partner == cameras[k]) & (np.asarray(single_partners[k])[row, col] == camera)
+        row, col = pixel_rows_cols(x_k, r_pred, w_k, h_k)
+        flat = row * w_k + col  # one gather each from the raveled maps (a 2-D fancy index costs twice as much)
+        r_obs = np.ravel(range_maps[k]).take(flat)
+        same_pair = (partner == cameras[k]) & (np.ravel(single_partners[k]).take(flat) == camera)
         with np.errstate(invalid="ignore"):
             confirmed += (np.abs(r_obs - r_pred) <= rel_tol * r_pred) & ~same_pair
             beyond += (r_obs > (1 + rel_tol) * r_pred) & ~same_pair
