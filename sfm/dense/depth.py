@@ -49,11 +49,28 @@ def depth_from_disparity(theta_i: np.ndarray, disparity_angle: np.ndarray, basel
 
 
 def rectified_range_maps(disparity: DisparityResult, baseline: float) -> tuple[np.ndarray, np.ndarray]:
-    """(range_i, range_j): float32 ranges on the rectified grids of cameras i and j (NaN invalid)."""
-    theta = theta_of_columns(disparity.disparity_i.shape[1])[None, :]
-    range_i = depth_from_disparity(theta, disparity.disparity_i, baseline)
-    range_j = depth_from_disparity(np.pi - theta, disparity.disparity_j, baseline)
-    return range_i.astype(np.float32), range_j.astype(np.float32)
+    """(range_i, range_j): float32 ranges on the rectified grids of cameras i and j (NaN invalid);
+    ``depth_from_disparity`` cast to float32, computed in place (``_ranges_by_sines``)."""
+    theta = theta_of_columns(disparity.disparity_i.shape[1])
+    return (_ranges_by_sines(theta, disparity.disparity_i, baseline),
+            _ranges_by_sines(np.pi - theta, disparity.disparity_j, baseline))
+
+
+def _ranges_by_sines(theta: np.ndarray, disparity: np.ndarray, baseline: float) -> np.ndarray:
+    """float32 ``depth_from_disparity(theta[None, :], disparity, baseline)`` for a rectified grid (``theta`` per
+    column): the same float64 operations on the matched pixels, element for element, but masked in place instead
+    of gathered and scattered (a third less CPU; the stereo does it for 14 maps per stage on the bench's room)."""
+    out = np.full(disparity.shape, np.nan, np.float32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        matched = disparity > 0
+        d = disparity.astype(np.float64)
+        r = np.add(theta[None, :], d)
+        np.sin(r, out=r, where=matched)
+        np.sin(d, out=d, where=matched)
+        np.multiply(baseline, r, out=r, where=matched)
+        np.divide(r, d, out=r, where=matched)
+        np.copyto(out, r, casting="same_kind", where=matched & (r > 0))
+    return out
 
 
 def sample_edge_aware(
