@@ -402,3 +402,24 @@ def test_clean_point_cloud_names_the_rows_it_keeps():
     assert len(kept) == 3000 and np.abs(p[:, 2]).max() < 1e-9
     with pytest.raises(ValueError, match="voxel_size 0"):
         dense.clean_point_cloud(pts, cols, voxel_size=0.02, return_index=True)
+
+
+def test_forward_warp_equals_the_row_column_version():
+    """``disparity._forward_warp`` (flat indices) equals the straightforward version with (row, column) indices
+    written out here, bit for bit: collisions (the largest disparity wins), targets past the last column, NaN,
+    halves rounded to even."""
+    from fullview.sfm.dense.disparity import _forward_warp
+    rng = np.random.default_rng(11)
+    disp = (rng.integers(0, 16 * 40, size=(32, 96)) / 16).astype(np.float32)
+    disp[rng.random(disp.shape) < 0.3] = np.nan
+    disp[:, -8:] = 30.5  # beyond the grid
+    rows, cols = np.nonzero(np.isfinite(disp))
+    d = disp[rows, cols]
+    target = np.rint(cols + d).astype(np.intp)
+    inside = (target >= 0) & (target < disp.shape[1])
+    want = np.full(disp.size, -np.inf, np.float32)
+    np.maximum.at(want, rows[inside] * disp.shape[1] + target[inside], d[inside])
+    want = np.where(np.isfinite(want), want, np.nan).reshape(disp.shape)
+    got = _forward_warp(disp)
+    assert got.tobytes() == want.tobytes()
+    assert np.isfinite(got).mean() > 0.3
