@@ -12,9 +12,9 @@ within a multiple of 90°. Correct pairs agree to 0.1° (median; 0.25° at the 9
 A pair whose fit disagrees by more than the tolerance is fitted again under the four yaws the walls allow (the
 baseline by `two_view.baseline_given_rotation`, 2 unknowns); the best of them replaces the fit when it explains
 nearly as many matches (`AMBIGUOUS_SHARE`): the matches could not tell the poses apart, the walls can. A weak pair
-(fewer than `filter.min_inliers`) takes the walls' pose even when it explains fewer: on seed 44 the three weak pairs
-that contradict the walls (5.7°, 88° and 118° off) hold 16, 15 and 21 inliers, chance matches among them, and the
-walls' pose 13, 13 and 17, within 0.2° of the truth (the pair then verifies only if those reach the minimum). Where a
+(fewer than `filter.min_inliers`) that contradicts the walls is dropped (the filter's `_checked_against_walls`): on
+seed 44 the three such pairs (5.7°, 88° and 118° off) hold 16, 15 and 21 inliers, chance matches among them, and on
+the bare 2048 px home seed 0 four correct-looking weak pairs verified at the walls' pose pulled the model. Where a
 strong pair's walls' pose explains far fewer, the matches decide and the fit stays (a scene whose walls are not at
 right angles, a wrong axis).
 Pure geometry: no file access.
