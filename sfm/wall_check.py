@@ -25,6 +25,7 @@ from fullview.sfm.camera import normalize, skew
 
 MIN_TOLERANCE_DEG = 1.0  # a fit this close to the walls' yaw (modulo 90°) is not questioned
 AXIS_SIGMAS = 3.0  # ... nor one within this many standard errors of the two images' axes
+AMBIGUOUS_SHARE = 0.9  # a strong fit contradicting the walls is dropped only if their pose explains this share
 
 
 def wall_residual_deg(R_j_from_i: np.ndarray, axis_i: np.ndarray, axis_j: np.ndarray, gravity_j: np.ndarray) -> float:

@@ -121,7 +121,7 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
     dropped = False
     if upright_pair and frames is not None and keep.sum() >= min(minimum, options.min_inliers):
         keep, dropped = _checked_against_walls(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], F, keep,
-                                               frames, i, j)
+                                               frames, i, j, threshold, options.seed + k, options.min_inliers)
     good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
     added = None
     if descriptors is not None and len(good) >= options.min_inliers:
@@ -140,9 +140,11 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
                        wall_dropped=dropped)
 
 
-def _checked_against_walls(bear_i, bear_j, matches, F, keep, frames, i: int, j: int):
+def _checked_against_walls(bear_i, bear_j, matches, F, keep, frames, i: int, j: int, threshold: float, seed: int,
+                           strong: int):
     """(inlier mask, dropped): the upright fit's inliers, or none where the fit's yaw contradicts the two images'
-    walls (modulo 90°, beyond `wall_check.tolerance_deg`): such a pair is not verified (`wall_check`).
+    walls (modulo 90°, beyond `wall_check.tolerance_deg`): such a pair is not verified (`wall_check`), unless it has
+    `strong` inliers and the best pose the walls allow explains fewer than `wall_check.AMBIGUOUS_SHARE` of them.
 
     Why dropped, not refitted under the yaws the walls allow (homejoin's first version): the walls' pose of such a
     pair was right to 0.05-0.23° in rotation and 0.01-0.15° in baseline, yet verified it cost the model: on the bare
@@ -163,6 +165,13 @@ def _checked_against_walls(bear_i, bear_j, matches, F, keep, frames, i: int, j: 
     residual = wall_check.wall_residual_deg(pose.R_j_from_i, axis[i], axis[j], wall_gravity[j])
     if abs(residual) <= wall_check.tolerance_deg(axis_std[i], axis_std[j]):
         return keep, False
+    if keep.sum() >= strong:
+        # a strong fit the walls' best pose explains far worse stays: the walls are not at right angles, or an axis
+        # is wrong (homejoin's guard)
+        _, _, inliers = wall_check.pose_the_walls_allow(b_i, b_j, pose.R_j_from_i, axis[i], axis[j],
+                                                        wall_gravity[j], threshold, seed)
+        if inliers.sum() < wall_check.AMBIGUOUS_SHARE * keep.sum():
+            return keep, False
     return np.zeros_like(keep), True
 
 

@@ -75,17 +75,35 @@ def test_a_pair_whose_fit_contradicts_the_walls_is_dropped_a_fit_that_agrees_sta
     for error in (3.0, 5.7, 10.0):
         wrong = turn(f["gravity_j"], error) @ R_ji
         t_wrong, keep = two_view.baseline_given_rotation(b_i, b_j, wrong, THRESHOLD)
-        kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(f), 0, 1)
+        kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(f), 0, 1, THRESHOLD, 0, 30)
         assert keep.sum() >= 5 and dropped and not kept.any()
     # the true fit is left alone, and so is a fit within the tolerance of the walls (0.5°, below 1°)
     for error in (0.0, 0.5):
         R = turn(f["gravity_j"], error) @ R_ji
         t, keep = two_view.baseline_given_rotation(b_i, b_j, R, THRESHOLD)
-        kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(R, t), keep, _frames(f), 0, 1)
+        kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(R, t), keep, _frames(f), 0, 1, THRESHOLD, 0, 30)
         assert not dropped and (kept == keep).all() and kept.sum() >= 14
     # an image without a wall axis: no check
     no_axis = dict(f, axis_j=np.full(3, np.nan))
     wrong = turn(f["gravity_j"], 5.7) @ R_ji
     t_wrong, keep = two_view.baseline_given_rotation(b_i, b_j, wrong, THRESHOLD)
-    kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(no_axis), 0, 1)
+    kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(no_axis), 0, 1, THRESHOLD, 0, 30)
     assert not dropped and (kept == keep).all()
+
+
+def test_a_strong_fit_the_walls_explain_far_worse_stays():
+    """Walls not at right angles (an axis 30° off): the walls' best pose explains few of a strong pair's matches, so
+    its fit stays; where the walls' pose explains as many, the strong fit is dropped."""
+    rng = np.random.default_rng(4)
+    b_i, b_j, R_ji, t_ji, f, _ = _pair(rng, n_true=40, n_junk=20)
+    matches = np.column_stack([np.arange(len(b_i))] * 2)
+    keep = two_view.consistent_with_pose(b_i, b_j, R_ji, t_ji, THRESHOLD)
+    skewed = dict(f, axis_j=turn(f["gravity_j"], 30.0) @ f["axis_j"])
+    kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(R_ji, t_ji), keep, _frames(skewed), 0, 1,
+                                           THRESHOLD, 0, 30)
+    assert not dropped and (kept == keep).all()
+    off = dict(f, axis_j=turn(f["gravity_j"], 5.0) @ f["axis_j"])  # the walls' pose 5° off still explains most
+    kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(R_ji, t_ji), keep, _frames(off), 0, 1,
+                                           THRESHOLD, 0, 30)
+    assert dropped == (two_view.baseline_given_rotation(b_i, b_j, turn(f["gravity_j"], -5.0) @ R_ji, THRESHOLD)[1].sum()
+                       >= 0.9 * keep.sum())
