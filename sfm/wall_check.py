@@ -9,10 +9,14 @@ with 85). The upright fit then picks one by chance.
 Each image's Manhattan frame (`manhattan.manhattan_axis`: the wall direction modulo 90° about gravity, from its own
 lines) fixes the relative yaw modulo 90° independently of the matches: R_j_from_i must carry i's wall axis onto j's
 within a multiple of 90°. Correct pairs agree to 0.1° (median; 0.25° at the 90th percentile on bare home seed 45).
-A pair whose fit disagrees by more than the tolerance is not verified (the filter's `_checked_against_walls`: the
-matches could not pin its pose down, and verified at the pose the walls allow, `pose_the_walls_allow`, such pairs cost
-the 2048 px homes' models precision, though each was right to a tenth of a degree). `pose_the_walls_allow` stays
-for diagnosis: the best of the four poses the walls allow, each with its baseline from the matches.
+A pair whose fit disagrees by more than the tolerance is fitted again under the four yaws the walls allow (the
+baseline by `two_view.baseline_given_rotation`, 2 unknowns); the best of them replaces the fit when it explains
+nearly as many matches (`AMBIGUOUS_SHARE`): the matches could not tell the poses apart, the walls can. A weak pair
+(fewer than `filter.min_inliers`) takes the walls' pose even when it explains fewer: on seed 44 the three weak pairs
+that contradict the walls (5.7°, 88° and 118° off) hold 16, 15 and 21 inliers, chance matches among them, and the
+walls' pose 13, 13 and 17, within 0.2° of the truth (the pair then verifies only if those reach the minimum). Where a
+strong pair's walls' pose explains far fewer, the matches decide and the fit stays (a scene whose walls are not at
+right angles, a wrong axis). With `filter.wall_check_drop` such pairs are dropped instead (README, wallfix).
 Pure geometry: no file access.
 """
 
@@ -25,7 +29,7 @@ from fullview.sfm.camera import normalize, skew
 
 MIN_TOLERANCE_DEG = 1.0  # a fit this close to the walls' yaw (modulo 90°) is not questioned
 AXIS_SIGMAS = 3.0  # ... nor one within this many standard errors of the two images' axes
-AMBIGUOUS_SHARE = 0.9  # a strong fit contradicting the walls is dropped only if their pose explains this share
+AMBIGUOUS_SHARE = 0.9  # the walls' pose replaces the fit when it explains this share of the fit's inliers
 
 
 def wall_residual_deg(R_j_from_i: np.ndarray, axis_i: np.ndarray, axis_j: np.ndarray, gravity_j: np.ndarray) -> float:

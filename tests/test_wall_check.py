@@ -67,28 +67,35 @@ def _frames(f, n=2):
 
 
 def test_a_pair_whose_fit_contradicts_the_walls_is_dropped_a_fit_that_agrees_stays():
-    """Fitted at a yaw the walls do not allow, a pair is not verified, weak or strong (homejoin's version verified it
-    at the walls' pose: on the 2048 px homes that cost the model, `_checked_against_walls`)."""
+    """With filter.wall_check_drop, a pair fitted at a yaw the walls do not allow is not verified (by default it is
+    verified at the walls' pose: on the whole 2048 px homes that cost the model, `_checked_against_walls`); without
+    the option the same weak pair takes the walls' pose."""
     rng = np.random.default_rng(2)
     b_i, b_j, R_ji, t_ji, f, _ = _pair(rng, n_true=16, n_junk=30)
     matches = np.column_stack([np.arange(len(b_i))] * 2)
     for error in (3.0, 5.7, 10.0):
         wrong = turn(f["gravity_j"], error) @ R_ji
         t_wrong, keep = two_view.baseline_given_rotation(b_i, b_j, wrong, THRESHOLD)
-        kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(f), 0, 1, THRESHOLD, 0, 30)
-        assert keep.sum() >= 5 and dropped and not kept.any()
+        F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(f), 0,
+                                                  1, THRESHOLD, 0, 30, drop=True)
+        assert keep.sum() >= 5 and how == "dropped" and not kept.any()
+        F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(f), 0,
+                                                  1, THRESHOLD, 0, 30)
+        assert how == "fitted" and kept[:16].all()
     # the true fit is left alone, and so is a fit within the tolerance of the walls (0.5°, below 1°)
     for error in (0.0, 0.5):
         R = turn(f["gravity_j"], error) @ R_ji
         t, keep = two_view.baseline_given_rotation(b_i, b_j, R, THRESHOLD)
-        kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(R, t), keep, _frames(f), 0, 1, THRESHOLD, 0, 30)
-        assert not dropped and (kept == keep).all() and kept.sum() >= 14
+        F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(R, t), keep, _frames(f), 0, 1,
+                                                  THRESHOLD, 0, 30, drop=True)
+        assert how == "" and (kept == keep).all() and kept.sum() >= 14
     # an image without a wall axis: no check
     no_axis = dict(f, axis_j=np.full(3, np.nan))
     wrong = turn(f["gravity_j"], 5.7) @ R_ji
     t_wrong, keep = two_view.baseline_given_rotation(b_i, b_j, wrong, THRESHOLD)
-    kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(no_axis), 0, 1, THRESHOLD, 0, 30)
-    assert not dropped and (kept == keep).all()
+    F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(no_axis),
+                                              0, 1, THRESHOLD, 0, 30, drop=True)
+    assert how == "" and (kept == keep).all()
 
 
 def test_a_strong_fit_the_walls_explain_far_worse_stays():
@@ -99,11 +106,12 @@ def test_a_strong_fit_the_walls_explain_far_worse_stays():
     matches = np.column_stack([np.arange(len(b_i))] * 2)
     keep = two_view.consistent_with_pose(b_i, b_j, R_ji, t_ji, THRESHOLD)
     skewed = dict(f, axis_j=turn(f["gravity_j"], 30.0) @ f["axis_j"])
-    kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(R_ji, t_ji), keep, _frames(skewed), 0, 1,
-                                           THRESHOLD, 0, 30)
-    assert not dropped and (kept == keep).all()
+    F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(R_ji, t_ji), keep, _frames(skewed), 0, 1,
+                                           THRESHOLD, 0, 30, drop=True)
+    assert how == "" and (kept == keep).all()
     off = dict(f, axis_j=turn(f["gravity_j"], 5.0) @ f["axis_j"])  # the walls' pose 5° off still explains most
-    kept, dropped = _checked_against_walls(b_i, b_j, matches, f_of_pose(R_ji, t_ji), keep, _frames(off), 0, 1,
-                                           THRESHOLD, 0, 30)
-    assert dropped == (two_view.baseline_given_rotation(b_i, b_j, turn(f["gravity_j"], -5.0) @ R_ji, THRESHOLD)[1].sum()
-                       >= 0.9 * keep.sum())
+    F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(R_ji, t_ji), keep, _frames(off), 0, 1,
+                                           THRESHOLD, 0, 30, drop=True)
+    walls_pose = turn(f["gravity_j"], -5.0) @ R_ji
+    explained = two_view.baseline_given_rotation(b_i, b_j, walls_pose, THRESHOLD)[1].sum()
+    assert (how == "dropped") == (explained >= 0.9 * keep.sum())
