@@ -158,8 +158,8 @@ def _checked_against_walls(bear_i, bear_j, matches, F, keep, frames, i: int, j: 
     0.01-0.15° in baseline, yet verified it cost the whole 2048 px homes' models (bare seed 0 98.74 → 98.47 AUC@5,
     93.71 → 92.34 @1 against no check; seed 72 98.61 → 98.00, 93.06 → 89.98), and dropped they gain
     (98.98 / 94.91, 98.75 / 93.76). On the split 2048 px home seed 47 (held out) dropping its 8 such pairs cost
-    58.74 → 50.80 AUC@5 (25.54 → 28.13 @1), so it stays off. Refining the walls' pose on its inliers did not help: from that start the
-    yaw slides along the ambiguity the walls resolved (seed 0's 005-009: 0.08° → 0.98°)."""
+    58.74 → 50.80 AUC@5 (25.54 → 28.13 @1), so it stays off. Refining the walls' pose on its inliers did not
+    help: from that start the yaw slides along the ambiguity the walls resolved (seed 0's 005-009: 0.08° → 0.98°)."""
     axis, axis_std, wall_gravity = frames[0], frames[1], frames[2]
     if not (np.isfinite(axis[i]).all() and np.isfinite(axis[j]).all()):
         return F, keep, ""
