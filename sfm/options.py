@@ -114,6 +114,8 @@ class FilterOptions:
     wall_check: bool = setting(True, "upright pairs whose yaw contradicts both images' wall directions (modulo 90 "
                                "degrees, upright: vanishing) are fitted again under the yaws the walls allow; that "
                                "pose replaces the fit when it explains 90% as many matches")
+    wall_check_drop: bool = setting(False, "such pairs are dropped instead of refitted (better on whole 2048 px "
+                                    "homes, worse on a split one: README wallfix)")
     guided_matching: bool = setting(False, "rematch a pair's features along the epipolar circles of its F estimate "
                                     "(more inliers on weak pairs)")
     guided_ratio: float = setting(0.9, "ratio test of guided matching, among the candidates near the circle",

@@ -16,7 +16,7 @@ nearly as many matches (`AMBIGUOUS_SHARE`): the matches could not tell the poses
 that contradict the walls (5.7°, 88° and 118° off) hold 16, 15 and 21 inliers, chance matches among them, and the
 walls' pose 13, 13 and 17, within 0.2° of the truth (the pair then verifies only if those reach the minimum). Where a
 strong pair's walls' pose explains far fewer, the matches decide and the fit stays (a scene whose walls are not at
-right angles, a wrong axis).
+right angles, a wrong axis). With `filter.wall_check_drop` such pairs are dropped instead (README, wallfix).
 Pure geometry: no file access.
 """
 
