@@ -60,7 +60,11 @@ REFIT_BANDS = (4.0, 2.0)  # rematch-and-refit rounds before the final rematch, t
 # hypothesis 0.3° off in yaw and 2° in its baseline keeps only 16 of 39 true matches within one threshold (with 7
 # chance ones, which the refit then follows); a wider band keeps them, and the refit at one threshold finds them
 RATIO = 0.8  # the ratio test among a feature's epipolar candidates
-MIN_POINT_SUPPORT = 8  # points of each model that must agree on the placement of a pair confirmed alone
+MIN_POINT_SUPPORT = 5  # points of each model that must agree on the placement of a pair confirmed alone
+MIN_POINT_SHARE = 0.75  # ... and this share of the rematched matches that are its points (2048 home seed 44: the
+# chance pair 027-008 9 of 17 and 7 of 20, 028-008 7 of 8 and 2 of 14)
+MAX_SCALE_FACTOR = 2.0  # b's scale from the points within this factor of the models' median baselines' ratio (one
+# to three panoramas per room: neighbours are a room apart everywhere)
 POINT_TOLERANCE = 2.0  # ... their error in the pair's other camera, in inlier thresholds (points carry their own)
 MIN_POINT_PARALLAX_DEG = 3.0  # points this close to the baseline's line fix no distance along it
 MAX_WALL_SEEDS = 6  # (pair, rotation the walls allow) hypotheses rematched, most 2-unknown inliers first
@@ -178,7 +182,8 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
             return M, chosen, placed, rows
     if points is None:
         return None
-    frames = dict(R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, tolerance_rad=POINT_TOLERANCE * threshold_rad)
+    frames = dict(R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, tolerance_rad=POINT_TOLERANCE * threshold_rad,
+                  step_ratio=step_a / step_b if step_b > 0 else 1.0)
     for pair, (R_lk, t_lk, m) in alone:
         found = _joined_by_points(pair, R_lk, t_lk, m, bearings, points, **frames)
         if found is not None:
@@ -225,7 +230,8 @@ def _rotation_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + K + K @ K / (1.0 + c)
 
 
-def _joined_by_points(pair, R_lk, t_lk, m, bearings, points, *, R_a, C_a, R_b, C_b, tolerance_rad: float):
+def _joined_by_points(pair, R_lk, t_lk, m, bearings, points, *, R_a, C_a, R_b, C_b, tolerance_rad: float,
+                      step_ratio: float):
     """(M, chosen, placement, inlier rows) of the join by one confirmed pair (k of b, l of a) when points of both
     models agree on its length (see the module doc), or None."""
     k, l = pair.k, pair.l
@@ -242,11 +248,13 @@ def _joined_by_points(pair, R_lk, t_lk, m, bearings, points, *, R_a, C_a, R_b, C
     lam, n_a = distance_along(C_a[l], u, pa.X[on_a[seen_a]], rays_a, tolerance_rad)
     rays_b = bearings[l][m[seen_b, 1]] @ (R_a[l] @ M)  # l's rays in b's frame
     mu, n_b = distance_along(C_b[k], -M.T @ u, pb.X[on_b[seen_b]], rays_b, tolerance_rad)
-    log.info("one-pair join %d-%d: %d of %d points of model a agree on its length, %d of %d of model b",
-             k, l, n_a, seen_a.sum(), n_b, seen_b.sum())
-    if min(n_a, n_b) < MIN_POINT_SUPPORT:
+    scale = lam / mu if mu > 0 else 0.0
+    log.info("one pair %d-%d: %d of %d points of model a agree on its length, %d of %d of model b; scale %.3f "
+             "(median baselines' ratio %.3f)", k, l, n_a, seen_a.sum(), n_b, seen_b.sum(), scale, step_ratio)
+    if (min(n_a, n_b) < MIN_POINT_SUPPORT or n_a < MIN_POINT_SHARE * seen_a.sum()
+            or n_b < MIN_POINT_SHARE * seen_b.sum()
+            or not 1.0 / MAX_SCALE_FACTOR <= scale / step_ratio <= MAX_SCALE_FACTOR):
         return None
-    scale = lam / mu
     shift = C_a[l] + lam * u - scale * M @ C_b[k]
     rows = [(k, int(a), l, int(b)) for a, b in m]
     return M, [(pair, M, u, m)], (float(scale), shift, False), rows
