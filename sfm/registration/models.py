@@ -146,8 +146,10 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
     if (options.join_by_weak_pairs and pair_matches is not None and gravity is not None
             and weak_join_threshold_rad is not None):
         guided, rematch = options.weak_join_guided, options.weak_join_rematch
+        one_pair = options.weak_join_one_pair and rematch
         while _join_once_by_weak_pairs(state, links, pair_matches, bearings, gravity, weak_join_threshold_rad,
-                                       options, descriptors, guided, rematch, wall_axes):
+                                       options, descriptors, guided, rematch, wall_axes if one_pair else None,
+                                       one_pair):
             pass
     _renumber(state)
     if pair_matches is not None and options.min_weak_pair_inliers:
@@ -765,7 +767,7 @@ def _similarity_of_poses(R_b, C_b, R_a, C_a, max_rotation_deg: float = 1.0, max_
 def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: dict[tuple[int, int], np.ndarray],
                              bearings, gravity: np.ndarray, threshold_rad: float, options: RegistrationOptions,
                              descriptors=None, guided: bool = False, rematch: bool = False,
-                             wall_axes: np.ndarray | None = None) -> bool:
+                             wall_axes: np.ndarray | None = None, one_pair: bool = False) -> bool:
     """Join the first pair of models (largest first) that several weak pairs between them agree on
     (`weak_joins.join_by_weak_pairs`; with ``guided``, single fits' rotations guide the other pairs; with
     ``rematch``, pairs rematched along their epipolar circles, `rematch_join`): the smaller
@@ -785,7 +787,6 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                           R_b={int(k): state.R_cam_from_world[k] for k in cams_b},
                           C_b={int(k): state.centers[k] for k in cams_b}, gravity=gravity,
                           threshold_rad=threshold_rad, step_a=float(step_a), step_b=float(step_b), seed=options.seed)
-            one_pair = rematch and options.weak_join_one_pair
             rematching = (partial(join_by_rematching, cross=cross, bearings=bearings, descriptors=descriptors,
                                   points=_model_points_pair(state, (a, b), bearings) if one_pair else None,
                                   wall_axes=wall_axes if one_pair else None, **frames)
