@@ -167,6 +167,11 @@ class RegistrationOptions:
                                       "test among the circle's features); two or more pairs so confirmed (20+ "
                                       "matches, twice those under the pose turned by 90, 180 or 270 degrees) that "
                                       "place the models consistently join them")
+    weak_join_one_pair: bool = setting(True, "where the rematch confirms one pair but no second one (a single doorway "
+                                       "pair), the pair joins the models when points of both models agree on one "
+                                       "placement of its second camera (5+ and 3/4 of each model's points "
+                                       "among its matches, b's scale within 2x of the baselines' ratio); seeds "
+                                       "also from the four rotations the images' walls allow between the models")
     unjoined_parts: str = setting("keep", "a part whose scale neither the pair directions nor shared points fix: "
                                   "separate: placed again by points or left a model of its own; keep: a guess "
                                   "(scaled to main's median baseline; a camera tied by one pair at the median "

@@ -46,7 +46,8 @@ def run(ctx: StageContext) -> dict:
                           descriptors=_descriptors(ctx, obs) if options.resection else None,
                           pair_matches=_raw_matches(ctx) if (options.min_weak_pair_inliers
                                                               or options.join_by_weak_pairs) else None,
-                          gravity=verified.extra.get("gravity"), weak_join_threshold_rad=_filter_threshold(ctx))
+                          gravity=verified.extra.get("gravity"), weak_join_threshold_rad=_filter_threshold(ctx),
+                          wall_axes=verified.extra.get("manhattan_axis"))
     R, C, model_id = models.R_cam_from_world, models.centers, models.model_id
     t = -np.einsum("nab,nb->na", R, C)
     rot_res, dir_res, pair_ok = _judge_pairs(epi, weights, models, t, options)

@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 from fullview.sfm.camera import normalize
 from fullview.sfm.matching import match_descriptors
 from fullview.sfm.options import MatchesOptions
-from fullview.sfm.registration.rematch_join import (MIN_REMATCHED, confirmed_pose, join_by_rematching, rematched)
+from fullview.sfm.registration.rematch_join import (MIN_REMATCHED, ModelPoints, confirmed_pose, distance_along,
+                                                   join_by_rematching, rematched)
 from fullview.sfm.registration.weak_joins import CrossPair
 from fullview.sfm.rotations import rotation_angle_deg
 
@@ -119,3 +120,70 @@ def test_a_seed_fit_and_a_companion_through_one_doorway_join_two_models_at_the_t
         pair.b_k, pair.b_l = bearings[pair.k][pair.matches[:, 0]], bearings[pair.l][pair.matches[:, 1]]
     assert join_by_rematching(fits, cross, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, gravity=gravity, bearings=bearings,
                               descriptors=descriptors, threshold_rad=THRESHOLD, step_a=1.6, step_b=1.6) is None
+
+
+def _one_doorway(rng, scale_b: float = 0.6):
+    """Two models meeting through one pair (2 of b, 0 of a): a's cameras 0, 1 and b's 2, 3 see the doorway's points
+    X; b's frame is x_a = s0 M0 x_b + T0. Returns the scene and the join's keyword arguments."""
+    R = [_yaw(10.0), _yaw(-35.0), _yaw(70.0), _yaw(150.0)]
+    C = [np.zeros(3), np.array([1.6, 0.02, 0.2]), np.array([1.0, 0.03, 1.8]), np.array([2.2, 0.0, 3.5])]
+    M0, T0 = _yaw(41.0), np.array([0.7, 0.0, -0.4])
+    R_b = {k: R[k] @ M0 for k in (2, 3)}
+    C_b = {k: M0.T @ (C[k] - T0) / scale_b for k in (2, 3)}
+    X = rng.uniform([-3, -1, -1], [4, 1.2, 4], (40, 3))
+    views = _views(rng, R, C, X, _descriptors(rng, 40), lookalikes=2, alike_share=0.7)
+    bearings, descriptors = [v[0] for v in views], [v[1] for v in views]
+    raw = match_descriptors(descriptors[2], descriptors[0], MatchesOptions(ratio=0.8, mutual=True))
+    cross = [CrossPair(k=2, l=0, b_k=bearings[2][raw[:, 0]], b_l=bearings[0][raw[:, 1]], matches=raw)]
+    # the models' points: feature n < 40 of every camera is point n (a's in a's frame, b's in b's)
+    of_feature = {k: np.where(np.arange(len(bearings[k])) < 40, np.arange(len(bearings[k])), -1) for k in range(4)}
+    points = (ModelPoints(X=X, point_of_feature={0: of_feature[0], 1: of_feature[1]}),
+              ModelPoints(X=(X - T0) @ M0 / scale_b, point_of_feature={2: of_feature[2], 3: of_feature[3]}))
+    walls = np.array([R_k @ np.array([1.0, 0.0, 0.0]) for R_k in R])  # each camera's wall axis (walls along x, z)
+    kwargs = dict(R_a={0: R[0], 1: R[1]}, C_a={0: C[0], 1: C[1]}, R_b=R_b, C_b=C_b,
+                  gravity=np.array([R_k @ DOWN for R_k in R]), bearings=bearings, descriptors=descriptors,
+                  threshold_rad=THRESHOLD, step_a=1.6, step_b=1.6)
+    return (R, C, M0, T0, scale_b), cross, points, walls, kwargs
+
+
+def test_one_pair_whose_points_agree_joins_two_models_at_the_true_similarity():
+    rng = np.random.default_rng(3)
+    (R, C, M0, T0, s0), cross, points, walls, kwargs = _one_doorway(rng)
+    fits = [(cross[0], _yaw(0.3) @ M0, normalize(C[2] - C[0]), np.ones(8, bool))]  # a rough seed fit
+    assert join_by_rematching(fits, cross, **kwargs) is None  # one pair: no companion confirms it
+    for seeds, axes in ((fits, None), ([], walls)):  # the seed fit, or no fit but the walls' rotations
+        join = join_by_rematching(seeds, cross, points=points, wall_axes=axes, **kwargs)
+        assert join is not None
+        M, chosen, (scale, shift, guessed), rows = join
+        assert rotation_angle_deg(M, M0) < 0.05 and not guessed and len(chosen) == 1
+        assert abs(scale / s0 - 1.0) < 0.01
+        for k in (2, 3):  # b's cameras land on their true centres
+            assert np.linalg.norm(scale * M @ kwargs["C_b"][k] + shift - C[k]) < 0.02
+    # without walls and without a seed fit: nothing to start from
+    assert join_by_rematching([], cross, points=points, **kwargs) is None
+
+
+def test_a_closed_door_or_points_that_disagree_join_nothing():
+    rng = np.random.default_rng(4)
+    (R, C, M0, T0, s0), cross, points, walls, kwargs = _one_doorway(rng)
+    fits = [(cross[0], _yaw(0.3) @ M0, normalize(C[2] - C[0]), np.ones(8, bool))]
+    # look-alike objects: the same descriptors, but b's points lie elsewhere than a's (another room's layout)
+    moved = ModelPoints(X=rng.uniform([-3, -1, -1], [4, 1.2, 4], points[1].X.shape), point_of_feature=points[1].point_of_feature)
+    assert join_by_rematching(fits, cross, points=(points[0], moved), wall_axes=walls, **kwargs) is None
+    # the doorway closed: camera 2 sees another room
+    kwargs["descriptors"][2] = _descriptors(rng, len(kwargs["descriptors"][2]))
+    raw = match_descriptors(kwargs["descriptors"][2], kwargs["descriptors"][0], MatchesOptions(ratio=0.8, mutual=True))
+    b = kwargs["bearings"]
+    closed = [CrossPair(k=2, l=0, b_k=b[2][raw[:, 0]], b_l=b[0][raw[:, 1]], matches=raw)]
+    assert join_by_rematching(fits, closed, points=points, wall_axes=walls, **kwargs) is None
+
+
+def test_the_distance_along_a_ray_is_exact_on_points_that_agree_and_unsupported_on_scattered_ones():
+    rng = np.random.default_rng(5)
+    origin, v, lam = np.array([0.3, -0.1, 0.2]), normalize(np.array([1.0, 0.1, 0.4])), 2.7
+    X = rng.uniform(-4, 4, (30, 3))
+    rays = normalize(X - (origin + lam * v))
+    found, support = distance_along(origin, v, X, rays, THRESHOLD)
+    assert abs(found - lam) < 1e-9 and support >= 28  # all but points near the baseline's line
+    scattered = normalize(rng.normal(size=rays.shape))
+    assert distance_along(origin, v, X, scattered, THRESHOLD)[1] <= 2

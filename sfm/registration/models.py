@@ -32,7 +32,7 @@ from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.metrics import umeyama
 from fullview.sfm.options import MatchesOptions, RegistrationOptions
 from fullview.sfm.registration.driver import register
-from fullview.sfm.registration.rematch_join import join_by_rematching
+from fullview.sfm.registration.rematch_join import ModelPoints, join_by_rematching
 from fullview.sfm.registration.rigid_parts import estimate_join, rigid_parts
 from fullview.sfm.registration.view_graph import bridges, component_labels, largest_component
 from fullview.sfm.registration.weak_joins import (MIN_AGREEING_PAIRS, MIN_PAIR_INLIERS, CrossPair,
@@ -116,7 +116,8 @@ class ModelSet:
 def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndarray], options: RegistrationOptions,
                  descriptors: Sequence[np.ndarray] | None = None,
                  pair_matches: dict[tuple[int, int], np.ndarray] | None = None,
-                 gravity: np.ndarray | None = None, weak_join_threshold_rad: float | None = None) -> ModelSet:
+                 gravity: np.ndarray | None = None, weak_join_threshold_rad: float | None = None,
+                 wall_axes: np.ndarray | None = None) -> ModelSet:
     """Global models, grown by attachment and resection, merged where they overlap (see the module doc).
 
     ``descriptors`` (per image, (F_i, D) for its first F_i features, L2-normalised), when given, let growth place an
@@ -124,7 +125,8 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
     ((i, j) -> (M, 2) feature indices: every matched pair's raw matches), when given, let the pairs too weak to
     verify alone give their matches that fit a model (`_weak_pair_matches`) to the final tracks; with ``gravity``
     ((N, 3) per image, zero rows unknown) and ``weak_join_threshold_rad`` (the filter's inlier threshold) too, two
-    models are joined where several such pairs between them agree (`weak_joins`)."""
+    models are joined where several such pairs between them agree (`weak_joins`); ``wall_axes`` ((N, 3) each image's
+    Manhattan axis, zero rows unknown) give the one-pair join its seeds from the walls (`rematch_join`)."""
     state = _empty_state(len(bearings), len(links.pairs))
     state.tracks = tracks
     open_pairs = links.weights > 0
@@ -144,8 +146,10 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
     if (options.join_by_weak_pairs and pair_matches is not None and gravity is not None
             and weak_join_threshold_rad is not None):
         guided, rematch = options.weak_join_guided, options.weak_join_rematch
+        one_pair = options.weak_join_one_pair and rematch
         while _join_once_by_weak_pairs(state, links, pair_matches, bearings, gravity, weak_join_threshold_rad,
-                                       options, descriptors, guided, rematch):
+                                       options, descriptors, guided, rematch, wall_axes if one_pair else None,
+                                       one_pair):
             pass
     _renumber(state)
     if pair_matches is not None and options.min_weak_pair_inliers:
@@ -762,7 +766,8 @@ def _similarity_of_poses(R_b, C_b, R_a, C_a, max_rotation_deg: float = 1.0, max_
 # --------------------------------------------------------------------------------------------- weak joins
 def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: dict[tuple[int, int], np.ndarray],
                              bearings, gravity: np.ndarray, threshold_rad: float, options: RegistrationOptions,
-                             descriptors=None, guided: bool = False, rematch: bool = False) -> bool:
+                             descriptors=None, guided: bool = False, rematch: bool = False,
+                             wall_axes: np.ndarray | None = None, one_pair: bool = False) -> bool:
     """Join the first pair of models (largest first) that several weak pairs between them agree on
     (`weak_joins.join_by_weak_pairs`; with ``guided``, single fits' rotations guide the other pairs; with
     ``rematch``, pairs rematched along their epipolar circles, `rematch_join`): the smaller
@@ -782,7 +787,9 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                           R_b={int(k): state.R_cam_from_world[k] for k in cams_b},
                           C_b={int(k): state.centers[k] for k in cams_b}, gravity=gravity,
                           threshold_rad=threshold_rad, step_a=float(step_a), step_b=float(step_b), seed=options.seed)
-            rematching = (partial(join_by_rematching, cross=cross, bearings=bearings, descriptors=descriptors, **frames)
+            rematching = (partial(join_by_rematching, cross=cross, bearings=bearings, descriptors=descriptors,
+                                  points=_model_points_pair(state, (a, b), bearings) if one_pair else None,
+                                  wall_axes=wall_axes if one_pair else None, **frames)
                           if rematch and descriptors is not None else None)
             join = join_by_weak_pairs(cross=cross, guided=guided, rematch=rematching, **frames)
             if join is None:
@@ -799,6 +806,22 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
             _grow(state, a, links, bearings, options, descriptors)
             return True
     return False
+
+
+def _model_points_pair(state: ModelSet, models: tuple[int, int], bearings) -> tuple[ModelPoints, ModelPoints]:
+    """Models' points in their frames, with the row of each feature of their images (`rematch_join.ModelPoints`)."""
+    tracks, out = state.tracks, []
+    for m in models:
+        X, point_of_track = _points_of(state, m, tracks, bearings)
+        rows = point_of_track[tracks.track_ids]
+        seen = (state.model_id[tracks.image_ids] == m) & (rows >= 0)
+        of_feature = {}
+        for k in np.flatnonzero(state.model_id == m):
+            here = seen & (tracks.image_ids == k)
+            of_feature[int(k)] = np.full(len(bearings[k]), -1)
+            of_feature[int(k)][tracks.feature_ids[here]] = rows[here]
+        out.append(ModelPoints(X=X, point_of_feature=of_feature))
+    return out[0], out[1]
 
 
 def _cross_pairs(model_id: np.ndarray, a: int, b: int, pair_matches: dict[tuple[int, int], np.ndarray],

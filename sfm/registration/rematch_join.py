@@ -19,10 +19,25 @@ guides the cross pairs sharing one of its cameras (the doorway's other pairs): b
 (2 unknowns, `two_view.baseline_given_rotation`), rematched, refitted and judged the same way. The seed and the
 confirmed companions (at least `MIN_CONFIRMED` pairs in all) must place b consistently (`weak_joins._place`: its
 cameras on the pairs' baseline rays within 2°).
+
+One pair (`points` given, `registration.weak_join_one_pair`): a doorway seen by one panorama on each side has one
+pair, and no second one can confirm it. A confirmed pair alone places camera k of model b on a ray from camera l of
+model a; the rematched matches that are points of model a (seen by l) then fix k's distance along that ray (each
+point's ray from k meets the ray at one distance: true matches agree on it, chance ones scatter), and those that are
+points of model b (seen by k) fix l's distance from k in b's units: their ratio is b's scale. The pair joins the
+models only when `MIN_POINT_SUPPORT` points of each model agree. A chance pair that the rematch confirms (2048 home
+seed 44: 027-008, 28.7 m apart, objects of one texture in two rooms, 80 rematched matches) has points that agree on
+no one distance. Seeds then come also from the images' walls: each image's Manhattan axis fixes the two models'
+relative yaw modulo 90°, so each cross pair is fitted (2-unknown baseline) under the four rotations the walls allow,
+and the best `MAX_WALL_SEEDS` are rematched under their rotation (a doorway pair whose raw matches are too few for
+a 3-unknown fit: seed 44's 020-019, 12 true of 38 raw).
 Pure geometry: no file access.
 """
 
 from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -30,7 +45,10 @@ from fullview.sfm import two_view, upright
 from fullview.sfm.camera import normalize, skew
 from fullview.sfm.matching import epipolar_candidates, match_descriptors
 from fullview.sfm.options import MatchesOptions
-from fullview.sfm.registration.weak_joins import _place
+from fullview.sfm.registration.weak_joins import MIN_PAIR_INLIERS, _place
+from fullview.sfm.wall_check import turn, wall_residual_deg
+
+log = logging.getLogger(__name__)
 
 MAX_SEEDS = 6  # upright fits (most inliers first) tried as hypotheses
 MIN_REMATCHED = 20  # rematched matches a confirmed pair holds (band matches of pairs seeing nothing: 10-13 at 1024 px)
@@ -42,6 +60,20 @@ REFIT_BANDS = (4.0, 2.0)  # rematch-and-refit rounds before the final rematch, t
 # hypothesis 0.3° off in yaw and 2° in its baseline keeps only 16 of 39 true matches within one threshold (with 7
 # chance ones, which the refit then follows); a wider band keeps them, and the refit at one threshold finds them
 RATIO = 0.8  # the ratio test among a feature's epipolar candidates
+MIN_POINT_SUPPORT = 5  # points of each model that must agree on the placement of a pair confirmed alone
+MIN_POINT_SHARE = 0.75  # ... and this share of the rematched matches that are its points (2048 home seed 44: the
+# chance pair 027-008 9 of 17 and 7 of 20, 028-008 7 of 8 and 2 of 14)
+MAX_SCALE_FACTOR = 2.0  # b's scale from the points within this factor of the models' median baselines' ratio (one
+# to three panoramas per room: neighbours are a room apart everywhere)
+POINT_TOLERANCE = 2.0  # ... their error in the pair's other camera, in inlier thresholds (points carry their own)
+MIN_POINT_PARALLAX_DEG = 3.0  # points this close to the baseline's line fix no distance along it
+MAX_WALL_SEEDS = 6  # (pair, rotation the walls allow) hypotheses rematched, most 2-unknown inliers first
+
+
+@dataclass(kw_only=True)
+class ModelPoints:
+    X: np.ndarray  # (P, 3) a model's points in its frame
+    point_of_feature: dict  # image -> (F_i,) row in X of each of its features (-1: none)
 
 
 def rematched(b_k: np.ndarray, b_l: np.ndarray, d_k: np.ndarray, d_l: np.ndarray, R_lk: np.ndarray, t_lk: np.ndarray,
@@ -109,22 +141,27 @@ def _turn(axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: dict, C_b: dict, gravity: np.ndarray,
-                       bearings, descriptors, threshold_rad: float, step_a: float, step_b: float, seed: int = 0):
+                       bearings, descriptors, threshold_rad: float, step_a: float, step_b: float, seed: int = 0,
+                       points: tuple[ModelPoints, ModelPoints] | None = None, wall_axes: np.ndarray | None = None):
     """(M, chosen, placement, inlier rows) of the first seed fit (most inliers first) that the rematch confirms with
     companions placing model b consistently (see the module doc), or None.
 
     fits: `weak_joins` upright fits (pair, M, u, inlier mask); cross: the `weak_joins.CrossPair`s between the models;
-    bearings, descriptors: per image (descriptors of its SIFT features, which come first in its bearings)."""
+    bearings, descriptors: per image (descriptors of its SIFT features, which come first in its bearings); points:
+    (model a's, model b's) to join on one confirmed pair placed by both (None: two pairs needed); wall_axes: (N, 3)
+    each image's Manhattan axis in its camera frame (zero rows: none), for the seeds the walls allow."""
     def confirm(pair, R_lk, t_lk, free_rotation: bool, n: int):
         d_k, d_l = descriptors[pair.k], descriptors[pair.l]
         return confirmed_pose(bearings[pair.k][:len(d_k)], bearings[pair.l][:len(d_l)], d_k, d_l, R_lk, t_lk,
                               threshold_rad, g_k=gravity[pair.k], g_l=gravity[pair.l], free_rotation=free_rotation,
                               raw=(pair.b_k, pair.b_l), seed=seed + n)
 
+    alone = []  # seeds confirmed without a companion that places b
     for pair, M, u, _ in sorted(fits, key=lambda f: -f[3].sum())[:MAX_SEEDS]:
         found = confirm(pair, R_a[pair.l] @ M @ R_b[pair.k].T, R_a[pair.l] @ u, True, 0)
         if found is None:
             continue
+        alone.append((pair, found))
         R_lk, t_lk, m = found
         M = R_a[pair.l].T @ R_lk @ R_b[pair.k]
         chosen = [(pair, M, normalize(R_a[pair.l].T @ t_lk), m)]
@@ -143,4 +180,112 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
         if placed is not None:
             rows = [(f[0].k, int(a), f[0].l, int(b)) for f in chosen for a, b in f[3]]
             return M, chosen, placed, rows
+    if points is None:
+        return None
+    frames = dict(R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, tolerance_rad=POINT_TOLERANCE * threshold_rad,
+                  step_ratio=step_a / step_b if step_b > 0 else 1.0)
+    for pair, (R_lk, t_lk, m) in alone:
+        found = _joined_by_points(pair, R_lk, t_lk, m, bearings, points, **frames)
+        if found is not None:
+            return found
+    if wall_axes is None:
+        return None
+    for n, (pair, R_lk, t_lk) in enumerate(wall_hypotheses(cross, gravity, wall_axes, threshold_rad, seed)):
+        if any(pair is p for p, _ in alone):
+            continue
+        found = confirm(pair, R_lk, t_lk, False, 100 + n)
+        if found is not None:
+            found = _joined_by_points(pair, *found, bearings, points, **frames)
+            if found is not None:
+                return found
     return None
+
+
+def wall_hypotheses(cross: list, gravity: np.ndarray, wall_axes: np.ndarray, threshold_rad: float, seed: int = 0):
+    """[(pair, R_lk, t_lk)] of the MAX_WALL_SEEDS best (most 2-unknown baseline inliers, MIN_PAIR_INLIERS or more)
+    of the cross pairs under each of the four upright rotations their images' wall axes allow."""
+    found = []
+    for n, pair in enumerate(cross):
+        g_k, g_l, a_k, a_l = gravity[pair.k], gravity[pair.l], wall_axes[pair.k], wall_axes[pair.l]
+        if not all(np.any(v) for v in (g_k, g_l, a_k, a_l)):
+            continue
+        level = _rotation_onto(normalize(np.asarray(g_k, float)), normalize(np.asarray(g_l, float)))
+        aligned = turn(g_l, wall_residual_deg(level, a_k, a_l, g_l)) @ level
+        for q in range(4):
+            R = turn(g_l, 90.0 * q) @ aligned
+            t, inliers = two_view.baseline_given_rotation(pair.b_k, pair.b_l, R, threshold_rad, seed=seed + n)
+            if inliers.sum() >= MIN_PAIR_INLIERS:
+                found.append((int(inliers.sum()), n, q, pair, R, t))
+    found.sort(key=lambda f: (-f[0], f[1], f[2]))
+    return [(f[3], f[4], f[5]) for f in found[:MAX_WALL_SEEDS]]
+
+
+def _rotation_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation carrying unit vector a onto unit vector b."""
+    v, c = np.cross(a, b), float(a @ b)
+    if c < -1.0 + 1e-12:  # opposite: a half turn about any axis normal to a
+        axis = normalize(np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0]))
+        return _turn(axis, np.pi)
+    K = skew(v)
+    return np.eye(3) + K + K @ K / (1.0 + c)
+
+
+def _joined_by_points(pair, R_lk, t_lk, m, bearings, points, *, R_a, C_a, R_b, C_b, tolerance_rad: float,
+                      step_ratio: float):
+    """(M, chosen, placement, inlier rows) of the join by one confirmed pair (k of b, l of a) when points of both
+    models agree on its length (see the module doc), or None."""
+    k, l = pair.k, pair.l
+    M = R_a[l].T @ R_lk @ R_b[k]
+    u = normalize(R_a[l].T @ t_lk)  # from C_l towards C_k, in a's frame
+    pa, pb = points
+    if l not in pa.point_of_feature or k not in pb.point_of_feature:
+        return None
+    on_a, on_b = pa.point_of_feature[l][m[:, 1]], pb.point_of_feature[k][m[:, 0]]
+    seen_a, seen_b = on_a >= 0, on_b >= 0
+    if min(seen_a.sum(), seen_b.sum()) < MIN_POINT_SUPPORT:
+        return None
+    rays_a = bearings[k][m[seen_a, 0]] @ (R_a[l].T @ R_lk).T  # k's rays in a's frame
+    lam, n_a = distance_along(C_a[l], u, pa.X[on_a[seen_a]], rays_a, tolerance_rad)
+    rays_b = bearings[l][m[seen_b, 1]] @ (R_a[l] @ M)  # l's rays in b's frame
+    mu, n_b = distance_along(C_b[k], -M.T @ u, pb.X[on_b[seen_b]], rays_b, tolerance_rad)
+    scale = lam / mu if mu > 0 else 0.0
+    log.info("one pair %d-%d: %d of %d points of model a agree on its length, %d of %d of model b; scale %.3f "
+             "(median baselines' ratio %.3f)", k, l, n_a, seen_a.sum(), n_b, seen_b.sum(), scale, step_ratio)
+    if (min(n_a, n_b) < MIN_POINT_SUPPORT or n_a < MIN_POINT_SHARE * seen_a.sum()
+            or n_b < MIN_POINT_SHARE * seen_b.sum()
+            or not 1.0 / MAX_SCALE_FACTOR <= scale / step_ratio <= MAX_SCALE_FACTOR):
+        return None
+    shift = C_a[l] + lam * u - scale * M @ C_b[k]
+    rows = [(k, int(a), l, int(b)) for a, b in m]
+    return M, [(pair, M, u, m)], (float(scale), shift, False), rows
+
+
+def distance_along(origin: np.ndarray, v: np.ndarray, X: np.ndarray, rays: np.ndarray, tolerance_rad: float):
+    """(λ, support): the distance along the unit direction v from origin of a camera that sees most of the points X
+    (P, 3) along its rays (P, 3) (world frame) within tolerance_rad, in front; points within MIN_POINT_PARALLAX_DEG
+    of the line fix nothing and are left out. (0.0, 0) when none is placed."""
+    rays = normalize(rays)
+    w = X - origin
+    useful = np.linalg.norm(np.cross(normalize(w), v), axis=1) > np.sin(np.radians(MIN_POINT_PARALLAX_DEG))
+    w, rays = w[useful], rays[useful]
+    if not len(w):
+        return 0.0, 0
+    Pw = w - rays * np.sum(rays * w, axis=1, keepdims=True)  # the parts normal to each ray
+    Pv = v[None, :] - rays * (rays @ v)[:, None]
+    lam = np.sum(Pv * Pw, axis=1) / np.maximum(np.sum(Pv * Pv, axis=1), 1e-12)  # each point's own distance
+    candidates = lam[lam > 0]
+    if not len(candidates):
+        return 0.0, 0
+
+    def support(d: np.ndarray) -> np.ndarray:  # (C,) candidate distances -> (C, P) the points each one explains
+        seen = w[None, :, :] - d[:, None, None] * v[None, None, :]
+        cos = np.sum(normalize(seen) * rays[None], axis=2)
+        return cos >= np.cos(tolerance_rad)
+
+    best = int(np.argmax(support(candidates).sum(axis=1)))
+    agree = support(candidates[best:best + 1])[0]
+    if not agree.any():
+        return 0.0, 0
+    refined = float(np.median(lam[agree]))
+    again = support(np.array([refined]))[0]
+    return (refined, int(again.sum())) if again.sum() >= agree.sum() else (float(candidates[best]), int(agree.sum()))
