@@ -29,8 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import csr_matrix
 
-from fullview.sfm.registration.free_blocks import (FLOOR_MIN_ELEVATION_DEG, FLOOR_WINDOW, MIN_FLOOR_POINTS,
-                                                   biconnected_blocks, camera_links)
+from fullview.sfm.registration.free_blocks import MIN_FLOOR_POINTS, biconnected_blocks, camera_links, floor_clusters
 
 # A camera whose floor height differs by more than this (relative, log scale) from the median of the cameras it
 # shares NEIGHBOUR_TRACKS tracks with took something else for the floor (furniture tops sit 20-50% higher).
@@ -52,35 +51,9 @@ class HeightPrior:
     sigma_rel: float  # relative standard error of one camera's height (tripod and floor together)
 
 
-def floor_rows(centers: np.ndarray, down: np.ndarray, points: np.ndarray, track_ids: np.ndarray,
-               image_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each camera's floor points: (camera (F,), point (F,), height (N,)) with the camera's height above them (the
-    median depth of its floor cluster along `down` (N, 3), nan where no floor is seen or `down` is nan)."""
-    n = len(centers)
-    heights = np.full(n, np.nan)
-    cams, pts = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
-    order = np.argsort(image_ids, kind="stable")
-    starts = np.searchsorted(image_ids[order], np.arange(n + 1))
-    slope = np.tan(np.radians(FLOOR_MIN_ELEVATION_DEG))
-    for c in range(n):
-        if not np.isfinite(down[c]).all():
-            continue
-        seen = np.unique(track_ids[order[starts[c]:starts[c + 1]]])
-        v = points[seen] - centers[c]
-        d = v @ down[c]
-        below = d > slope * np.linalg.norm(v - d[:, None] * down[c], axis=1)
-        seen, d = seen[below], d[below]
-        sort = np.argsort(d)
-        seen, d = seen[sort], d[sort]
-        count = np.searchsorted(d, d, side="right") - np.searchsorted(d, (1.0 - FLOOR_WINDOW) * d, side="left")
-        enough = np.flatnonzero(count >= MIN_FLOOR_POINTS)
-        if len(enough):
-            top = d[enough[-1]]
-            floor = (d <= top) & (d >= (1.0 - FLOOR_WINDOW) * top)
-            heights[c] = np.median(d[floor])
-            cams.append(np.full(floor.sum(), c))
-            pts.append(seen[floor])
-    return np.concatenate(cams), np.concatenate(pts), heights
+# Each camera's floor points and height: the free blocks' rule (`free_blocks.floor_clusters`, at least
+# MIN_FLOOR_POINTS points in a cluster).
+floor_rows = floor_clusters
 
 
 def shared_tracks(track_ids: np.ndarray, image_ids: np.ndarray, n: int) -> np.ndarray:

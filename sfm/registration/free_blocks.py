@@ -97,20 +97,38 @@ def camera_heights(centers: np.ndarray, down: np.ndarray, points: np.ndarray, tr
     within 1% of the truth times their local model scale, where the densest cluster is often a furniture top: hence
     the lowest cluster with enough points, not the largest. At 2048 px furniture tops still win on a third of the
     cameras, so blocks compare medians."""
-    heights = np.full(len(centers), np.nan)
+    return floor_clusters(centers, down, points, track_ids, image_ids)[2]
+
+
+def floor_clusters(centers: np.ndarray, down: np.ndarray, points: np.ndarray, track_ids: np.ndarray,
+                   image_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each camera's floor points: (camera (F,), point (F,), height (N,)) with the camera's height above them (the
+    median depth of its floor cluster along `down` (N, 3), nan where no floor is seen or `down` is nan)."""
+    n = len(centers)
+    heights = np.full(n, np.nan)
+    cams, pts = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     order = np.argsort(image_ids, kind="stable")
-    starts = np.searchsorted(image_ids[order], np.arange(len(centers) + 1))
+    starts = np.searchsorted(image_ids[order], np.arange(n + 1))
     slope = np.tan(np.radians(FLOOR_MIN_ELEVATION_DEG))
-    for c in range(len(centers)):
-        v = points[track_ids[order[starts[c]:starts[c + 1]]]] - centers[c]
+    for c in range(n):
+        if not np.isfinite(down[c]).all():
+            continue
+        seen = np.unique(track_ids[order[starts[c]:starts[c + 1]]])
+        v = points[seen] - centers[c]
         d = v @ down[c]
-        d = np.sort(d[d > slope * np.linalg.norm(v - d[:, None] * down[c], axis=1)])
+        below = d > slope * np.linalg.norm(v - d[:, None] * down[c], axis=1)
+        seen, d = seen[below], d[below]
+        sort = np.argsort(d)
+        seen, d = seen[sort], d[sort]
         count = np.searchsorted(d, d, side="right") - np.searchsorted(d, (1.0 - FLOOR_WINDOW) * d, side="left")
         enough = np.flatnonzero(count >= MIN_FLOOR_POINTS)
         if len(enough):
             top = d[enough[-1]]
-            heights[c] = np.median(d[(d <= top) & (d >= (1.0 - FLOOR_WINDOW) * top)])
-    return heights
+            floor = (d <= top) & (d >= (1.0 - FLOOR_WINDOW) * top)
+            heights[c] = np.median(d[floor])
+            cams.append(np.full(floor.sum(), c))
+            pts.append(seen[floor])
+    return np.concatenate(cams), np.concatenate(pts), heights
 
 
 def free_block_similarities(centers: np.ndarray, links: np.ndarray, pairs: np.ndarray, min_pairs: int,

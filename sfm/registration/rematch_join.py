@@ -42,11 +42,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from fullview.sfm import two_view, upright
-from fullview.sfm.camera import normalize, skew
+from fullview.sfm.camera import normalize
 from fullview.sfm.matching import epipolar_candidates, match_descriptors
 from fullview.sfm.options import MatchesOptions
 from fullview.sfm.registration.weak_joins import MIN_PAIR_INLIERS, _place
-from fullview.sfm.wall_check import turn, wall_residual_deg
+from fullview.sfm.wall_check import f_of_pose, turn, wall_residual_deg
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +82,7 @@ def rematched(b_k: np.ndarray, b_l: np.ndarray, d_k: np.ndarray, d_l: np.ndarray
     each other's epipolar circles under the pose (R_lk, t_lk) of l from k, in front of both cameras.
 
     b_k, b_l: (N, 3) bearings of the features whose descriptors d_k, d_l (N, D) are given."""
-    F = R_lk.T @ skew(t_lk).T  # b_kᵀ F b_l = 0 (`two_view.consistent_with_pose`)
+    F = f_of_pose(R_lk, t_lk)  # b_kᵀ F b_l = 0
     allowed = epipolar_candidates(b_k, b_l, F, threshold_rad)
     m = match_descriptors(d_k, d_l, MatchesOptions(ratio=RATIO, mutual=True), block_rows=1024, allowed=allowed)
     if not len(m):
@@ -92,7 +92,8 @@ def rematched(b_k: np.ndarray, b_l: np.ndarray, d_k: np.ndarray, d_l: np.ndarray
 
 def confirmed_pose(b_k, b_l, d_k, d_l, R_lk, t_lk, threshold_rad: float, *, g_k: np.ndarray, g_l: np.ndarray,
                    free_rotation: bool, raw: tuple[np.ndarray, np.ndarray], seed: int = 0):
-    """(R_lk, t_lk, matches) of the pair rematched in wide bands and refitted from the hypothesis, or None when it is not confirmed.
+    """(R_lk, t_lk, matches) of the pair rematched in wide bands and refitted from the hypothesis, or None when it
+    is not confirmed.
 
     g_k, g_l: the cameras' gravity; free_rotation: refit the rotation too (upright: yaw and baseline), else only the
     baseline under the given rotation. raw: the pair's raw matched bearings (k's, l's), whose baselines give the
@@ -109,7 +110,7 @@ def confirmed_pose(b_k, b_l, d_k, d_l, R_lk, t_lk, threshold_rad: float, *, g_k:
     if len(m) < MIN_REMATCHED:
         return None
     for q in (1, 2, 3):
-        turned = R_lk @ _turn(normalize(np.asarray(g_k, float)), q * np.pi / 2)
+        turned = R_lk @ turn(g_k, 90.0 * q)
         t_q, _ = two_view.baseline_given_rotation(raw[0], raw[1], turned, threshold_rad, seed=seed)
         null = len(rematched(b_k, b_l, d_k, d_l, turned, t_q, threshold_rad))
         if len(m) < NULL_FACTOR * null or len(m) < null + MIN_EXCESS:
@@ -132,12 +133,6 @@ def _refit(x_k: np.ndarray, x_l: np.ndarray, R_lk: np.ndarray, threshold_rad: fl
     except ValueError:
         return None
     return pose.R_j_from_i, pose.t_j_from_i
-
-
-def _turn(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rotation by `angle` about the unit `axis` (Rodrigues)."""
-    K = skew(axis)
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
 def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: dict, C_b: dict, gravity: np.ndarray,
@@ -209,7 +204,7 @@ def wall_hypotheses(cross: list, gravity: np.ndarray, wall_axes: np.ndarray, thr
         g_k, g_l, a_k, a_l = gravity[pair.k], gravity[pair.l], wall_axes[pair.k], wall_axes[pair.l]
         if not all(np.any(v) for v in (g_k, g_l, a_k, a_l)):
             continue
-        level = _rotation_onto(normalize(np.asarray(g_k, float)), normalize(np.asarray(g_l, float)))
+        level = two_view.rotation_between(normalize(np.asarray(g_k, float)), normalize(np.asarray(g_l, float)))
         aligned = turn(g_l, wall_residual_deg(level, a_k, a_l, g_l)) @ level
         for q in range(4):
             R = turn(g_l, 90.0 * q) @ aligned
@@ -218,16 +213,6 @@ def wall_hypotheses(cross: list, gravity: np.ndarray, wall_axes: np.ndarray, thr
                 found.append((int(inliers.sum()), n, q, pair, R, t))
     found.sort(key=lambda f: (-f[0], f[1], f[2]))
     return [(f[3], f[4], f[5]) for f in found[:MAX_WALL_SEEDS]]
-
-
-def _rotation_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation carrying unit vector a onto unit vector b."""
-    v, c = np.cross(a, b), float(a @ b)
-    if c < -1.0 + 1e-12:  # opposite: a half turn about any axis normal to a
-        axis = normalize(np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0]))
-        return _turn(axis, np.pi)
-    K = skew(v)
-    return np.eye(3) + K + K @ K / (1.0 + c)
 
 
 def _joined_by_points(pair, R_lk, t_lk, m, bearings, points, *, R_a, C_a, R_b, C_b, tolerance_rad: float,
