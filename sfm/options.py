@@ -172,6 +172,10 @@ class RegistrationOptions:
                                        "placement of its second camera (5+ and 3/4 of each model's points "
                                        "among its matches, b's scale within 2x of the baselines' ratio); seeds "
                                        "also from the four rotations the images' walls allow between the models")
+    weak_join_several: bool = setting(True, "where nothing above joins two models, a rematched pair with more "
+                                      "matches than under each of its quarter turns, and one more such pair sharing "
+                                      "one of its cameras, that place the models consistently join them (a doorway "
+                                      "in a box room, whose quarter turns rematch nearly as well)")
     unjoined_parts: str = setting("keep", "a part whose scale neither the pair directions nor shared points fix: "
                                   "separate: placed again by points or left a model of its own; keep: a guess "
                                   "(scaled to main's median baseline; a camera tied by one pair at the median "

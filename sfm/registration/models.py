@@ -146,10 +146,10 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
     if (options.join_by_weak_pairs and pair_matches is not None and gravity is not None
             and weak_join_threshold_rad is not None):
         guided, rematch = options.weak_join_guided, options.weak_join_rematch
-        one_pair = options.weak_join_one_pair and rematch
+        one_pair, several = options.weak_join_one_pair and rematch, options.weak_join_several and rematch
         while _join_once_by_weak_pairs(state, links, pair_matches, bearings, gravity, weak_join_threshold_rad,
                                        options, descriptors, guided, rematch, wall_axes if one_pair else None,
-                                       one_pair):
+                                       one_pair, several):
             pass
     _renumber(state)
     if pair_matches is not None and options.min_weak_pair_inliers:
@@ -767,7 +767,8 @@ def _similarity_of_poses(R_b, C_b, R_a, C_a, max_rotation_deg: float = 1.0, max_
 def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: dict[tuple[int, int], np.ndarray],
                              bearings, gravity: np.ndarray, threshold_rad: float, options: RegistrationOptions,
                              descriptors=None, guided: bool = False, rematch: bool = False,
-                             wall_axes: np.ndarray | None = None, one_pair: bool = False) -> bool:
+                             wall_axes: np.ndarray | None = None, one_pair: bool = False,
+                             several: bool = False) -> bool:
     """Join the first pair of models (largest first) that several weak pairs between them agree on
     (`weak_joins.join_by_weak_pairs`; with ``guided``, single fits' rotations guide the other pairs; with
     ``rematch``, pairs rematched along their epipolar circles, `rematch_join`): the smaller
@@ -789,7 +790,8 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                           threshold_rad=threshold_rad, step_a=float(step_a), step_b=float(step_b), seed=options.seed)
             rematching = (partial(join_by_rematching, cross=cross, bearings=bearings, descriptors=descriptors,
                                   points=_model_points_pair(state, (a, b), bearings) if one_pair else None,
-                                  wall_axes=wall_axes if one_pair else None, **frames)
+                                  wall_axes=wall_axes if one_pair else None, several=several,
+                                  **frames)
                           if rematch and descriptors is not None else None)
             join = join_by_weak_pairs(cross=cross, guided=guided, rematch=rematching, **frames)
             if join is None:

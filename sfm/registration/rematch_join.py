@@ -68,6 +68,9 @@ MAX_SCALE_FACTOR = 2.0  # b's scale from the points within this factor of the mo
 POINT_TOLERANCE = 2.0  # ... their error in the pair's other camera, in inlier thresholds (points carry their own)
 MIN_POINT_PARALLAX_DEG = 3.0  # points this close to the baseline's line fix no distance along it
 MAX_WALL_SEEDS = 6  # (pair, rotation the walls allow) hypotheses rematched, most 2-unknown inliers first
+MIN_SEVERAL_CONFIRMED = 2  # pairs (seed included) that place b when each only beats its quarter turns
+SEVERAL_MARGINS = (1.0, 1)  # ... by (factor, excess): more matches than under any quarter turn (doorway 007-009 of
+# 1024 home seed 61: 37 rematched, 33 under its 90-degree turn, 15-24 for 008-009's turns at its true pose)
 
 
 @dataclass(kw_only=True)
@@ -91,13 +94,14 @@ def rematched(b_k: np.ndarray, b_l: np.ndarray, d_k: np.ndarray, d_l: np.ndarray
 
 
 def confirmed_pose(b_k, b_l, d_k, d_l, R_lk, t_lk, threshold_rad: float, *, g_k: np.ndarray, g_l: np.ndarray,
-                   free_rotation: bool, raw: tuple[np.ndarray, np.ndarray], seed: int = 0):
+                   free_rotation: bool, raw: tuple[np.ndarray, np.ndarray], seed: int = 0,
+                   margins: tuple[float, int] = (NULL_FACTOR, MIN_EXCESS)):
     """(R_lk, t_lk, matches) of the pair rematched in wide bands and refitted from the hypothesis, or None when it
     is not confirmed.
 
     g_k, g_l: the cameras' gravity; free_rotation: refit the rotation too (upright: yaw and baseline), else only the
     baseline under the given rotation. raw: the pair's raw matched bearings (k's, l's), whose baselines give the
-    quarter-turned poses their best chance."""
+    quarter-turned poses their best chance; margins: (factor, excess) the matches must beat the quarter turns' by."""
     for band in REFIT_BANDS:
         m = rematched(b_k, b_l, d_k, d_l, R_lk, t_lk, band * threshold_rad)
         if len(m) < MIN_REMATCHED:
@@ -113,7 +117,7 @@ def confirmed_pose(b_k, b_l, d_k, d_l, R_lk, t_lk, threshold_rad: float, *, g_k:
         turned = R_lk @ turn(g_k, 90.0 * q)
         t_q, _ = two_view.baseline_given_rotation(raw[0], raw[1], turned, threshold_rad, seed=seed)
         null = len(rematched(b_k, b_l, d_k, d_l, turned, t_q, threshold_rad))
-        if len(m) < NULL_FACTOR * null or len(m) < null + MIN_EXCESS:
+        if len(m) < margins[0] * null or len(m) < null + margins[1]:
             return None
     return R_lk, t_lk, m
 
@@ -137,26 +141,26 @@ def _refit(x_k: np.ndarray, x_l: np.ndarray, R_lk: np.ndarray, threshold_rad: fl
 
 def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: dict, C_b: dict, gravity: np.ndarray,
                        bearings, descriptors, threshold_rad: float, step_a: float, step_b: float, seed: int = 0,
-                       points: tuple[ModelPoints, ModelPoints] | None = None, wall_axes: np.ndarray | None = None):
+                       points: tuple[ModelPoints, ModelPoints] | None = None, wall_axes: np.ndarray | None = None,
+                       several: bool = False, accept=None):
     """(M, chosen, placement, inlier rows) of the first seed fit (most inliers first) that the rematch confirms with
     companions placing model b consistently (see the module doc), or None.
 
     fits: `weak_joins` upright fits (pair, M, u, inlier mask); cross: the `weak_joins.CrossPair`s between the models;
     bearings, descriptors: per image (descriptors of its SIFT features, which come first in its bearings); points:
     (model a's, model b's) to join on one confirmed pair placed by both (None: two pairs needed); wall_axes: (N, 3)
-    each image's Manhattan axis in its camera frame (zero rows: none), for the seeds the walls allow."""
-    def confirm(pair, R_lk, t_lk, free_rotation: bool, n: int):
+    each image's Manhattan axis in its camera frame (zero rows: none), for the seeds the walls allow; several: last,
+    MIN_SEVERAL_CONFIRMED pairs each above its quarter turns by SEVERAL_MARGINS (see the module doc); accept:
+    `accept(M, (scale, shift, guessed))` -> False rejects a join (the placement check), the next seed is tried."""
+    def confirm(pair, R_lk, t_lk, free_rotation: bool, n: int, margins=(NULL_FACTOR, MIN_EXCESS)):
         d_k, d_l = descriptors[pair.k], descriptors[pair.l]
         return confirmed_pose(bearings[pair.k][:len(d_k)], bearings[pair.l][:len(d_l)], d_k, d_l, R_lk, t_lk,
                               threshold_rad, g_k=gravity[pair.k], g_l=gravity[pair.l], free_rotation=free_rotation,
-                              raw=(pair.b_k, pair.b_l), seed=seed + n)
+                              raw=(pair.b_k, pair.b_l), seed=seed + n, margins=margins)
 
-    alone = []  # seeds confirmed without a companion that places b
-    for pair, M, u, _ in sorted(fits, key=lambda f: -f[3].sum())[:MAX_SEEDS]:
-        found = confirm(pair, R_a[pair.l] @ M @ R_b[pair.k].T, R_a[pair.l] @ u, True, 0)
-        if found is None:
-            continue
-        alone.append((pair, found))
+    def placed_with_companions(pair, found, margins, min_confirmed: int):
+        """The join the confirmed seed and the cross pairs sharing one of its cameras confirmed under its rotation
+        place consistently (min_confirmed pairs or more), or None."""
         R_lk, t_lk, m = found
         M = R_a[pair.l].T @ R_lk @ R_b[pair.k]
         chosen = [(pair, M, normalize(R_a[pair.l].T @ t_lk), m)]
@@ -166,22 +170,54 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
                 continue
             R_q = R_a[other.l] @ M @ R_b[other.k].T
             t_q, _ = two_view.baseline_given_rotation(other.b_k, other.b_l, R_q, threshold_rad, seed=seed + n)
-            companion = confirm(other, R_q, t_q, False, n)
+            companion = confirm(other, R_q, t_q, False, n, margins)
             if companion is not None:
                 chosen.append((other, M, normalize(R_a[other.l].T @ companion[1]), companion[2]))
-        if len(chosen) < MIN_CONFIRMED:
-            continue
+        if len(chosen) < min_confirmed:
+            return None
         placed = _place(M, chosen, C_a, C_b, step_a, step_b)
-        if placed is not None:
-            rows = [(f[0].k, int(a), f[0].l, int(b)) for f in chosen for a, b in f[3]]
-            return M, chosen, placed, rows
-    if points is None:
-        return None
-    frames = dict(R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, tolerance_rad=POINT_TOLERANCE * threshold_rad,
-                  step_ratio=step_a / step_b if step_b > 0 else 1.0)
+        if placed is None or not accept(M, placed):
+            return None
+        rows = [(f[0].k, int(a), f[0].l, int(b)) for f in chosen for a, b in f[3]]
+        return M, chosen, placed, rows
+
+    accept = accept or (lambda M, placed: True)
+    seeds = sorted(fits, key=lambda f: -f[3].sum())[:MAX_SEEDS]
+    alone = []  # seeds confirmed without a companion that places b
+    for pair, M, u, _ in seeds:
+        found = confirm(pair, R_a[pair.l] @ M @ R_b[pair.k].T, R_a[pair.l] @ u, True, 0)
+        if found is None:
+            continue
+        alone.append((pair, found))
+        joined = placed_with_companions(pair, found, (NULL_FACTOR, MIN_EXCESS), MIN_CONFIRMED)
+        if joined is not None:
+            return joined
+    if points is not None:
+        joined = _join_by_one_pair(alone, confirm, cross, gravity, bearings, points, wall_axes, threshold_rad, seed,
+                                   accept, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b,
+                                   tolerance_rad=POINT_TOLERANCE * threshold_rad,
+                                   step_ratio=step_a / step_b if step_b > 0 else 1.0)
+        if joined is not None:
+            return joined
+    if several:
+        for pair, M, u, _ in seeds:
+            found = confirm(pair, R_a[pair.l] @ M @ R_b[pair.k].T, R_a[pair.l] @ u, True, 0, SEVERAL_MARGINS)
+            joined = (placed_with_companions(pair, found, SEVERAL_MARGINS, MIN_SEVERAL_CONFIRMED)
+                      if found is not None else None)
+            if joined is not None:
+                log.info("rematch: %d pairs (k, l, matches) %s, each above its quarter turns, place model b",
+                         len(joined[1]), [(f[0].k, f[0].l, len(f[3])) for f in joined[1]])
+                return joined
+    return None
+
+
+def _join_by_one_pair(alone: list, confirm, cross: list, gravity, bearings, points, wall_axes, threshold_rad: float,
+                      seed: int, accept, **frames):
+    """The one-pair join (see the module doc) of a confirmed seed, else of a wall seed that the rematch confirms;
+    None if none is joined (or accepted)."""
     for pair, (R_lk, t_lk, m) in alone:
         found = _joined_by_points(pair, R_lk, t_lk, m, bearings, points, **frames)
-        if found is not None:
+        if found is not None and accept(found[0], found[2]):
             return found
     if wall_axes is None:
         return None
@@ -191,7 +227,7 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
         found = confirm(pair, R_lk, t_lk, False, 100 + n)
         if found is not None:
             found = _joined_by_points(pair, *found, bearings, points, **frames)
-            if found is not None:
+            if found is not None and accept(found[0], found[2]):
                 return found
     return None
 

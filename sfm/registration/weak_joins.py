@@ -202,16 +202,16 @@ def _mean_rotation(Ms: np.ndarray) -> np.ndarray:
 
 def _place(M: np.ndarray, chosen: list, C_a: dict, C_b: dict, step_a: float, step_b: float):
     """(scale, shift, guessed) putting b's cameras of the chosen pairs on their baseline rays from a's cameras:
-    u × (s M C_k + T − C_l) = 0 per pair; with one camera of b the scale is the median-baseline guess. None when the
+    u × (s M C_k + T − C_l) = 0 per pair; with one camera of b (or of a) the scale is the median-baseline guess. None when the
     scale is not positive or a pair's direction is more than MAX_DIRECTION_DISAGREEMENT_DEG off (or behind)."""
-    b_cameras = {f[0].k for f in chosen}
+    b_cameras, a_cameras = {f[0].k for f in chosen}, {f[0].l for f in chosen}
     rows, rhs = [], []
     for pair, _, u, _ in chosen:
         U = _skew(u)
         rows.append(np.column_stack([U @ (M @ C_b[pair.k]), U]))
         rhs.append(U @ C_a[pair.l])
     A, y = np.concatenate(rows), np.concatenate(rhs)
-    guessed = len(b_cameras) < 2
+    guessed = len(b_cameras) < 2 or len(a_cameras) < 2  # rays from one camera of a fix b's shape, not its size
     if guessed:
         scale = step_a / step_b if step_b > 0 else 1.0
         shift = np.linalg.lstsq(A[:, 1:], y - scale * A[:, 0], rcond=None)[0]
