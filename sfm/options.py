@@ -176,6 +176,9 @@ class RegistrationOptions:
                                       "matches than under each of its quarter turns, and one more such pair sharing "
                                       "one of its cameras, that place the models consistently join them (a doorway "
                                       "in a box room, whose quarter turns rematch nearly as well)")
+    join_check: bool = setting(True, "a weak join is undone when it puts 10+ and over 5% of the points one model "
+                               "has on the other's observed rays in front of what those cameras saw (10%+ "
+                               "closer): a chance pair places a model inside the other's rooms")
     unjoined_parts: str = setting("keep", "a part whose scale neither the pair directions nor shared points fix: "
                                   "separate: placed again by points or left a model of its own; keep: a guess "
                                   "(scaled to main's median baseline; a camera tied by one pair at the median "

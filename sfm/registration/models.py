@@ -32,6 +32,7 @@ from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.metrics import umeyama
 from fullview.sfm.options import MatchesOptions, RegistrationOptions
 from fullview.sfm.registration.driver import register
+from fullview.sfm.registration.placement_check import contradicted, join_conflicts
 from fullview.sfm.registration.rematch_join import ModelPoints, join_by_rematching
 from fullview.sfm.registration.rigid_parts import estimate_join, rigid_parts
 from fullview.sfm.registration.view_graph import bridges, component_labels, largest_component
@@ -149,7 +150,7 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
         one_pair, several = options.weak_join_one_pair and rematch, options.weak_join_several and rematch
         while _join_once_by_weak_pairs(state, links, pair_matches, bearings, gravity, weak_join_threshold_rad,
                                        options, descriptors, guided, rematch, wall_axes if one_pair else None,
-                                       one_pair, several):
+                                       one_pair, several, options.join_check):
             pass
     _renumber(state)
     if pair_matches is not None and options.min_weak_pair_inliers:
@@ -768,7 +769,7 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                              bearings, gravity: np.ndarray, threshold_rad: float, options: RegistrationOptions,
                              descriptors=None, guided: bool = False, rematch: bool = False,
                              wall_axes: np.ndarray | None = None, one_pair: bool = False,
-                             several: bool = False) -> bool:
+                             several: bool = False, check: bool = False) -> bool:
     """Join the first pair of models (largest first) that several weak pairs between them agree on
     (`weak_joins.join_by_weak_pairs`; with ``guided``, single fits' rotations guide the other pairs; with
     ``rematch``, pairs rematched along their epipolar circles, `rematch_join`): the smaller
@@ -788,12 +789,15 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                           R_b={int(k): state.R_cam_from_world[k] for k in cams_b},
                           C_b={int(k): state.centers[k] for k in cams_b}, gravity=gravity,
                           threshold_rad=threshold_rad, step_a=float(step_a), step_b=float(step_b), seed=options.seed)
+            points = _model_points_pair(state, (a, b), bearings) if one_pair or check else None
+            accept = (partial(_placement_agrees, points=points, bearings=bearings, tolerance_rad=2 * threshold_rad,
+                              **{key: frames[key] for key in ("R_a", "C_a", "R_b", "C_b")})
+                      if check else None)
             rematching = (partial(join_by_rematching, cross=cross, bearings=bearings, descriptors=descriptors,
-                                  points=_model_points_pair(state, (a, b), bearings) if one_pair else None,
-                                  wall_axes=wall_axes if one_pair else None, several=several,
-                                  **frames)
+                                  points=points if one_pair else None, wall_axes=wall_axes if one_pair else None,
+                                  several=several, accept=accept, **frames)
                           if rematch and descriptors is not None else None)
-            join = join_by_weak_pairs(cross=cross, guided=guided, rematch=rematching, **frames)
+            join = join_by_weak_pairs(cross=cross, guided=guided, rematch=rematching, accept=accept, **frames)
             if join is None:
                 continue
             state.R_cam_from_world[cams_b] = state.R_cam_from_world[cams_b] @ join.M.T
@@ -808,6 +812,18 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
             _grow(state, a, links, bearings, options, descriptors)
             return True
     return False
+
+
+def _placement_agrees(M: np.ndarray, placed: tuple, *, points: tuple[ModelPoints, ModelPoints], bearings,
+                      tolerance_rad: float, **frames) -> bool:
+    """False when the join (M, (scale, shift, guessed)) puts one model's points in front of what the other's
+    cameras saw (`placement_check`)."""
+    found, overlaps = join_conflicts(*points, bearings=bearings, M=M, scale=placed[0], shift=placed[1],
+                                     tolerance_rad=tolerance_rad, **frames)
+    rejected = contradicted(found, overlaps)
+    log.info("join check: %d of %d points on the other model's observed rays are in front of what they saw%s",
+             found, overlaps, ": the join is undone" if rejected else "")
+    return not rejected
 
 
 def _model_points_pair(state: ModelSet, models: tuple[int, int], bearings) -> tuple[ModelPoints, ModelPoints]:

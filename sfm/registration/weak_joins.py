@@ -64,13 +64,15 @@ class WeakJoin:
 def join_by_weak_pairs(*, R_a: dict[int, np.ndarray], C_a: dict[int, np.ndarray], R_b: dict[int, np.ndarray],
                        C_b: dict[int, np.ndarray], gravity: np.ndarray, cross: list[CrossPair], threshold_rad: float,
                        step_a: float, step_b: float, seed: int = 0, guided: bool = False,
-                       rematch=None) -> WeakJoin | None:
+                       rematch=None, accept=None) -> WeakJoin | None:
     """The join of model b into model a that several weak cross pairs agree on, or None (see the module doc).
 
     R_a, C_a (R_b, C_b): rotations (cam from world) and centres of the models' cameras by image; gravity (N, 3) per
     image in its camera frame (zero rows: unknown, such pairs are skipped); step_a, step_b: the models' median
     used-pair baselines (the scale guess); guided: try each fit's rotation on the other pairs when none agree;
-    rematch: last, `rematch(fits)` -> (M, chosen fits, placement, inlier rows) or None (`rematch_join`)."""
+    rematch: last, `rematch(fits)` -> (M, chosen fits, placement, inlier rows) or None (`rematch_join`); accept:
+    `accept(M, placement)` -> False rejects a join found (the placement check), the next rule is tried."""
+    accept = accept or (lambda M, placed: True)
     fits = []
     for n, pair in enumerate(cross):
         fit = _upright_pair(pair, gravity, threshold_rad, seed + n)
@@ -83,10 +85,12 @@ def join_by_weak_pairs(*, R_a: dict[int, np.ndarray], C_a: dict[int, np.ndarray]
         chosen = [fits[n] for n in candidate]
         M = _mean_rotation(np.array([f[1] for f in chosen]))
         placed = _place(M, chosen, C_a, C_b, step_a, step_b)
-        if placed is not None:
+        if placed is not None and accept(M, placed):
             break
     else:
         found = _guided_join(fits, cross, R_a, C_a, R_b, C_b, threshold_rad, step_a, step_b, seed) if guided else None
+        if found is not None and not accept(found[0], found[2]):
+            found = None
         if found is None:
             found = rematch(fits) if rematch is not None else None
             if found is None:
