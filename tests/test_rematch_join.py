@@ -187,3 +187,48 @@ def test_the_distance_along_a_ray_is_exact_on_points_that_agree_and_unsupported_
     assert abs(found - lam) < 1e-9 and support >= 28  # all but points near the baseline's line
     scattered = normalize(rng.normal(size=rays.shape))
     assert distance_along(origin, v, X, scattered, THRESHOLD)[1] <= 2
+
+
+def _two_panoramas_through_one(rng):
+    """b's cameras 2 and 3 see the doorway's points X that a's camera 0 sees (a's camera 1 sees another room): both
+    cross pairs run from camera 0, whose rays fix b's shape but not its size. b's frame: x_a = s0 M0 x_b + T0."""
+    R = [_yaw(10.0), _yaw(-35.0), _yaw(70.0), _yaw(150.0)]
+    C = [np.zeros(3), np.array([-1.6, 0.02, 0.2]), np.array([1.5, 0.03, 1.6]), np.array([2.7, 0.0, 0.4])]
+    M0, T0, s0 = _yaw(41.0), np.array([0.7, 0.0, -0.4]), 0.8
+    X = rng.uniform([-1, -1, -1], [5, 1.2, 4], (40, 3))
+    views = _views(rng, R, C, X, _descriptors(rng, 40), lookalikes=2, alike_share=0.7)
+    views[1] = (views[1][0], _descriptors(rng, len(views[1][1])))
+    bearings, descriptors = [v[0] for v in views], [v[1] for v in views]
+    cross = []
+    for k, l in ((2, 0), (3, 0), (2, 1), (3, 1)):
+        raw = match_descriptors(descriptors[k], descriptors[l], MatchesOptions(ratio=0.8, mutual=True))
+        cross.append(CrossPair(k=k, l=l, b_k=bearings[k][raw[:, 0]], b_l=bearings[l][raw[:, 1]], matches=raw))
+    C_b = {k: M0.T @ (C[k] - T0) / s0 for k in (2, 3)}
+    step_b = float(np.linalg.norm(C_b[2] - C_b[3]))
+    kwargs = dict(R_a={0: R[0], 1: R[1]}, C_a={0: C[0], 1: C[1]}, R_b={k: R[k] @ M0 for k in (2, 3)}, C_b=C_b,
+                  gravity=np.array([R_k @ DOWN for R_k in R]), bearings=bearings, descriptors=descriptors,
+                  threshold_rad=THRESHOLD, step_a=s0 * step_b, step_b=step_b)  # the guess: b's true scale
+    fits = [(cross[0], _yaw(0.3) @ M0, normalize(C[2] - C[0]), np.ones(8, bool))]  # a rough seed fit
+    return (C, M0), cross, fits, kwargs
+
+
+def test_two_panoramas_of_b_seeing_one_of_a_place_b_by_its_shape_and_the_guessed_scale():
+    rng = np.random.default_rng(6)
+    (C, M0), cross, fits, kwargs = _two_panoramas_through_one(rng)
+    for several in (False, True):
+        join = join_by_rematching(fits, cross, several=several, **kwargs)
+        assert join is not None
+        M, chosen, (scale, shift, guessed), rows = join
+        assert {(f[0].k, f[0].l) for f in chosen} == {(2, 0), (3, 0)} and guessed
+        assert rotation_angle_deg(M, M0) < 0.05
+        for k in (2, 3):  # the rays from camera 0 give b's shape: with its true scale guessed, its true centres
+            assert np.linalg.norm(scale * M @ kwargs["C_b"][k] + shift - C[k]) < 0.03
+
+
+def test_a_join_the_placement_check_rejects_is_not_taken():
+    rng = np.random.default_rng(6)
+    _, cross, fits, kwargs = _two_panoramas_through_one(rng)
+    seen = []
+    refuse = lambda M, placed: seen.append(placed) and False  # noqa: E731 - records the joins offered, takes none
+    assert join_by_rematching(fits, cross, several=True, accept=refuse, **kwargs) is None
+    assert len(seen) >= 1  # the join was found and offered to the check
