@@ -31,6 +31,13 @@ no one distance. Seeds then come also from the images' walls: each image's Manha
 relative yaw modulo 90°, so each cross pair is fitted (2-unknown baseline) under the four rotations the walls allow,
 and the best `MAX_WALL_SEEDS` are rematched under their rotation (a doorway pair whose raw matches are too few for
 a 3-unknown fit: seed 44's 020-019, 12 true of 38 raw).
+
+Several pairs (`several`, `registration.weak_join_several`, last): in a box room the quarter turns rematch nearly as
+well as the true pose (1024 home seed 61: its doorway pair 007-009 37 rematched, 34 under its 90-degree turn; 008-009
+34 at its true pose against 15-24), so no doorway pair passes the margins at any pose. Each seed is then taken when
+it only beats every quarter turn (`SEVERAL_MARGINS`), with `MIN_SEVERAL_CONFIRMED` - 1 or more pairs sharing one of
+its cameras that do the same under its rotation and place b consistently. The guard is the join check
+(`accept`, `placement_check`), which every join found here passes before it is taken.
 Pure geometry: no file access.
 """
 
