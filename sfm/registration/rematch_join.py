@@ -77,7 +77,7 @@ MIN_POINT_PARALLAX_DEG = 3.0  # points this close to the baseline's line fix no 
 MAX_WALL_SEEDS = 6  # (pair, rotation the walls allow) hypotheses rematched, most 2-unknown inliers first
 MIN_SEVERAL_CONFIRMED = 2  # pairs (seed included) that place b when each only beats its quarter turns
 SEVERAL_MARGINS = (1.0, 1)  # ... by (factor, excess): more matches than under any quarter turn (doorway 007-009 of
-# 1024 home seed 61: 37 rematched, 33 under its 90-degree turn, 15-24 for 008-009's turns at its true pose)
+# 1024 home seed 61: 37 rematched from its seed fit, 34 under its 90-degree turn; 008-009 34 against 13-32)
 
 
 @dataclass(kw_only=True)
