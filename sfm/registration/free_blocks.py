@@ -83,6 +83,11 @@ def biconnected_blocks(num_images: int, links: np.ndarray) -> list[np.ndarray]:
 FLOOR_WINDOW = 0.03
 MIN_FLOOR_POINTS = 5
 FLOOR_MIN_ELEVATION_DEG = 15.0  # points less steeply below the horizon are mostly walls and furniture
+# A cluster with MIN_FLOOR_POINTS points further down (beyond its window, up to FLOOR_MAX_BELOW times its depth) is a
+# furniture top over a floor too bare to form a cluster: the camera measures no floor (new 1024 px home seed 80:
+# cameras 014-019 all see one at 1.0-1.26 m, the floor 1.5 m below them, 6-18 points below it; a true floor has 0-4,
+# stray matches).
+FLOOR_MAX_BELOW = 2.0
 # A block's height is the median over its cameras (junctions left out: they see two blocks' points) that measure one;
 # fewer than this and the block's scale falls back to the median baseline.
 MIN_HEIGHT_CAMERAS = 3
@@ -101,9 +106,11 @@ def camera_heights(centers: np.ndarray, down: np.ndarray, points: np.ndarray, tr
 
 
 def floor_clusters(centers: np.ndarray, down: np.ndarray, points: np.ndarray, track_ids: np.ndarray,
-                   image_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   image_ids: np.ndarray, min_points: int = MIN_FLOOR_POINTS
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each camera's floor points: (camera (F,), point (F,), height (N,)) with the camera's height above them (the
-    median depth of its floor cluster along `down` (N, 3), nan where no floor is seen or `down` is nan)."""
+    median depth of its floor cluster of at least `min_points` along `down` (N, 3), nan where no floor is seen, where
+    as many points lie further down (a furniture top), or where `down` is nan)."""
     n = len(centers)
     heights = np.full(n, np.nan)
     cams, pts = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
@@ -121,9 +128,13 @@ def floor_clusters(centers: np.ndarray, down: np.ndarray, points: np.ndarray, tr
         sort = np.argsort(d)
         seen, d = seen[sort], d[sort]
         count = np.searchsorted(d, d, side="right") - np.searchsorted(d, (1.0 - FLOOR_WINDOW) * d, side="left")
-        enough = np.flatnonzero(count >= MIN_FLOOR_POINTS)
+        enough = np.flatnonzero(count >= min_points)
         if len(enough):
             top = d[enough[-1]]
+            below = np.searchsorted(d, FLOOR_MAX_BELOW * top, side="right") - np.searchsorted(
+                d, (1.0 + FLOOR_WINDOW) * top, side="right")
+            if below >= min_points:
+                continue
             floor = (d <= top) & (d >= (1.0 - FLOOR_WINDOW) * top)
             heights[c] = np.median(d[floor])
             cams.append(np.full(floor.sum(), c))
