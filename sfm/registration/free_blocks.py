@@ -143,15 +143,18 @@ def floor_clusters(centers: np.ndarray, down: np.ndarray, points: np.ndarray, tr
 
 
 def free_block_similarities(centers: np.ndarray, links: np.ndarray, pairs: np.ndarray, min_pairs: int,
-                            heights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                            heights: np.ndarray | None = None, baselines: bool = True
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per camera the similarity x -> scale·x + shift that puts every block with at least `min_pairs` verified
     pairs (`pairs` (P, 2)) inside it at the median baseline of its component's block with the most verified pairs
     (the root), scaled about the junction camera it hangs from (its subtree of blocks moving with it), and the
     camera's depth in the tree of blocks (0: the root, -1: no link). With `heights` (N,) (`camera_heights`), a block
     whose cameras and the root's both measure one gets the root's median camera height instead (a tripod keeps the
-    height, where the steps of a walk vary by tens of per cent). A track lies in one block: its points move with its
-    deepest camera. A root with fewer than `min_pairs` pairs scales nothing. Returns (scale (N,), shift (N, 3),
-    depth (N,))."""
+    height, where the steps of a walk vary by tens of per cent). Without `baselines` a block whose heights cannot
+    be compared keeps its scale (the adjustment's height prior already set it: new home seed 80's block 022-025, two
+    cameras measuring, its 0.138 heights the root's, went ×1.118 to the root's median baseline). A track lies in one
+    block: its points move with its deepest camera. A root with fewer than `min_pairs` pairs scales nothing. Returns
+    (scale (N,), shift (N, 3), depth (N,))."""
     n = len(centers)
     scale, shift, depth = np.ones(n), np.zeros((n, 3)), np.full(n, -1)
     # the block with the most verified pairs sets the step: its median is the steadiest
@@ -181,7 +184,7 @@ def free_block_similarities(centers: np.ndarray, links: np.ndarray, pairs: np.nd
                 depth[members] = depth[v] + 1
                 own = _median_baseline(C, blocks[k], pairs) if len(_inner_pairs(blocks[k], pairs)) >= min_pairs \
                     else np.nan
-                s = reference / own if np.isfinite(reference) and np.isfinite(own) and own > 0 else 1.0
+                s = reference / own if baselines and np.isfinite(reference) and np.isfinite(own) and own > 0 else 1.0
                 own_height = _median_height(h * scale, blocks[k])  # the heights as moved so far
                 if np.isfinite(own) and np.isfinite(reference_height) and np.isfinite(own_height):
                     s = reference_height / own_height
