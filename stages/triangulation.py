@@ -100,9 +100,7 @@ def run(ctx: StageContext) -> dict:
         if config.free_block_min_pairs:
             pairs = np.asarray(verified.pairs, np.int64).reshape(-1, 2)[reg["pair_inlier_mask"]]
             down = _model_down(R, model_id, measured) if config.free_block_scale == "camera_height" else None
-            # after an adjustment with the height prior, only heights re-scale a block: it set them
-            R, t, points = _rescale_free_blocks(final, R, t, points, pairs, config.free_block_min_pairs, down,
-                                                baselines=floor is None)
+            R, t, points = _rescale_free_blocks(final, R, t, points, pairs, config.free_block_min_pairs, down)
     else:  # the errors of the points just triangulated (with an adjustment, its own errors replace them)
         errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
     return _write(ctx, obs, model_id, R, t, final, points, errors, geometry_pairs=len(extra))
@@ -165,14 +163,14 @@ def _model_down(R, model_id, gravity) -> np.ndarray | None:
     return down
 
 
-def _rescale_free_blocks(tracks: Tracks, R, t, points, pairs, min_pairs: int, down=None, baselines: bool = True):
+def _rescale_free_blocks(tracks: Tracks, R, t, points, pairs, min_pairs: int, down=None):
     """Blocks of cameras that no track joins put at the root block's median camera height above the floor, or
     where a floor is not seen (or `down` is None) its median verified-pair baseline (`free_blocks`): the adjustment's
     cost is the same for any scale of such a block about its junction camera, so it kept the parts' guesses."""
     centers = -np.einsum("nba,nb->na", R, t)
     heights = None if down is None else camera_heights(centers, down, points, tracks.track_ids, tracks.image_ids)
     scale, shift, depth = free_block_similarities(centers, camera_links(tracks.track_ids, tracks.image_ids), pairs,
-                                                  min_pairs, heights, baselines)
+                                                  min_pairs, heights)
     if np.all(scale == 1.0):
         return R, t, points
     moved = centers * scale[:, None] + shift

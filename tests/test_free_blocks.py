@@ -158,15 +158,3 @@ def test_a_block_whose_floor_is_not_seen_falls_back_to_the_median_baseline():
     _, with_down, _ = _rescale_free_blocks(tracks, R, t, points, pairs, 3, down)
     _, without, _ = _rescale_free_blocks(tracks, R, t, points, pairs, 3)
     np.testing.assert_allclose(with_down, without, atol=1e-12)
-
-
-def test_after_the_height_prior_a_block_without_comparable_heights_keeps_its_scale():
-    """With `baselines` off (the final adjustment held the heights: it set every block's scale), a block whose floor
-    is not seen is not moved to the root's median baseline; with it on (no prior) it is, as before."""
-    C_true, C, points, tracks, pairs = _two_rooms(wrong_scale=1.3)
-    links = camera_links(tracks.track_ids, tracks.image_ids)
-    no_floor = np.full(len(C), np.nan)
-    scale, _, _ = free_block_similarities(C, links, pairs, 3, no_floor, baselines=False)
-    np.testing.assert_array_equal(scale, 1.0)
-    scale, _, _ = free_block_similarities(C, links, pairs, 3, no_floor)
-    np.testing.assert_allclose(scale[5:] / scale[0], 1 / 1.3)  # the two rooms at one step (either may be the root)

@@ -83,11 +83,6 @@ def biconnected_blocks(num_images: int, links: np.ndarray) -> list[np.ndarray]:
 FLOOR_WINDOW = 0.03
 MIN_FLOOR_POINTS = 5
 FLOOR_MIN_ELEVATION_DEG = 15.0  # points less steeply below the horizon are mostly walls and furniture
-# A cluster with MIN_FLOOR_POINTS points further down (beyond its window, up to FLOOR_MAX_BELOW times its depth) is a
-# furniture top over a floor too bare to form a cluster: the camera measures no floor (new 1024 px home seed 80:
-# cameras 014-019 all see one at 1.0-1.26 m, the floor 1.5 m below them, 6-18 points below it; a true floor has 0-4,
-# stray matches).
-FLOOR_MAX_BELOW = 2.0
 # A block's height is the median over its cameras (junctions left out: they see two blocks' points) that measure one;
 # fewer than this and the block's scale falls back to the median baseline.
 MIN_HEIGHT_CAMERAS = 3
@@ -109,8 +104,8 @@ def floor_clusters(centers: np.ndarray, down: np.ndarray, points: np.ndarray, tr
                    image_ids: np.ndarray, min_points: int = MIN_FLOOR_POINTS
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each camera's floor points: (camera (F,), point (F,), height (N,)) with the camera's height above them (the
-    median depth of its floor cluster of at least `min_points` along `down` (N, 3), nan where no floor is seen, where
-    as many points lie further down (a furniture top), or where `down` is nan)."""
+    median depth of its floor cluster of at least `min_points` along `down` (N, 3), nan where no floor is seen or
+    `down` is nan)."""
     n = len(centers)
     heights = np.full(n, np.nan)
     cams, pts = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
@@ -131,10 +126,6 @@ def floor_clusters(centers: np.ndarray, down: np.ndarray, points: np.ndarray, tr
         enough = np.flatnonzero(count >= min_points)
         if len(enough):
             top = d[enough[-1]]
-            below = np.searchsorted(d, FLOOR_MAX_BELOW * top, side="right") - np.searchsorted(
-                d, (1.0 + FLOOR_WINDOW) * top, side="right")
-            if below >= min_points:
-                continue
             floor = (d <= top) & (d >= (1.0 - FLOOR_WINDOW) * top)
             heights[c] = np.median(d[floor])
             cams.append(np.full(floor.sum(), c))
@@ -143,18 +134,15 @@ def floor_clusters(centers: np.ndarray, down: np.ndarray, points: np.ndarray, tr
 
 
 def free_block_similarities(centers: np.ndarray, links: np.ndarray, pairs: np.ndarray, min_pairs: int,
-                            heights: np.ndarray | None = None, baselines: bool = True
-                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                            heights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per camera the similarity x -> scale·x + shift that puts every block with at least `min_pairs` verified
     pairs (`pairs` (P, 2)) inside it at the median baseline of its component's block with the most verified pairs
     (the root), scaled about the junction camera it hangs from (its subtree of blocks moving with it), and the
     camera's depth in the tree of blocks (0: the root, -1: no link). With `heights` (N,) (`camera_heights`), a block
     whose cameras and the root's both measure one gets the root's median camera height instead (a tripod keeps the
-    height, where the steps of a walk vary by tens of per cent). Without `baselines` a block whose heights cannot
-    be compared keeps its scale (the adjustment's height prior already set it: new home seed 80's block 022-025, two
-    cameras measuring, its 0.138 heights the root's, went ×1.118 to the root's median baseline). A track lies in one
-    block: its points move with its deepest camera. A root with fewer than `min_pairs` pairs scales nothing. Returns
-    (scale (N,), shift (N, 3), depth (N,))."""
+    height, where the steps of a walk vary by tens of per cent). A track lies in one block: its points move with its
+    deepest camera. A root with fewer than `min_pairs` pairs scales nothing. Returns (scale (N,), shift (N, 3),
+    depth (N,))."""
     n = len(centers)
     scale, shift, depth = np.ones(n), np.zeros((n, 3)), np.full(n, -1)
     # the block with the most verified pairs sets the step: its median is the steadiest
@@ -184,7 +172,7 @@ def free_block_similarities(centers: np.ndarray, links: np.ndarray, pairs: np.nd
                 depth[members] = depth[v] + 1
                 own = _median_baseline(C, blocks[k], pairs) if len(_inner_pairs(blocks[k], pairs)) >= min_pairs \
                     else np.nan
-                s = reference / own if baselines and np.isfinite(reference) and np.isfinite(own) and own > 0 else 1.0
+                s = reference / own if np.isfinite(reference) and np.isfinite(own) and own > 0 else 1.0
                 own_height = _median_height(h * scale, blocks[k])  # the heights as moved so far
                 if np.isfinite(own) and np.isfinite(reference_height) and np.isfinite(own_height):
                     s = reference_height / own_height
