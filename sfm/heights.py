@@ -138,20 +138,66 @@ def height_spread(centers: np.ndarray, points: np.ndarray, prior: HeightPrior) -
     return spread
 
 
+# A bridge's own points (its two-view tracks) on the floor measure its length: scaling the bridge scales them about
+# the near camera, and both cameras stand the model's common height above the floor. A cluster of this many points
+# below both (the free blocks' floor rule) suffices: a doorway's floor is small.
+BRIDGE_MIN_FLOOR_POINTS = 3
+BRIDGE_FLOOR_AGREEMENT = 0.05  # the two cameras' depths of those points agree to this (relative): one floor
+BRIDGE_MAX_CHANGE = 2.0  # a floor asking for a larger change of the length than this factor is not the floor
+
+
+def model_levels(centers: np.ndarray, points: np.ndarray, prior: HeightPrior, model_id: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) each camera's model's common height above the floor (the median over the model's cameras of their mean
+    floor-row depth, as the adjustment's level) and (N, 3) its model's down; nan where the model has no rows."""
+    level, down = np.full(len(centers), np.nan), np.full((len(centers), 3), np.nan)
+    depth = np.einsum("fi,fi->f", points[prior.point] - centers[prior.camera], prior.down_world)
+    for group in np.unique(prior.group):
+        rows = prior.group == group
+        _, index = np.unique(prior.camera[rows], return_inverse=True)
+        level[model_id == group] = np.median(np.bincount(index, depth[rows]) / np.bincount(index))
+        down[model_id == group] = prior.down_world[np.flatnonzero(rows)[0]]
+    return level, down
+
+
+def bridge_floor_scale(centers: np.ndarray, points: np.ndarray, own: np.ndarray, near: int, far: int,
+                       level: float, down: np.ndarray) -> float | None:
+    """The factor λ on bridge near-far's length that puts its own floor points (`own`: its two-view tracks; the
+    farthest-down cluster of at least BRIDGE_MIN_FLOOR_POINTS seen steeply below both cameras) at the model's common
+    height `level` below both: moving the far side along the bridge scales those points about the near camera, and
+    so their depth below either camera, by λ. None without such a floor, where the two cameras' depths disagree, or
+    where λ is beyond BRIDGE_MAX_CHANGE."""
+    if not (np.isfinite(level) and level > 0 and len(own)):
+        return None
+    track_ids = np.concatenate([own, own])
+    image_ids = np.repeat(np.array([near, far]), len(own))
+    _, _, h = floor_clusters(centers, np.broadcast_to(down, centers.shape), points, track_ids, image_ids,
+                             min_points=BRIDGE_MIN_FLOOR_POINTS)
+    h = h[[near, far]]
+    if not (np.isfinite(h).all() and (h > 0).all() and abs(np.log(h[0] / h[1])) <= BRIDGE_FLOOR_AGREEMENT):
+        return None
+    scale = level / float(np.mean(h))
+    return scale if 1.0 / BRIDGE_MAX_CHANGE <= scale <= BRIDGE_MAX_CHANGE else None
+
+
 def restore_bridges(centers_before: np.ndarray, centers: np.ndarray, points: np.ndarray, track_ids: np.ndarray,
-                    image_ids: np.ndarray, roots: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+                    image_ids: np.ndarray, roots: np.ndarray, level: np.ndarray | None = None,
+                    down: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Cameras and points with every bridge's baseline back at its length in `centers_before`: a bridge is two
     cameras that only two-view tracks join (a block of two, `free_blocks.biconnected_blocks`), so the bearings leave
     its length free. Levenberg-Marquardt's diagonal damping lets the large steps of the height prior leak into that
     free direction (new home s41: a doorway's 0.20 shrank to 0.0001 in the final adjustment); the length is not
-    measured by anything else, so it goes back to where registration put it. The side away from `roots` (each
-    model's fixed camera) moves along the bridge, its tracks with it, the bridge's own points scale about the near
-    camera: no bearing changes. Returns (centers, points, bridges restored)."""
+    measured by the bearings, so it goes back to where registration put it, unless its own points show the floor
+    below both cameras: with `level` and `down` ((N,) and (N, 3), `model_levels`) the length is then the one that
+    puts that floor at the model's camera height (`bridge_floor_scale`; new home seed 46: 027-028 from 1.38 of the
+    truth to 1.006). The side away from `roots` (each model's fixed camera) moves along the bridge, its tracks with
+    it, the bridge's own points scale about the near camera: no bearing changes. Returns (centers, points, bridges,
+    bridges whose length the floor set)."""
     n = len(centers)
     links = camera_links(track_ids, image_ids)
     bridges = [b for b in biconnected_blocks(n, links) if len(b) == 2]
     if not bridges:
-        return centers, points, 0
+        return centers, points, 0, 0
     centers, points = centers.copy(), points.copy()
     adjacency = [set() for _ in range(n)]
     for a, b in links:
@@ -161,23 +207,28 @@ def restore_bridges(centers_before: np.ndarray, centers: np.ndarray, points: np.
     starts = np.flatnonzero(np.r_[True, track_ids[order][1:] != track_ids[order][:-1]])
     track_of, lengths = track_ids[order][starts], np.diff(np.r_[starts, len(cams)])
     depth = _hops(adjacency, roots, n)
+    measured = 0
     for i, j in sorted(bridges, key=lambda b: min(depth[b[0]], depth[b[1]])):
         near, far = (i, j) if depth[i] <= depth[j] else (j, i)
         before = np.linalg.norm(centers_before[far] - centers_before[near])
         now = np.linalg.norm(centers[far] - centers[near])
         if not (now > 0 and before > 0):
             continue
+        own = np.add.reduceat(((cams == near) | (cams == far)).astype(np.int64), starts) == lengths
+        own &= np.add.reduceat((cams == near).astype(np.int64), starts) > 0
+        own &= np.add.reduceat((cams == far).astype(np.int64), starts) > 0
+        floor = None if level is None or down is None else bridge_floor_scale(
+            centers, points, track_of[own], near, far, level[near], down[near])
+        if floor is not None:
+            before, measured = floor * now, measured + 1
         side = _side(adjacency, far, near)
         shift = (before / now - 1.0) * (centers[far] - centers[near])
         centers[side] += shift
         in_side = np.isin(cams, side)
         inside = np.add.reduceat(in_side.astype(np.int64), starts) == lengths
-        own = np.add.reduceat(((cams == near) | (cams == far)).astype(np.int64), starts) == lengths
-        own &= np.add.reduceat((cams == near).astype(np.int64), starts) > 0
-        own &= np.add.reduceat((cams == far).astype(np.int64), starts) > 0
         points[track_of[inside]] += shift
         points[track_of[own]] = centers[near] + before / now * (points[track_of[own]] - centers[near])
-    return centers, points, len(bridges)
+    return centers, points, len(bridges), measured
 
 
 def _hops(adjacency, roots, n: int) -> np.ndarray:

@@ -214,6 +214,9 @@ class TriangulationOptions:
     height_prior_max_spread: float = setting(0.06, "after the pose round, a model whose heights above the floor still "
                                              "spread more than this (relative, robust) gets no height prior in the "
                                              "final adjustment", gt=0.0, le=10.0)
+    bridge_floor: bool = setting(True, "with the height prior, a bridge (two cameras only two-view tracks join) "
+                                 "whose own points show the floor below both cameras gets the length that puts it "
+                                 "at the model's camera height, instead of registration's")
     free_block_min_pairs: int = setting(3, "after the final adjustment, blocks of cameras that share no track with "
                                         "the rest (meeting at one camera) and hold this many verified pairs are scaled "
                                         "to the block with the most pairs (free_block_scale)", ge=0, le=1_000_000,

@@ -22,6 +22,7 @@ Pure geometry: no file access.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from fullview.sfm import two_view
@@ -73,3 +74,91 @@ def pose_the_walls_allow(b_i: np.ndarray, b_j: np.ndarray, R_j_from_i: np.ndarra
 def f_of_pose(R_j_from_i: np.ndarray, t_j_from_i: np.ndarray) -> np.ndarray:
     """F with b_iᵀ F b_j = 0 for the pose (`two_view.consistent_with_pose`'s convention)."""
     return R_j_from_i.T @ skew(t_j_from_i).T
+
+
+# A pair whose inliers lie on one plane: the two poses of its homography explain them all (see `plane_poses`).
+PLANE_SHARE = 0.9  # the inliers are planar when this share of them lie on one plane ...
+PLANE_OFFSET = 0.02  # ... within this fraction of the plane's distance from camera i
+PLANE_MIN_EXTENT = 0.15  # ... and they spread along both of its directions by this fraction of that distance (standard
+# deviation): a small patch fixes its homography loosely, and the patch may be a furniture face at any yaw (bare home
+# seed 41's 028-030: 36 matches on a patch 0.1 m across, 1.5 m away, fitted 4.4° off; its other pose is 9.9° off)
+MAX_WALL_TILT_DEG = 5.0  # a plane whose normal is this close to horizontal is a wall (a floor's tells no yaw)
+PLANE_TOLERANCE_DEG = 2.0  # a wall's normal this close to an image's wall axis (modulo 90°) is one of its walls
+
+
+def inlier_plane(b_i: np.ndarray, b_j: np.ndarray, R_j_from_i: np.ndarray, t_j_from_i: np.ndarray
+                 ) -> tuple[np.ndarray, float] | None:
+    """(unit normal n in frame i, distance d > 0) of the plane nᵀX = d that holds PLANE_SHARE of the matches b_i, b_j
+    triangulated under the pose (t's length is the unit), or None when they are not planar, too few, or a small patch
+    (PLANE_MIN_EXTENT)."""
+    a, b = two_view.ray_depths(b_i, b_j, R_j_from_i, t_j_from_i)
+    front = (a > 0) & (b > 0)
+    if front.sum() < 8:
+        return None
+    X = a[front, None] * b_i[front]
+    centre = np.median(X, axis=0)
+    n = np.linalg.svd(X - centre, full_matrices=False)[2][2]
+    for _ in range(3):  # refit on the points near the plane: a few stray matches must not tilt it
+        d = float(n @ centre)
+        near = np.abs(X @ n - d) <= PLANE_OFFSET * abs(d)
+        if near.sum() < 8:
+            return None
+        centre = X[near].mean(axis=0)
+        n = np.linalg.svd(X[near] - centre, full_matrices=False)[2][2]
+    d = float(n @ centre)
+    near = np.abs(X @ n - d) <= PLANE_OFFSET * abs(d)
+    if not (abs(d) > 0 and near.mean() >= PLANE_SHARE):
+        return None
+    spread = np.linalg.svd(X[near] - X[near].mean(axis=0), compute_uv=False) / np.sqrt(near.sum())
+    if spread[1] < PLANE_MIN_EXTENT * abs(d):
+        return None
+    return (n, d) if d > 0 else (-n, -d)
+
+
+def plane_poses(R_j_from_i: np.ndarray, t_j_from_i: np.ndarray, normal_i: np.ndarray, distance: float):
+    """The poses (R_j_from_i, unit t_j_from_i, plane normal in frame i) of the plane's homography H = R + t nᵀ/d: a
+    plane's matches fix H, and H has two decompositions with the plane in front of camera i, both explaining every
+    match; the given pose is one of them. One per rotation (the sign of t and n
+    is left to cheirality)."""
+    H = R_j_from_i + np.outer(t_j_from_i, normal_i) / distance
+    _, Rs, ts, ns = cv2.decomposeHomographyMat(H, np.eye(3))
+    poses = []
+    for R, t, n in zip(Rs, ts, ns):  # four: two rotations, each with (t, n) and (−t, −n); the sign is cheirality's
+        if not any(np.allclose(R, other) for other, _, _ in poses):
+            poses.append((np.asarray(R, np.float64), normalize(t.ravel()), n.ravel()))
+    return poses
+
+
+def pose_the_plane_allows(b_i: np.ndarray, b_j: np.ndarray, keep: np.ndarray, R_j_from_i: np.ndarray,
+                          t_j_from_i: np.ndarray, axis_j: np.ndarray, gravity_i: np.ndarray, gravity_j: np.ndarray,
+                          threshold_rad: float, seed: int = 0):
+    """Where only image j has a wall axis and the fit's inliers (`keep`) lie on a wall: (R_j_from_i, t_j_from_i,
+    inlier mask) of the homography's other pose when the fit puts the wall off j's walls (modulo 90°) and that pose
+    puts it on them; None otherwise (not planar, a floor, the fit agrees, or no pose agrees).
+
+    A wall seen by both images fixes only its homography, whose two poses explain every match (new 1024 px home seed
+    80: 023-024, 114 matches on the wall between them, 1-1.7 m away, fitted 59.6° off; the other pose 0.65° off). The
+    wall is one of j's walls, so its normal carried into j must lie on j's axis modulo 90°: the wrong pose puts it
+    3.9° off, the true one 0.08°. The chosen pose is levelled (i's gravity onto j's) and turned about j's gravity so
+    the normal lies exactly on j's axis, and its baseline is fitted again (`two_view.baseline_given_rotation`)."""
+    plane = inlier_plane(b_i[keep], b_j[keep], R_j_from_i, t_j_from_i)
+    if plane is None:
+        return None
+    g_i, g_j = normalize(np.asarray(gravity_i, np.float64)), normalize(np.asarray(gravity_j, np.float64))
+    normal_j = R_j_from_i @ plane[0]
+    if abs(np.degrees(np.arcsin(min(1.0, abs(normal_j @ g_j))))) > MAX_WALL_TILT_DEG:
+        return None  # a floor or a ceiling: its normal says nothing about the yaw
+    if abs(wall_residual_deg(R_j_from_i, plane[0], axis_j, g_j)) <= PLANE_TOLERANCE_DEG:
+        return None
+    best = None
+    for R, _, n in plane_poses(R_j_from_i, t_j_from_i, *plane):
+        R = two_view.rotation_between(R @ g_i, g_j) @ R  # levelled: the homography knows no gravity
+        residual = wall_residual_deg(R, n, axis_j, g_j)
+        if abs(residual) > PLANE_TOLERANCE_DEG or np.degrees(np.arcsin(min(1.0, abs((R @ n) @ g_j)))) > \
+                MAX_WALL_TILT_DEG:
+            continue
+        R = turn(g_j, residual) @ R
+        t, inliers = two_view.baseline_given_rotation(b_i, b_j, R, threshold_rad, seed=seed)
+        if best is None or inliers.sum() > best[2].sum():
+            best = (R, t, inliers)
+    return best

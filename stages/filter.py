@@ -127,7 +127,7 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
     if upright_pair and frames is not None and keep.sum() >= min(minimum, options.min_inliers):
         F, keep, walled = _checked_against_walls(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], F, keep,
                                                  frames, i, j, threshold, options.seed + k, options.min_inliers,
-                                                 drop=wall_drop)
+                                                 drop=wall_drop, gravity=gravity)
     good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
     added = None
     if descriptors is not None and len(good) >= options.min_inliers:
@@ -147,7 +147,7 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
 
 
 def _checked_against_walls(bear_i, bear_j, matches, F, keep, frames, i: int, j: int, threshold: float, seed: int,
-                           strong: int, *, drop: bool = False):
+                           strong: int, *, drop: bool = False, gravity=None):
     """(F, inlier mask, what the walls did: "", "fitted" or "dropped"): where the upright fit's yaw contradicts the
     two images' walls (modulo 90°, beyond `wall_check.tolerance_deg`), the pose the walls allow replaces the fit when
     it explains nearly as many matches (`wall_check.AMBIGUOUS_SHARE`) or the fit has fewer than `strong` inliers (the
@@ -161,13 +161,16 @@ def _checked_against_walls(bear_i, bear_j, matches, F, keep, frames, i: int, j: 
     58.74 → 50.80 AUC@5 (25.54 → 28.13 @1), so it stays off. Refining the walls' pose on its inliers did not
     help: from that start the yaw slides along the ambiguity the walls resolved (seed 0's 005-009: 0.08° → 0.98°)."""
     axis, axis_std, wall_gravity = frames[0], frames[1], frames[2]
-    if not (np.isfinite(axis[i]).all() and np.isfinite(axis[j]).all()):
+    known = np.isfinite(axis[i]).all(), np.isfinite(axis[j]).all()
+    if not any(known) or (not all(known) and gravity is None):
         return F, keep, ""
     b_i, b_j = bear_i[matches[:, 0]], bear_j[matches[:, 1]]
     try:
         pose = two_view.relative_pose_from_f(F, b_i[keep], b_j[keep])
     except ValueError:
         return F, keep, ""
+    if not all(known):
+        return _checked_against_one_wall(b_i, b_j, F, keep, pose, frames, gravity, i, j, threshold, seed, known[0])
     residual = wall_check.wall_residual_deg(pose.R_j_from_i, axis[i], axis[j], wall_gravity[j])
     if abs(residual) <= wall_check.tolerance_deg(axis_std[i], axis_std[j]):
         return F, keep, ""
@@ -177,6 +180,28 @@ def _checked_against_walls(bear_i, bear_j, matches, F, keep, frames, i: int, j: 
         return F, keep, ""
     if drop:
         return F, np.zeros_like(keep), "dropped"
+    return wall_check.f_of_pose(R, t), inliers, "fitted"
+
+
+def _checked_against_one_wall(b_i, b_j, F, keep, pose, frames, gravity, i: int, j: int, threshold: float, seed: int,
+                              i_known: bool):
+    """The wall check of a pair where one image has no wall axis (`_checked_against_walls`' result): when the fit's
+    inliers lie on a wall whose normal the fit puts off the other image's walls, the homography's other pose, if it
+    puts the wall on them and explains nearly as many matches (`wall_check.pose_the_plane_allows`), replaces the
+    fit. Worked in the frame of the image with the axis as j (the pair swapped when it is i)."""
+    R, t = pose.R_j_from_i, pose.t_j_from_i
+    if i_known:  # swap: i becomes the image with the axis
+        b_i, b_j, R, t = b_j, b_i, R.T, -R.T @ t
+        known, other = i, j
+    else:
+        known, other = j, i
+    found = wall_check.pose_the_plane_allows(b_i, b_j, keep, R, t, frames[0][known], gravity[other],
+                                             frames[2][known], threshold, seed)
+    if found is None or found[2].sum() < wall_check.AMBIGUOUS_SHARE * keep.sum():
+        return F, keep, ""
+    R, t, inliers = found
+    if i_known:
+        R, t = R.T, -R.T @ t
     return wall_check.f_of_pose(R, t), inliers, "fitted"
 
 

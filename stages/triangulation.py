@@ -228,27 +228,31 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
     # nothing else measures), which then takes up every change of the blocks' scales (new home s46: ×0.73 → ×0.17).
     scale_camera = (_best_linked(obs_camera, tracks.track_ids, len(cams), int(first[0]))
                     if height is not None and len(first) == 1 else None)
+    local_height = None if height is None else _local_height(height, local)
+    bridge_floor = config.bridge_floor  # the bridges' lengths from their floor points (with the height prior)
     result = bundle_adjust(
         R_cam_from_world=R[cams], t_cam_from_world=t[cams], points=points,
         obs_camera=obs_camera, obs_point=tracks.track_ids, scale_camera=scale_camera,
         obs_bearings=gather_bearings(bearings, tracks.image_ids, tracks.feature_ids),
         fixed_cameras=tuple(first.tolist()), loss="soft_l1", loss_scale_rad=np.radians(config.ba_loss_scale_deg),
         max_nfev=config.ba_max_iterations, gravity_prior=prior, pose_tolerance_rad=pose_tolerance_rad,
-        heading_prior=heading, height_prior=None if height is None else _local_height(height, local))
+        heading_prior=heading, height_prior=local_height)
     log.info("bundle adjustment: %d cameras (%d with a gravity prior, %d with a heading prior), %d points, cost "
              "%.4g -> %.4g, median error %.4f deg", len(cams), 0 if prior is None else len(prior.camera),
              0 if heading is None else len(heading.camera), len(points), result.initial_cost,
              result.final_cost, np.degrees(np.median(result.obs_error_rad)))
     R, t = R.copy(), t.copy()
     points = result.points
-    if height is not None:  # the bridges' free lengths back where registration put them (`heights.restore_bridges`)
+    if height is not None:  # the bridges: lengths from their floor points, or back where they were (`restore_bridges`)
         before = -np.einsum("nba,nb->na", R[cams], t[cams])
         centers = -np.einsum("nba,nb->na", result.R_cam_from_world, result.t_cam_from_world)
-        centers, points, bridges = heights.restore_bridges(before, centers, points, tracks.track_ids, obs_camera,
-                                                           first)  # the held cameras stay where they are
+        level, down = heights.model_levels(centers, points, local_height, model_id[cams])
+        centers, points, bridges, measured = heights.restore_bridges(
+            before, centers, points, tracks.track_ids, obs_camera, first,  # the held cameras stay where they are
+            level=level if bridge_floor else None, down=down)
         if bridges:
-            log.info("height prior: %d bridges (two cameras only two-view tracks join) kept at their lengths",
-                     bridges)
+            log.info("height prior: %d bridges (two cameras only two-view tracks join): %d set by their floor points, "
+                     "the rest kept at their lengths", bridges, measured)
         result = dataclasses.replace(result, t_cam_from_world=-np.einsum("nab,nb->na", result.R_cam_from_world,
                                                                         centers))
     R[cams], t[cams] = result.R_cam_from_world, result.t_cam_from_world

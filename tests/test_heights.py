@@ -165,13 +165,13 @@ def test_a_bridge_goes_back_to_its_length_without_changing_a_bearing():
     X1[second] += shift
     X1[doorway] = C[3] + 0.2 * (X[doorway] - C[3])
     np.testing.assert_allclose(_bearings(R, C1, X1, cam, pt), _bearings(R, C, X, cam, pt), atol=1e-12)
-    C2, X2, bridges = heights.restore_bridges(C, C1, X1, pt, cam, np.array([0]))
+    C2, X2, bridges, _ = heights.restore_bridges(C, C1, X1, pt, cam, np.array([0]))
     assert bridges == 1
     np.testing.assert_allclose(C2, C, atol=1e-12)
     np.testing.assert_allclose(_bearings(R, C2, X2, cam, pt), _bearings(R, C, X, cam, pt), atol=1e-12)
     # one three-view track across the doorway: no bridge, nothing moves
     cam3, pt3 = np.r_[cam, 2], np.r_[pt, np.flatnonzero(doorway)[0]]
-    C3, X3, bridges = heights.restore_bridges(C, C1, X1, pt3, cam3, np.array([0]))
+    C3, X3, bridges, _ = heights.restore_bridges(C, C1, X1, pt3, cam3, np.array([0]))
     assert bridges == 0 and np.array_equal(C3, C1) and np.array_equal(X3, X1)
 
 
@@ -186,3 +186,34 @@ def test_floor_rows_leave_out_a_bridges_points():
     prior = _prior(R, C, X2, cam2, pt2)
     assert not np.isin(prior.point, [len(X), len(X) + 1]).any()
     assert heights.rigid_tracks(pt2, cam2, 8)[:len(X)].sum() == len(X) - 20  # all but the 20 doorway tracks
+
+
+def test_a_bridges_floor_points_set_its_length_exactly():
+    """The doorway of `_two_rooms` with four floor points seen only by its two cameras (two-view tracks), its
+    length at 0.6 of the truth (the second room moved along it, the doorway's points scaled about camera 3: the
+    same bearings, which leave the length free). Given the model's camera height (1.5), `restore_bridges` sets the
+    length that puts those points 1.5 below both cameras: the true one, exactly, every bearing unchanged. Without
+    the height it keeps the length it was given."""
+    R, C, X, cam, pt, _ = _two_rooms(np.random.default_rng(3))
+    floor = np.array([[3.6, HEIGHT, -0.4], [3.9, HEIGHT, 0.3], [4.2, HEIGHT, -0.2], [4.4, HEIGHT, 0.4]])
+    X = np.vstack([X, floor])
+    new = np.arange(len(X) - 4, len(X))
+    cam, pt = np.r_[cam, [3] * 4, [4] * 4], np.r_[pt, new, new]
+    seen_by = np.zeros((len(X), 8), bool)
+    seen_by[pt, cam] = True
+    doorway = seen_by[:, 3] & seen_by[:, 4] & (seen_by.sum(1) == 2)
+    second = seen_by[:, 4:].all(1)
+    shift = -0.4 * (C[4] - C[3])
+    C1, X1 = C.copy(), X.copy()
+    C1[4:] += shift
+    X1[second] += shift
+    X1[doorway] = C[3] + 0.6 * (X[doorway] - C[3])
+    np.testing.assert_allclose(_bearings(R, C1, X1, cam, pt), _bearings(R, C, X, cam, pt), atol=1e-12)
+    level, down = np.full(8, HEIGHT), np.tile(DOWN, (8, 1))
+    C2, X2, bridges, measured = heights.restore_bridges(C1, C1, X1, pt, cam, np.array([0]), level=level, down=down)
+    assert (bridges, measured) == (1, 1)
+    np.testing.assert_allclose(C2, C, atol=1e-12)
+    np.testing.assert_allclose(X2[doorway], X[doorway], atol=1e-12)
+    np.testing.assert_allclose(_bearings(R, C2, X2, cam, pt), _bearings(R, C, X, cam, pt), atol=1e-12)
+    C3, _, _, measured = heights.restore_bridges(C1, C1, X1, pt, cam, np.array([0]))
+    assert measured == 0 and np.allclose(C3, C1)

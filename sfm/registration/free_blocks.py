@@ -101,9 +101,11 @@ def camera_heights(centers: np.ndarray, down: np.ndarray, points: np.ndarray, tr
 
 
 def floor_clusters(centers: np.ndarray, down: np.ndarray, points: np.ndarray, track_ids: np.ndarray,
-                   image_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   image_ids: np.ndarray, min_points: int = MIN_FLOOR_POINTS
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each camera's floor points: (camera (F,), point (F,), height (N,)) with the camera's height above them (the
-    median depth of its floor cluster along `down` (N, 3), nan where no floor is seen or `down` is nan)."""
+    median depth of its floor cluster of at least `min_points` along `down` (N, 3), nan where no floor is seen or
+    `down` is nan)."""
     n = len(centers)
     heights = np.full(n, np.nan)
     cams, pts = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
@@ -121,7 +123,7 @@ def floor_clusters(centers: np.ndarray, down: np.ndarray, points: np.ndarray, tr
         sort = np.argsort(d)
         seen, d = seen[sort], d[sort]
         count = np.searchsorted(d, d, side="right") - np.searchsorted(d, (1.0 - FLOOR_WINDOW) * d, side="left")
-        enough = np.flatnonzero(count >= MIN_FLOOR_POINTS)
+        enough = np.flatnonzero(count >= min_points)
         if len(enough):
             top = d[enough[-1]]
             floor = (d <= top) & (d >= (1.0 - FLOOR_WINDOW) * top)
