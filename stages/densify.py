@@ -482,7 +482,7 @@ def _world_planes(wopt: world_planes.WorldPlaneOptions, seed: int, views, sparse
 def _carved_world_planes(config: DensifyOptions, views, judges, wopt, found, points: int, seconds: float):
     """The world planes found (``_world_planes``) kept after the free-space check by the ``judges`` (the views with
     their confirmed stereo): (options, planes, the judges, each view's nearest plane per ray or None)."""
-    kept = world_planes.carve_extents(found, judges, wopt)
+    kept = world_planes.carve_extents(found, judges, wopt, map=thread_map)  # each plane on its own
     log.info("world planes: %d found in %d points (%.1f s), %d kept after the free-space check", len(found), points,
              seconds, len(kept))
     occluders = list(thread_map(lambda v: world_planes.nearest_plane_ranges(v, kept, wopt), views)) \
