@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from fullview.io.artifacts import atomic_path, save_json, save_mesh_ply, save_ply
+from fullview.sfm.open3d_module import open3d
 
 log = logging.getLogger(__name__)
 
@@ -385,7 +386,7 @@ def sparse_point_normals(points: np.ndarray, centers: np.ndarray, *, knn: int = 
     camera centre). Why facing the cameras: a surface is seen from its front, and PCA only gives an axis.
     `centers` (N, 3) may hold NaN rows for unregistered cameras; they are ignored.
     """
-    import open3d as o3d
+    o3d = open3d()
 
     points = np.asarray(points, np.float64).reshape(-1, 3)
     if len(points) == 0:

@@ -43,7 +43,7 @@ Panoramas are never upsampled: the working width is at most the native width.
 
 Threads: pairs run two at a time, the per-panorama steps (region fill, world fill, confirmation, fusion) on a pool
 of local threads, the world planes are found in a forked child process while the stereo check and the region fill
-run, open3d is imported on a side thread while the fusion checks the points, the cloud is cleaned in a child
+run (their pools leave the child a core while it works, ``protocol.thread_map``), open3d is imported on a side thread while the fusion checks the points, the cloud is cleaned in a child
 process while the maps are saved on the side thread and each point's observing camera (the mesh's normals) is found,
 the cloud's preview is drawn on the side thread while the mesh's Poisson runs in a child process, and BLAS keeps one
 thread; every result is gathered in a fixed order, so
@@ -55,7 +55,6 @@ child's count in the phase it ends in).
 from __future__ import annotations
 
 import ctypes
-import importlib
 import logging
 import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
@@ -76,6 +75,7 @@ from fullview.sfm.dense import ground_sweep, planes, world_planes
 from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimates, fusion_neighbours,
                                 mask_below_latitude, pair_min_depth_ratio, range_error_per_pixel, scene_size)
 from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
+from fullview.sfm.open3d_module import open3d
 from fullview.sfm.options import DensifyOptions
 from fullview.stages import mesh_step
 from fullview.stages.protocol import StageContext, cpu_seconds, forked, thread_map
@@ -150,11 +150,11 @@ def _run(ctx: StageContext) -> dict:
                           f"{checkers} other panorama(s) here (densify.fusion_views={config.fusion_views}, "
                           f"{len(maps)} range maps); no point could be kept")
     with ThreadPoolExecutor(max_workers=1) as side:
-        # open3d (the cloud's cleaning at the fusion's end, the mesh) takes 1.2-1.7 CPU s to import, most of it
-        # plotting packages it imports too: imported on the side thread while the panoramas' points are checked, not
-        # on the serial cleaning (not earlier either: its 0.17 GB would come on top of the stereo's peak); a failed
-        # import fails again where open3d is used
-        imported = side.submit(importlib.import_module, "open3d")
+        # open3d (the cloud's cleaning at the fusion's end, the mesh) takes 0.3 CPU s to import without its plotly
+        # drawing (``sfm.open3d_module``; 0.65 with it): imported on the side thread while the panoramas' points are
+        # checked, not on the serial cleaning (not earlier either: its memory would come on top of the stereo's
+        # peak); a failed import fails again where open3d is used
+        imported = side.submit(open3d)
         saved = []
 
         def while_cleaning(merged: np.ndarray) -> np.ndarray | None:
@@ -482,7 +482,7 @@ def _world_planes(wopt: world_planes.WorldPlaneOptions, seed: int, views, sparse
 def _carved_world_planes(config: DensifyOptions, views, judges, wopt, found, points: int, seconds: float):
     """The world planes found (``_world_planes``) kept after the free-space check by the ``judges`` (the views with
     their confirmed stereo): (options, planes, the judges, each view's nearest plane per ray or None)."""
-    kept = world_planes.carve_extents(found, judges, wopt)
+    kept = world_planes.carve_extents(found, judges, wopt, map=thread_map)  # each plane on its own
     log.info("world planes: %d found in %d points (%.1f s), %d kept after the free-space check", len(found), points,
              seconds, len(kept))
     occluders = list(thread_map(lambda v: world_planes.nearest_plane_ranges(v, kept, wopt), views)) \

@@ -8,10 +8,12 @@ import multiprocessing
 import os
 import resource
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Callable, Iterable, Iterator, Protocol
 
 from fullview.io.dataset import Dataset
@@ -24,9 +26,63 @@ Mapper = Callable[..., Iterator[Any]]
 
 def thread_map(fn: Callable[[Any], Any], items: Iterable[Any], *, threads: int | None = None) -> Iterator[Any]:
     """The local executor: a thread pool in this process (OpenCV and numpy release the GIL). `threads` caps the
-    pool (memory-heavy work); a cluster executor ignores it."""
-    with ThreadPoolExecutor(max_workers=min(threads or os.cpu_count() or 1, os.cpu_count() or 1)) as pool:
-        yield from pool.map(fn, items)
+    pool (memory-heavy work); a cluster executor ignores it. While a `forked` child is at work the pool runs one
+    item fewer at once (at least one), and the full number again as soon as the child is done (`_CoreShare`)."""
+    workers = min(threads or os.cpu_count() or 1, os.cpu_count() or 1)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        yield from pool.map(partial(_CORES.run, _PoolSlots(workers), fn), items)
+
+
+class _CoreShare:
+    """The cores this process's local pools may use: all of them, less one for each `forked` child at work.
+
+    Why: the world planes' child (about 4.5 CPU s of Python on the bench's room) runs beside the stereo check and
+    the region fill on two pool threads. Three busy threads on two cores each get two thirds of a core, so the pool
+    was done first and the child then ran on one core while the other stayed idle (about 1 s on the room). With
+    one pool thread while the child works, each has a core and they end together; when the child ends first, its
+    core goes back to the pool at its next item."""
+
+    def __init__(self):
+        self._changed = threading.Condition()
+        self._children = 0
+
+    def child_started(self) -> Callable[[Any], None]:
+        """Count a child at work; returns the call that counts it done (once, whatever calls it again)."""
+        with self._changed:
+            self._children += 1
+        ended = threading.Lock()
+
+        def done(_: Any = None) -> None:
+            if ended.acquire(blocking=False):
+                with self._changed:
+                    self._children -= 1
+                    self._changed.notify_all()
+        return done
+
+    def free(self) -> int:
+        return max(1, (os.cpu_count() or 1) - self._children)
+
+    def run(self, slots: _PoolSlots, fn: Callable[[Any], Any], item: Any) -> Any:
+        """``fn(item)`` once the pool has a free core (each pool its own count: a pool inside another's item
+        always runs one at least, so nested pools cannot wait on each other)."""
+        with self._changed:
+            self._changed.wait_for(lambda: slots.active < min(slots.workers, self.free()))
+            slots.active += 1
+        try:
+            return fn(item)
+        finally:
+            with self._changed:
+                slots.active -= 1
+                self._changed.notify_all()
+
+
+@dataclass
+class _PoolSlots:
+    workers: int  # the pool's threads
+    active: int = 0  # items running now
+
+
+_CORES = _CoreShare()
 
 
 def process_map(fn: Callable[[Any], Any], items: Iterable[Any], *, processes: int | None = None) -> Iterator[Any]:
@@ -74,20 +130,26 @@ def forked(fn: Callable[..., Any], *args: Any) -> Iterator[Any]:
     with numpy and OpenCV; glibc's malloc is made consistent across a fork). Falls back to a local thread where
     `process_map` falls back to threads. The child is ended on leaving the block; the runner counts its CPU time
     with the stage's."""
-    if multiprocessing.current_process().daemon or not sys.platform.startswith("linux"):
-        with ThreadPoolExecutor(max_workers=1) as side:
-            yield side.submit(fn, *args)
-        return
-    pool = multiprocessing.get_context("fork").Pool(1, initializer=_install_forked,
-                                                    initargs=(lambda _: fn(*args),))
-    job = pool.apply_async(_call_forked, (None,))
-    job.result = job.get  # the interface of a future
+    done = _CORES.child_started()  # the local pools leave it a core until it is done (`_CoreShare`)
     try:
-        yield job
-        pool.close()
+        if multiprocessing.current_process().daemon or not sys.platform.startswith("linux"):
+            with ThreadPoolExecutor(max_workers=1) as side:
+                job = side.submit(fn, *args)
+                job.add_done_callback(done)
+                yield job
+            return
+        pool = multiprocessing.get_context("fork").Pool(1, initializer=_install_forked,
+                                                        initargs=(lambda _: fn(*args),))
+        job = pool.apply_async(_call_forked, (None,), callback=done, error_callback=done)
+        job.result = job.get  # the interface of a future
+        try:
+            yield job
+            pool.close()
+        finally:
+            pool.terminate()  # stops a child whose result was not asked for; nothing to stop otherwise
+            pool.join()  # reaped: its CPU time is in RUSAGE_CHILDREN now
     finally:
-        pool.terminate()  # stops a child whose result was not asked for; nothing to stop otherwise
-        pool.join()  # reaped: its CPU time is in RUSAGE_CHILDREN now
+        done()
 
 
 _FORKED: Callable[[Any], Any] | None = None  # a worker process's function (set in the child only)

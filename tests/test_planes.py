@@ -662,3 +662,23 @@ def test_one_carved_cell_under_the_camera_does_not_take_the_room_away(reach):
     fill, label = world_planes.label_pixels(view, [floor, ceiling], view.observable, options, regions, allowed)
     on_floor = (face == 3) & (label == 1)
     assert (on_floor.sum() > 0.5 * np.sum(face == 3)) == (reach > 0)
+
+
+def test_planes_carved_on_threads_are_those_carved_one_after_another():
+    """``carve_extents`` judges each plane on its own: on the stage's threads the same planes are kept, with the
+    same extents, in the same order."""
+    import copy
+
+    from fullview.stages.protocol import thread_map
+    views, _ = _world_views(_render)
+    options = world_planes.WorldPlaneOptions(distance=0.015, cell=0.1)
+    points, ranges, observers = planes.stereo_points(views)
+    found = world_planes.detect_world_planes(points, ranges, np.random.default_rng(0), options,
+                                             up=np.array([0.0, -1.0, 0.0]), observers=observers)
+    assert len(found) >= 4
+    serial = world_planes.carve_extents(copy.deepcopy(found), views, options)
+    threaded = world_planes.carve_extents(copy.deepcopy(found), views, options, map=thread_map)
+    assert 0 < len(serial) and [p.normal.tolist() for p in threaded] == [p.normal.tolist() for p in serial]
+    for a, b in zip(threaded, serial):
+        assert a.offset == b.offset and np.array_equal(a.extent, b.extent)
+        assert (a.fallback is None) == (b.fallback is None)

@@ -108,6 +108,18 @@ def test_evidence_pixels_of_the_wanted_regions_are_those_of_all_regions_kept_for
     np.testing.assert_array_equal(cols, expected[3])
 
 
+@pytest.mark.parametrize("shape", [(64, 128), (7, 9), (3, 4), (1, 2), (13, 1)])
+def test_evidence_pixels_clip_rows_and_wrap_columns_as_the_reference(shape):
+    """The padded labels (edge rows repeated, columns wrapped) give the clipped and wrapped labels of every offset,
+    even on grids narrower or lower than the ring's reach (the columns then wrap more than once)."""
+    rng = np.random.default_rng(shape[0] * 100 + shape[1])
+    labels = rng.integers(0, 6, shape).astype(np.int32)  # every pixel its own label: a wrong neighbour shows
+    range_map = np.where(rng.random(shape) < 0.8, 1.0, np.nan).astype(np.float32)
+    for got, want in zip(planes.region_evidence_pixels(labels, range_map),
+                         _reference_evidence_pixels(labels, range_map)):
+        np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.parametrize("seed, holes", [(0, 0.1), (1, 0.3), (2, 0.6)])
 def test_region_candidates_of_the_wanted_regions_are_those_judged_on_every_pixel(seed, holes):
     view, labels, model = _scene(seed, holes)

@@ -15,6 +15,7 @@ from fullview.sfm.options import DensifyOptions
 
 from fullview.sfm.camera import bearings_to_pixels, pixels_to_bearings
 from fullview.sfm.dense.depth import sample_edge_aware
+from fullview.sfm.open3d_module import open3d
 
 log = logging.getLogger(__name__)
 
@@ -276,7 +277,7 @@ def clean_point_cloud(
     oriented towards it. Returns (points (M, 3), colours (M, 3), normals (M, 3)[, the kept input rows (M,), in
     order: only without down-sampling, ``voxel_size`` 0]).
     """
-    import open3d as o3d
+    o3d = open3d()
 
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     cols = np.asarray(colors)

@@ -31,6 +31,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fullview.sfm.camera import bearings_to_pixels
+from fullview.sfm.open3d_module import open3d
 
 log = logging.getLogger(__name__)
 
@@ -179,7 +180,7 @@ def nearest_observing_cameras(points: np.ndarray, R_cam_from_world: np.ndarray, 
 def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Screened Poisson reconstruction (open3d, one thread: reproducible): vertices, triangles, densities."""
-    import open3d as o3d  # heavy import, only where a mesh is made
+    o3d = open3d()  # heavy import, only where a mesh is made
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64).reshape(-1, 3))

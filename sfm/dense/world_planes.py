@@ -37,6 +37,8 @@ plane of its surface (a floor, a ceiling), where one lies within the view tolera
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import partial
+from typing import Callable, Iterable
 
 import cv2
 import numpy as np
@@ -1022,24 +1024,28 @@ def confirmed_views(views: list[View], neighbours: list[list[int]], tolerance: f
     return out
 
 
-def carve_extents(planes: list[WorldPlane], views: list[View], options: WorldPlaneOptions) -> list[WorldPlane]:
+def carve_extents(planes: list[WorldPlane], views: list[View], options: WorldPlaneOptions,
+                  map: Callable[..., Iterable[bool]] = map) -> list[WorldPlane]:
     """Remove the extent cells that a view's stereo sees through; drop planes seen through on most of the cells
     some view has a range for (invented planes). A wall with a generous extent is judged cell by cell
-    (``_carve_locally``, with ``local_extent``). Returns the planes kept (extents modified in place)."""
-    kept = []
-    for plane in planes:
-        if plane.fallback is not None and options.local_extent and not plane.level:
-            if _carve_locally(plane, views, options):
-                kept.append(plane)
-        elif _carve(plane, views, options):
-            kept.append(plane)
-        elif plane.fallback is not None:
-            # the views see through most of the generous extent (a slightly tilted floor far from its support, a
-            # wall's columns through a window): the plane keeps the extent of its own support, judged the same way
-            plane.extent, plane.fallback = plane.fallback, None
-            if _carve(plane, views, options):
-                kept.append(plane)
-    return kept
+    (``_carve_locally``, with ``local_extent``). Returns the planes kept (extents modified in place). Each plane is
+    judged on its own: ``map`` may judge them on threads (the kept ones come back in order)."""
+    return [plane for plane, keep in zip(planes, map(partial(_carve_plane, views=views, options=options), planes))
+            if keep]
+
+
+def _carve_plane(plane: WorldPlane, views: list[View], options: WorldPlaneOptions) -> bool:
+    """``carve_extents`` for one plane: whether it is kept (its extent carved in place)."""
+    if plane.fallback is not None and options.local_extent and not plane.level:
+        return _carve_locally(plane, views, options)
+    if _carve(plane, views, options):
+        return True
+    if plane.fallback is not None:
+        # the views see through most of the generous extent (a slightly tilted floor far from its support, a
+        # wall's columns through a window): the plane keeps the extent of its own support, judged the same way
+        plane.extent, plane.fallback = plane.fallback, None
+        return _carve(plane, views, options)
+    return False
 
 
 def _carve(plane: WorldPlane, views: list[View], options: WorldPlaneOptions) -> bool:
