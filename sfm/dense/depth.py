@@ -226,20 +226,32 @@ def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float,
     estimate per pixel, ``range_error_per_pixel``: a partner whose epipole is near the pixel counts little), and the
     pixel is dropped unless at least two agree (two conflicting estimates cannot say which is right). Returns
     (range float32 NaN-invalid, valid bool)."""
+    return combine_with_conflicts(estimates, rel_tol, errors)[:2]
+
+
+def combine_with_conflicts(estimates: list[np.ndarray], rel_tol: float, errors: list[np.ndarray] | None = None
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``combine_range_estimates`` and ``conflicting_estimates`` of the same estimates in one pass over the pixels
+    (the stage needs both; each pixel's agreement with the median is found once): (range, valid, flat pixel indices
+    of the conflicts, their estimates)."""
     if not estimates:
         raise ValueError("combine_range_estimates needs at least one estimate")
     if len(estimates) == 1:
         rng = np.asarray(estimates[0], np.float32)
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(rng) & (rng > 0)
-        return np.where(valid, rng, np.nan).astype(np.float32), valid
+        return (np.where(valid, rng, np.nan).astype(np.float32), valid, np.zeros(0, np.intp),
+                np.zeros((1, 0), np.float32))
     shape = np.shape(estimates[0])
     out, valid = np.empty(shape, np.float32), np.empty(shape, bool)
+    pixels, candidates = [], []
     for top in range(0, shape[0], COMBINE_ROWS):  # per pixel: the same numbers as in one piece, in cache
         rows = slice(top, top + COMBINE_ROWS)
-        out[rows], valid[rows] = _combine_rows([e[rows] for e in estimates], rel_tol,
-                                               None if errors is None else [e[rows] for e in errors])
-    return out, valid
+        out[rows], valid[rows], raw, conflict = _combine_rows(
+            [e[rows] for e in estimates], rel_tol, None if errors is None else [e[rows] for e in errors])
+        pixels.append(np.flatnonzero(conflict) + top * shape[1])
+        candidates.append(raw[:, conflict])
+    return out, valid, np.concatenate(pixels), np.concatenate(candidates, axis=1)
 
 
 def single_partner(estimates: list[np.ndarray], partners: list[int]) -> np.ndarray:
@@ -263,16 +275,13 @@ def conflicting_estimates(estimates: list[np.ndarray], rel_tol: float) -> tuple[
     NaN where a pair has none). Another panorama can tell which one is right (``fusion.resolve_conflicts``)."""
     if len(estimates) < 2:
         return np.zeros(0, np.intp), np.zeros((len(estimates), 0), np.float32)
-    raw = np.stack([np.asarray(e, np.float32).ravel() for e in estimates])
-    several = np.flatnonzero(np.isfinite(raw).sum(0) >= 2)
-    raw = raw[:, several]
-    conflict = _agreement_with_median(raw, rel_tol)[2].sum(0) < 2
-    return several[conflict], raw[:, conflict]
+    return combine_with_conflicts(estimates, rel_tol)[2:]
 
 
 def _combine_rows(estimates: list[np.ndarray], rel_tol: float, errors: list[np.ndarray] | None
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """``combine_range_estimates`` of a block of rows of two or more estimates."""
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``combine_with_conflicts`` of a block of rows of two or more estimates: the combined range, its validity, the
+    estimates stacked (float32, (n, rows, W)) and where they conflict (two or more, fewer than two agreeing)."""
     raw = np.stack(estimates).astype(np.float32)
     stack, count, agree = _agreement_with_median(raw, rel_tol)
     n_agree = agree.sum(0)
@@ -287,7 +296,7 @@ def _combine_rows(estimates: list[np.ndarray], rel_tol: float, errors: list[np.n
     valid = ((count == 1) | (n_agree >= 2)) & (count > 0)
     out = np.where(count == 1, stack[0], mean)
     valid &= np.isfinite(out) & (out > 0)
-    return np.where(valid, out, np.nan).astype(np.float32), valid
+    return np.where(valid, out, np.nan).astype(np.float32), valid, raw, (count >= 2) & (n_agree < 2)
 
 
 def _agreement_with_median(raw: np.ndarray, rel_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
