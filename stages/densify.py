@@ -330,7 +330,8 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
     t0 = time.perf_counter()
     res = dense.densify_pair(images[i], images[j], R[i], t[i], R[j], t[j], rect_height=rect_height,
                              out_width=images[i].shape[1], min_depth_ratio=ratio,
-                             min_epipole_angle_deg=config.epipole_margin_deg, params=params)
+                             min_epipole_angle_deg=config.epipole_margin_deg, params=params,
+                             latitudes_deg=(config.min_latitude_deg, config.max_latitude_deg))
     swept = _add_ground_sweep(images, R, t, sweep, pair, res) if sweep is not None else (0.0, 0.0)
     elapsed = time.perf_counter() - t0
     pair_errors, kept = [], []
