@@ -440,25 +440,3 @@ def test_forward_warp_equals_the_row_column_version():
     got = _forward_warp(disp)
     assert got.tobytes() == want.tobytes()
     assert np.isfinite(got).mean() > 0.3
-
-
-@pytest.mark.parametrize("shift", [3, 40])
-def test_sgbm_cut_to_the_columns_away_from_the_epipoles_still_matches_every_one_of_them(shift):
-    # a rectified pair with one disparity everywhere (θ_j = θ_i + shift): every column away from the epipoles whose
-    # match lies inside the grid is matched, the first ones next to the cut at θ = 0 and, with a small shift, the
-    # last ones next to SGBM's blind border past θ = π (a pad too short or a cut too deep leaves them unmatched)
-    n_phi, n_theta, margin = 512, 256, 8.0
-    texture = cv2.GaussianBlur(np.random.default_rng(1).integers(0, 256, (n_phi, n_theta + shift)).astype(np.uint8),
-                               (3, 3), 0.7)
-    rect_i, rect_j = texture[:, shift:], texture[:, :n_theta]
-    disp = dense.compute_disparity(rect_i, rect_j, min_depth_ratio=1.5, min_epipole_angle_deg=margin)
-    theta = np.degrees(dense.theta_of_columns(n_theta))
-    away = np.flatnonzero((theta >= margin) & (theta <= 180 - margin))
-    first, last = away[0], min(away[-1], n_theta - 1 - shift)
-    cut, pad = dense.disparity._matched_columns((theta >= margin) & (theta <= 180 - margin), disp.num_disparities,
-                                                0, 5)
-    assert cut > 0 and pad < disp.num_disparities + 5  # SGBM sees fewer columns than the whole padded grid
-    pixels = disp.disparity_i / disp.pixel_angle
-    for cols in (slice(first, first + 8), slice(last - 7, last + 1), slice(first, last + 1)):
-        assert np.mean(np.abs(pixels[:, cols] - shift) < 0.5) > 0.97
-    assert not disp.valid_i[:, :first].any() and not disp.valid_i[:, away[-1] + 1:].any()

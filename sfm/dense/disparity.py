@@ -139,24 +139,6 @@ def _forward_warp(disp: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(out), out, np.nan).reshape(n_phi, n_theta)
 
 
-def _matched_columns(away: np.ndarray, num: int, min_disparity: int, block_size: int) -> tuple[int, int]:
-    """(cut, pad): the rectified columns SGBM sees are ``cut`` … ``n_theta + pad − 1`` (past n_theta: ``pad_theta``'s
-    continuation over the pole), the fewest that still give every column ``away`` from the epipoles (the only ones
-    kept) its whole search and matching window, with ``block_size`` columns to spare on either side.
-
-    Flipped, column c of the grid is SGBM's left column x = n_theta + pad − 1 − c, and SGBM leaves its first
-    ``min_disparity + num`` columns unmatched: the last column kept needs ``pad`` past π to fall beyond them. A kept
-    column's match lies at θ_j = θ_i + d, on the side away from θ = 0 (d ≥ min_disparity); below the first kept
-    column only the window and a negative ``min_disparity`` reach. A margin of 8° at 1024 columns spares SGBM 7% of
-    its columns."""
-    n_theta = len(away)
-    kept = np.flatnonzero(away)
-    first, last = (kept[0], kept[-1]) if len(kept) else (0, n_theta - 1)
-    pad = num + max(min_disparity, 0) + block_size - (n_theta - 1 - last)
-    cut = first - block_size - max(-min_disparity, 0)
-    return int(max(cut, 0)), int(min(max(pad, 0), n_theta))
-
-
 def compute_disparity(
     rect_i: np.ndarray,
     rect_j: np.ndarray,
@@ -175,9 +157,8 @@ def compute_disparity(
       left pixel x at x − d in the right image, so i → j is computed on column-flipped images (left = flip(i),
       right = flip(j)). One SGBM pass: its own left-right check (``disp12MaxDiff``, from the cost volume) replaces a
       second pass j → i, and j's map is i's carried over (``_forward_warp``): half the time of two passes.
-    - Both images are extended past θ = π by ``pad_theta`` so that SGBM's blind border (the first
-      ``num_disparities`` columns of the left image) falls outside the columns kept, and cut short of θ = 0: SGBM
-      sees only the columns the pixels away from the epipoles need (``_matched_columns``).
+    - Both images are extended past θ = 0 and θ = π by ``pad_theta`` so that SGBM's blind border (the first
+      ``num_disparities`` columns of the left image) falls outside the real grid.
     - Pixels are invalid where SGBM found no match, where the two directions disagree by more than
       ``lr_max_diff_px`` (rounded to whole pixels), closer than ``min_epipole_angle_deg`` to the epipole or the anti-epipole, or untextured
       (``SgbmParams.min_texture_std``).
@@ -189,18 +170,17 @@ def compute_disparity(
     if n_phi % 2:
         raise ValueError(f"number of rectified rows must be even, got {n_phi}")
     num = disparity_search_range(n_theta, min_depth_ratio, min_disparity)
-    theta = theta_of_columns(n_theta)
-    margin = np.radians(min_epipole_angle_deg)
-    away = ((theta >= margin) & (theta <= np.pi - margin))[None, :]
-    cut, pad = _matched_columns(away[0], num, min_disparity, params.block_size)
+    pad = min(num + max(min_disparity, 0) + params.block_size, n_theta)
     gray_i, gray_j = _to_gray_u8(rect_i), _to_gray_u8(rect_j)
     matcher = _make_sgbm(num, min_disparity, 1, params, lr_max_diff_px)
     t0 = time.perf_counter()
-    left = np.ascontiguousarray(pad_theta(gray_i, 0, pad)[:, cut:][:, ::-1])
-    right = np.ascontiguousarray(pad_theta(gray_j, 0, pad)[:, cut:][:, ::-1])
-    disp_i = np.full((n_phi, n_theta), np.nan, np.float32)
-    disp_i[:, cut:] = _sgbm_pixels(matcher, left, right, min_disparity)[:, ::-1][:, :n_theta - cut]
-    log.debug("SGBM %dx%d, %d disparities: %.2fs", n_phi, left.shape[1], num, time.perf_counter() - t0)
+    left = np.ascontiguousarray(pad_theta(gray_i, 0, pad)[:, ::-1])
+    right = np.ascontiguousarray(pad_theta(gray_j, 0, pad)[:, ::-1])
+    disp_i = _sgbm_pixels(matcher, left, right, min_disparity)[:, ::-1][:, :n_theta]
+    log.debug("SGBM %dx%d, %d disparities: %.2fs", n_phi, n_theta, num, time.perf_counter() - t0)
+    theta = theta_of_columns(n_theta)
+    margin = np.radians(min_epipole_angle_deg)
+    away = ((theta >= margin) & (theta <= np.pi - margin))[None, :]
     with np.errstate(invalid="ignore"):
         valid_i = np.isfinite(disp_i) & away & (disp_i > 0) & _textured(gray_i, params)
     disp_j = _forward_warp(np.where(valid_i, disp_i, np.nan))
