@@ -72,7 +72,7 @@ from fullview.io.render import colorize_range, render_point_cloud
 from fullview.sfm import dense
 from fullview.sfm.camera import camera_center, camera_up
 from fullview.sfm.dense import ground_sweep, planes, world_planes
-from fullview.sfm.dense import (apply_mask, camera_depths, combine_range_estimates, fusion_neighbours,
+from fullview.sfm.dense import (apply_mask, camera_depths, fusion_neighbours,
                                 mask_below_latitude, pair_min_depth_ratio, range_error_per_pixel, scene_size)
 from fullview.sfm.dense_metrics import backproject_range_map, voxel_downsample
 from fullview.sfm.open3d_module import open3d
@@ -279,11 +279,12 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs, sweep=None):
                 keep = _observable(config, ctx.dataset.load_mask(names[cam]), rng.shape)
                 if config.stereo_check:
                     singles[cam] = dense.single_partner(estimates[cam], partners[cam])
-                    pixels, candidates = dense.conflicting_estimates(estimates[cam], config.combine_tolerance)
+                combined, valid, pixels, candidates = dense.combine_with_conflicts(
+                    estimates.pop(cam), config.combine_tolerance, errors.pop(cam))
+                if config.stereo_check:
                     inside = keep.ravel()[pixels]
                     conflicts[cam] = (pixels[inside], candidates[:, inside], partners[cam])
-                combined = combine_range_estimates(estimates.pop(cam), config.combine_tolerance, errors.pop(cam))
-                maps[cam] = (np.where(keep, combined[0], np.nan).astype(np.float32), combined[1] & keep)
+                maps[cam] = (np.where(keep, combined, np.nan).astype(np.float32), valid & keep)
     return maps, singles, conflicts, pair_log
 
 
@@ -329,7 +330,8 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
     t0 = time.perf_counter()
     res = dense.densify_pair(images[i], images[j], R[i], t[i], R[j], t[j], rect_height=rect_height,
                              out_width=images[i].shape[1], min_depth_ratio=ratio,
-                             min_epipole_angle_deg=config.epipole_margin_deg, params=params)
+                             min_epipole_angle_deg=config.epipole_margin_deg, params=params,
+                             latitudes_deg=(config.min_latitude_deg, config.max_latitude_deg))
     swept = _add_ground_sweep(images, R, t, sweep, pair, res) if sweep is not None else (0.0, 0.0)
     elapsed = time.perf_counter() - t0
     pair_errors, kept = [], []

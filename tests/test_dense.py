@@ -256,6 +256,23 @@ def test_range_map_to_panorama_roundtrip():
         assert np.all((err < 0.1) | (np.abs(err - 3.0) < 0.1))  # never a blend across the step
 
 
+def test_range_map_to_panorama_on_the_rows_within_the_latitude_caps_only():
+    # the rows a latitude cap masks are left invalid; every other row has the values of the whole map, bit for bit
+    Rs, ts, _ = _random_poses(5)
+    img = np.zeros((512, 1024), np.uint8)
+    pair = dense.rectify_pair(img, img, Rs[0], ts[0], Rs[1], ts[1])
+    grid = dense.rectified_grid_bearings(pair.n_phi, pair.n_theta)
+    ranges = (2.0 + (grid @ pair.R_rect_from_cam_i)[..., 0]).astype(np.float32)
+    ranges[::7] = np.nan
+    whole, whole_valid = dense.range_map_to_panorama(ranges, pair.R_rect_from_cam_i, width=1024)
+    rows = dense.depth.latitude_rows(512, -65.0, 80.0)
+    part, part_valid = dense.range_map_to_panorama(ranges, pair.R_rect_from_cam_i, width=1024, rows=rows)
+    masked, masked_valid = dense.mask_below_latitude(whole, whole_valid, -65.0, 80.0)
+    assert 0 < rows.start and rows.stop < 512 and (rows.stop - rows.start) % dense.depth.BACKMAP_ROWS
+    assert part.tobytes() == masked.tobytes() and np.array_equal(part_valid, masked_valid)
+    assert not part_valid[:rows.start].any() and part_valid[rows].mean() > 0.5
+
+
 def _fusion_scene():
     """Three cameras in the room with exact range maps (256x128)."""
     layers = _noise_layers(0, (0.6,))

@@ -85,6 +85,32 @@ def test_conflicting_estimates_are_those_combine_drops():
     assert candidates[:, 0].tolist() == [1.0, 1.5, 2.5]
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5])
+def test_combine_with_conflicts_finds_the_conflicts_found_on_the_whole_map(n):
+    # rows past several of combine's blocks; estimates that agree, conflict, or are missing, with and without errors
+    rng = np.random.default_rng(n)
+    shape = (2 * 64 + 37, 29)
+    truth = rng.uniform(1.0, 5.0, shape).astype(np.float32)
+    estimates, errors = [], []
+    for _ in range(n):
+        e = truth * rng.choice([1.0, 1.005, 1.3, 0.6], shape).astype(np.float32)
+        e[rng.random(shape) < 0.3] = np.nan
+        estimates.append(e)
+        errors.append(rng.uniform(0.001, 0.1, shape).astype(np.float32))
+    # the conflicts as found on the whole map at once (the stage's former second pass)
+    raw = np.stack([e.ravel() for e in estimates])
+    several = np.flatnonzero(np.isfinite(raw).sum(0) >= 2)
+    conflict = dense.depth._agreement_with_median(raw[:, several], 0.02)[2].sum(0) < 2
+    for errs in (None, errors):
+        _, valid, pixels, candidates = dense.combine_with_conflicts(estimates, 0.02, errs)
+        assert pixels.tolist() == several[conflict].tolist()
+        assert candidates.shape == (n, len(pixels))
+        assert candidates.tobytes() == raw[:, several[conflict]].tobytes()
+        assert not valid.ravel()[pixels].any()
+    if n >= 2:
+        assert 0 < len(pixels) < len(several)
+
+
 def test_a_third_view_settles_conflicting_estimates(room):
     ranges, R, t = room
     maps = [r.copy() for r in ranges]

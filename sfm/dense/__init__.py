@@ -27,7 +27,7 @@ per-panorama range maps), ``fusion`` (4), ``pairs`` (which pairs, how deep to se
 """
 
 from fullview.sfm.camera import camera_center
-from fullview.sfm.dense.depth import (PairDepth, combine_range_estimates, conflicting_estimates, single_partner, densify_pair, depth_from_disparity,
+from fullview.sfm.dense.depth import (PairDepth, combine_range_estimates, combine_with_conflicts, conflicting_estimates, single_partner, densify_pair, depth_from_disparity,
                                       apply_mask, mask_below_latitude, range_error_per_pixel, range_map_to_panorama,
                                       rectified_range_maps, sample_edge_aware)
 from fullview.sfm.dense.disparity import DisparityResult, SgbmParams, compute_disparity, disparity_search_range, pad_theta
@@ -40,7 +40,7 @@ from fullview.sfm.dense.scene import SCENE_PERCENTILES, camera_depths, scene_siz
 
 __all__ = [
     "DisparityResult", "PairDepth", "RectifiedPair", "SCENE_PERCENTILES", "SgbmParams", "bearings_to_rectified",
-    "camera_center", "camera_depths", "clean_point_cloud", "combine_range_estimates", "conflicting_estimates", "compute_disparity",
+    "camera_center", "camera_depths", "clean_point_cloud", "combine_range_estimates", "combine_with_conflicts", "conflicting_estimates", "compute_disparity",
     "densify_pair", "depth_from_disparity", "disparity_search_range", "fuse_depth_maps", "fusion_neighbours",
     "apply_mask", "mask_below_latitude", "pad_theta", "pair_min_depth_ratio", "range_error_per_pixel", "range_map_to_panorama",
     "rectified_grid_bearings", "rectified_range_maps", "rectify_pair", "resolve_conflicts", "rectifying_rotation", "sample_edge_aware",

@@ -118,13 +118,15 @@ def range_map_to_panorama(
     height: int | None = None,
     interpolation: str = "edge_aware",
     edge_tol: float = 0.05,
+    rows: slice = slice(None),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Resample a rectified range map into the camera's own equirectangular frame.
 
     ``range_rect`` is (n_phi, n_theta) on the rectified grid of that camera (NaN invalid); ``R_rect_from_cam`` is
     the camera's ``RectifiedPair.R_rect_from_cam_*``. Output size ``width`` × ``height`` (default width / 2).
     ``interpolation``: ``"nearest"`` or ``"edge_aware"`` (bilinear except across depth edges / invalid pixels; see
-    ``sample_edge_aware``). Returns (range float32 (H, W) with NaN invalid, valid bool (H, W)).
+    ``sample_edge_aware``). Only the panorama ``rows`` are resampled, the others left invalid (the rows a latitude
+    cap masks: ``latitude_rows``). Returns (range float32 (H, W) with NaN invalid, valid bool (H, W)).
     """
     if interpolation not in ("nearest", "edge_aware"):
         raise ValueError(f"interpolation must be 'nearest' or 'edge_aware', got {interpolation!r}")
@@ -133,18 +135,19 @@ def range_map_to_panorama(
     grid = pixel_grid_bearings(width, height, np.float32)
     R_t = np.asarray(R_rect_from_cam, np.float32).T
     values = np.asarray(range_rect, dtype=np.float32)
-    out = np.empty((height, width), np.float32)
-    for top in range(0, height, BACKMAP_ROWS):  # elementwise per pixel: the same numbers as in one piece
-        rows = slice(top, top + BACKMAP_ROWS)
+    out = np.full((height, width), np.nan, np.float32)
+    first, stop, _ = rows.indices(height)
+    for top in range(first, stop, BACKMAP_ROWS):  # elementwise per pixel: the same numbers as in one piece
+        block = slice(top, min(top + BACKMAP_ROWS, stop))
         # the rectified frame is an equirectangular camera (n_phi x n_theta) whose top pole is the epipole: θ from
         # the pole
-        v, u = bearings_to_pixels_f32(grid[rows] @ R_t, n_phi, n_theta, from_pole=True)
+        v, u = bearings_to_pixels_f32(grid[block] @ R_t, n_phi, n_theta, from_pole=True)
         if interpolation == "nearest":
             col = np.clip(np.floor(u), 0, n_theta - 1).astype(np.intp)
             row = np.mod(np.floor(v), n_phi).astype(np.intp)
-            out[rows] = values[row, col]
+            out[block] = values[row, col]
         else:
-            out[rows] = sample_edge_aware(values, u, v, edge_tol, wrap_rows=True)
+            out[block] = sample_edge_aware(values, u, v, edge_tol, wrap_rows=True)
     valid = np.isfinite(out) & (out > 0)
     return np.where(valid, out, np.nan).astype(np.float32), valid
 
@@ -171,9 +174,11 @@ def densify_pair(
     min_depth_ratio: float = 2.0,
     min_epipole_angle_deg: float = DensifyOptions.epipole_margin_deg,
     params: SgbmParams | None = None,
+    latitudes_deg: tuple[float, float] = (-90.0, 90.0),
 ) -> PairDepth:
     """Rectify, match (with LR check), triangulate and map back to both panoramas (size ``out_width`` ×
-    ``out_width/2``, default the source size)."""
+    ``out_width/2``, default the source size), on the panorama rows within ``latitudes_deg`` (the others are
+    invalid: ``latitude_rows``; the stage masks them anyway, ``densify.min_latitude_deg``)."""
     t = [time.perf_counter()]
     pair = rectify_pair(
         image_i, image_j, R_cam_from_world_i, t_cam_from_world_i, R_cam_from_world_j, t_cam_from_world_j,
@@ -187,8 +192,9 @@ def densify_pair(
     t.append(time.perf_counter())
     range_i, range_j = rectified_range_maps(disp, pair.baseline)
     width = int(out_width or image_i.shape[1])
-    pano_i, valid_i = range_map_to_panorama(range_i, pair.R_rect_from_cam_i, width=width)
-    pano_j, valid_j = range_map_to_panorama(range_j, pair.R_rect_from_cam_j, width=width)
+    rows = latitude_rows(width // 2, *latitudes_deg)
+    pano_i, valid_i = range_map_to_panorama(range_i, pair.R_rect_from_cam_i, width=width, rows=rows)
+    pano_j, valid_j = range_map_to_panorama(range_j, pair.R_rect_from_cam_j, width=width, rows=rows)
     t.append(time.perf_counter())
     timings = {"rectify": t[1] - t[0], "disparity": t[2] - t[1], "depth_and_backmap": t[3] - t[2]}
     log.debug("densify_pair timings: %s", timings)
@@ -226,20 +232,32 @@ def combine_range_estimates(estimates: list[np.ndarray], rel_tol: float,
     estimate per pixel, ``range_error_per_pixel``: a partner whose epipole is near the pixel counts little), and the
     pixel is dropped unless at least two agree (two conflicting estimates cannot say which is right). Returns
     (range float32 NaN-invalid, valid bool)."""
+    return combine_with_conflicts(estimates, rel_tol, errors)[:2]
+
+
+def combine_with_conflicts(estimates: list[np.ndarray], rel_tol: float, errors: list[np.ndarray] | None = None
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``combine_range_estimates`` and ``conflicting_estimates`` of the same estimates in one pass over the pixels
+    (the stage needs both; each pixel's agreement with the median is found once): (range, valid, flat pixel indices
+    of the conflicts, their estimates)."""
     if not estimates:
         raise ValueError("combine_range_estimates needs at least one estimate")
     if len(estimates) == 1:
         rng = np.asarray(estimates[0], np.float32)
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(rng) & (rng > 0)
-        return np.where(valid, rng, np.nan).astype(np.float32), valid
+        return (np.where(valid, rng, np.nan).astype(np.float32), valid, np.zeros(0, np.intp),
+                np.zeros((1, 0), np.float32))
     shape = np.shape(estimates[0])
     out, valid = np.empty(shape, np.float32), np.empty(shape, bool)
+    pixels, candidates = [], []
     for top in range(0, shape[0], COMBINE_ROWS):  # per pixel: the same numbers as in one piece, in cache
         rows = slice(top, top + COMBINE_ROWS)
-        out[rows], valid[rows] = _combine_rows([e[rows] for e in estimates], rel_tol,
-                                               None if errors is None else [e[rows] for e in errors])
-    return out, valid
+        out[rows], valid[rows], raw, conflict = _combine_rows(
+            [e[rows] for e in estimates], rel_tol, None if errors is None else [e[rows] for e in errors])
+        pixels.append(np.flatnonzero(conflict) + top * shape[1])
+        candidates.append(raw[:, conflict])
+    return out, valid, np.concatenate(pixels), np.concatenate(candidates, axis=1)
 
 
 def single_partner(estimates: list[np.ndarray], partners: list[int]) -> np.ndarray:
@@ -263,16 +281,13 @@ def conflicting_estimates(estimates: list[np.ndarray], rel_tol: float) -> tuple[
     NaN where a pair has none). Another panorama can tell which one is right (``fusion.resolve_conflicts``)."""
     if len(estimates) < 2:
         return np.zeros(0, np.intp), np.zeros((len(estimates), 0), np.float32)
-    raw = np.stack([np.asarray(e, np.float32).ravel() for e in estimates])
-    several = np.flatnonzero(np.isfinite(raw).sum(0) >= 2)
-    raw = raw[:, several]
-    conflict = _agreement_with_median(raw, rel_tol)[2].sum(0) < 2
-    return several[conflict], raw[:, conflict]
+    return combine_with_conflicts(estimates, rel_tol)[2:]
 
 
 def _combine_rows(estimates: list[np.ndarray], rel_tol: float, errors: list[np.ndarray] | None
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """``combine_range_estimates`` of a block of rows of two or more estimates."""
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``combine_with_conflicts`` of a block of rows of two or more estimates: the combined range, its validity, the
+    estimates stacked (float32, (n, rows, W)) and where they conflict (two or more, fewer than two agreeing)."""
     raw = np.stack(estimates).astype(np.float32)
     stack, count, agree = _agreement_with_median(raw, rel_tol)
     n_agree = agree.sum(0)
@@ -287,7 +302,7 @@ def _combine_rows(estimates: list[np.ndarray], rel_tol: float, errors: list[np.n
     valid = ((count == 1) | (n_agree >= 2)) & (count > 0)
     out = np.where(count == 1, stack[0], mean)
     valid &= np.isfinite(out) & (out > 0)
-    return np.where(valid, out, np.nan).astype(np.float32), valid
+    return np.where(valid, out, np.nan).astype(np.float32), valid, raw, (count >= 2) & (n_agree < 2)
 
 
 def _agreement_with_median(raw: np.ndarray, rel_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -321,9 +336,17 @@ def mask_below_latitude(rng: np.ndarray, valid: np.ndarray, min_latitude_deg: fl
     if min_latitude_deg <= -90.0 and max_latitude_deg >= 90.0:
         return rng, valid
     height = rng.shape[0]
-    lat = np.degrees(pixel_latitude(np.arange(height) + 0.5, height))
-    outside = ((lat < min_latitude_deg) | (lat > max_latitude_deg))[:, None]
+    outside = np.ones((height, 1), bool)
+    outside[latitude_rows(height, min_latitude_deg, max_latitude_deg)] = False
     return np.where(outside, np.nan, rng).astype(np.float32), valid & ~outside
+
+
+def latitude_rows(height: int, min_latitude_deg: float, max_latitude_deg: float) -> slice:
+    """The rows of an equirectangular map of ``height`` rows whose centre latitude lies within [min, max] (degrees):
+    one run of rows, from the top (latitude falls with the row)."""
+    lat = np.degrees(pixel_latitude(np.arange(height) + 0.5, height))
+    inside = np.flatnonzero((lat >= min_latitude_deg) & (lat <= max_latitude_deg))
+    return slice(int(inside[0]), int(inside[-1]) + 1) if len(inside) else slice(0, 0)
 
 
 def apply_mask(rng: np.ndarray, valid: np.ndarray, keep: np.ndarray | None):
