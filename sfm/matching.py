@@ -69,6 +69,17 @@ def project_descriptors(desc: np.ndarray, basis: np.ndarray | None) -> np.ndarra
     return np.column_stack([projected, np.sqrt(np.maximum(residual_sq, 0.0))]).astype(np.float32)
 
 
+def match_pair(desc_i, desc_j, options: MatchesOptions, noise_i: float, noise_j: float, *, full=None
+               ) -> tuple[np.ndarray, int]:
+    """`match_descriptors` of a pair at `options_for_pair`'s ratio, and how many of its matches (a prefix: they come
+    most distinctive first) pass the strict `options.ratio`: the filter draws its hypotheses from those alone."""
+    pair_options = options_for_pair(options, noise_i, noise_j)
+    matches, ratios = match_descriptors(desc_i, desc_j, pair_options, full=full, with_ratios=True)
+    if pair_options.ratio <= options.ratio:
+        return matches, len(matches)
+    return matches, int(np.searchsorted(ratios, options.ratio, side="left"))
+
+
 def options_for_pair(options: MatchesOptions, noise_i: float, noise_j: float) -> MatchesOptions:
     """The matching options of a pair whose images measure `noise_i`, `noise_j` grey levels of sensor noise: the
     `noisy_ratio` test when the noisier one exceeds `noisy_min_noise`. Why: noise adds about the same energy to
@@ -237,7 +248,7 @@ def _mutual_after_rescore(rows: np.ndarray, nearest: np.ndarray, desc_i, desc_j,
 
 def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchesOptions, *,
                       block_rows: int = BLOCK_ROWS, allowed=None, full=None,
-                      rerank_candidates: int | None = None) -> np.ndarray:
+                      rerank_candidates: int | None = None, with_ratios: bool = False):
     """(M, 2) int array of (feature in i, feature in j) passing the ratio test (and the mutual check), ordered from
     the most distinctive match (smallest ratio) to the least. With `allowed` (see `_nearest_both_ways`) the
     neighbours, the ratio test and the mutual check are taken among the allowed candidates only. With `full` =
@@ -245,9 +256,11 @@ def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchesOp
     them, each row's `rerank_candidates` nearest are re-ranked by full distances (`_rescore`), and the mutual check
     searches back from the chosen features of j the same way (`_mutual_after_rescore`). On unit rows with
     `options.int8_search` the search multiplies their `quantize`d coordinates (`_nearest_on_int8`), with
-    `INT8_RERANK_CANDIDATES` candidates unless `rerank_candidates` is given."""
+    `INT8_RERANK_CANDIDATES` candidates unless `rerank_candidates` is given. With `with_ratios`, also the (M,)
+    distance ratios (nearest / second nearest) of the matches, ascending."""
     if len(desc_i) < 2 or len(desc_j) < 2:
-        return np.zeros((0, 2), np.int64)
+        empty = np.zeros((0, 2), np.int64)
+        return (empty, np.zeros(0)) if with_ratios else empty
     desc_i = np.ascontiguousarray(desc_i, np.float32)
     desc_j = np.ascontiguousarray(desc_j, np.float32)
     quantized = None
@@ -273,8 +286,10 @@ def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchesOp
                                               candidates, quantized)
     rows = np.flatnonzero(keep)
     # Most distinctive first (smallest distance ratio): robust estimation samples the head more often.
-    rows = rows[np.argsort(d2[rows, 0] / np.maximum(d2[rows, 1], 1e-30), kind="stable")]
-    return np.column_stack([rows, nn[rows, 0]])
+    squared_ratios = d2[rows, 0] / np.maximum(d2[rows, 1], 1e-30)
+    order = np.argsort(squared_ratios, kind="stable")
+    matches = np.column_stack([rows[order], nn[rows[order], 0]])
+    return (matches, np.sqrt(squared_ratios[order])) if with_ratios else matches
 
 
 def epipolar_candidates(b_i: np.ndarray, b_j: np.ndarray, F: np.ndarray, threshold_rad: float):
