@@ -71,17 +71,13 @@ def project_descriptors(desc: np.ndarray, basis: np.ndarray | None) -> np.ndarra
 def match_pair(desc_i, desc_j, options: MatchesOptions, noise_i: float, noise_j: float, *, full=None
                ) -> tuple[np.ndarray, int]:
     """`match_descriptors` of a pair at `ratio_for_pair`'s ratio, and how many of its matches (a prefix: they come
-    most distinctive first) pass the strict `options.ratio`: the filter draws its hypotheses from those alone. A pair
-    with `noisy_max_strict` or more strict matches keeps only those."""
+    most distinctive first) pass the strict `options.ratio`: the filter draws its hypotheses from those alone."""
     ratio = ratio_for_pair(options, noise_i, noise_j)
     if ratio == options.ratio:
         matches = match_descriptors(desc_i, desc_j, options, full=full)
         return matches, len(matches)
     matches, ratios = match_descriptors(desc_i, desc_j, options, full=full, ratio=ratio, with_ratios=True)
-    strict = int(np.searchsorted(ratios, options.ratio, side="left"))
-    if options.noisy_max_strict and strict >= options.noisy_max_strict:
-        return matches[:strict], strict
-    return matches, strict
+    return matches, int(np.searchsorted(ratios, options.ratio, side="left"))
 
 
 def ratio_for_pair(options: MatchesOptions, noise_i: float, noise_j: float) -> float:

@@ -87,9 +87,6 @@ class MatchesOptions:
                                      "above which an image counts as noisy (plain clean renders ~0.1, Theta S "
                                      "~0.55; fine texture reads as noise too: textured rooms 0.7-0.9)",
                                      ge=0.0, le=255.0)
-    noisy_max_strict: int = setting(100, "a noisy pair keeps its looser matches only when fewer than this many pass "
-                                    "`ratio` (a pair with more is decided by them: the looser ones only add outliers "
-                                    "and filter time)", ge=0, le=1_000_000, zero_means="always")
     descriptor_dims: int = setting(32, "nearest neighbours are searched on the descriptors' first principal "
                                    "components (per dataset; a quarter of the matrix product), the 3 nearest "
                                    "(4 with int8_search) re-ranked by full distances, the mutual check searched "

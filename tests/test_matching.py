@@ -238,8 +238,7 @@ def test_matches_stage_takes_each_pairs_ratio_from_its_images_noise(tiny_dataset
     runs = {}
     for tag, extra in {"base": ["matches.noisy_ratio=0"], "looser": ["matches.ratio=0.9"],
                        "clean": ["matches.noisy_ratio=0.9", "matches.noisy_min_noise=5"],
-                       "all noisy": ["matches.noisy_ratio=0.9", "matches.noisy_min_noise=0",
-                                     "matches.noisy_max_strict=0"]}.items():
+                       "all noisy": ["matches.noisy_ratio=0.9", "matches.noisy_min_noise=0"]}.items():
         pipe = make_pipeline(tiny_dataset, extra, workspace=tmp_path / tag.replace(" ", "_"))
         pipe.run(until="matches")
         runs[tag] = pipe.ws

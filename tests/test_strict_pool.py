@@ -1,7 +1,5 @@
 """Noisy pairs matched at a looser ratio: the strict matches lead (`sfm.matching.match_pair`), and the filter draws its
 hypotheses from them only while every match counts (`two_view.RansacOptions.sample_pool`)."""
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
@@ -33,7 +31,7 @@ def _descriptor_pair(seed, n=600, shared=300):
 @pytest.mark.parametrize("projected", [False, True])
 def test_the_strict_matches_lead_a_noisy_pairs_matches(projected):
     a, b = _descriptor_pair(0)
-    options = MatchesOptions(ratio=0.8, noisy_ratio=0.9, noisy_min_noise=0.3, noisy_max_strict=0,
+    options = MatchesOptions(ratio=0.8, noisy_ratio=0.9, noisy_min_noise=0.3,
                              descriptor_dims=32 if projected else 0)
     kwargs = {}
     if projected:
@@ -47,11 +45,6 @@ def test_the_strict_matches_lead_a_noisy_pairs_matches(projected):
     # the matches at the strict ratio, in their order, are exactly the loose set's head
     assert 0 < strict_count == len(strict) < len(loose)
     assert np.array_equal(loose[:strict_count], strict)
-    # a pair with noisy_max_strict strict matches or more keeps only those; one with fewer keeps the looser ones
-    capped = match_pair(a_p, b_p, replace(options, noisy_max_strict=strict_count), 0.55, 0.1, **kwargs)
-    assert np.array_equal(capped[0], strict) and capped[1] == strict_count
-    below = match_pair(a_p, b_p, replace(options, noisy_max_strict=strict_count + 1), 0.55, 0.1, **kwargs)
-    assert np.array_equal(below[0], loose)
     # a clean pair is matched at the strict ratio, all of it strict
     clean, clean_count = match_pair(a_p, b_p, options, 0.1, 0.1, **kwargs)
     assert np.array_equal(clean, strict) and clean_count == len(clean)
