@@ -393,8 +393,8 @@ class StageWriter:
             raise ValueError(f"features of {image_name} lack {missing}")
         return self._hashed(save_npz(self.path("features", stem=image_stem(image_name)), FEATURES_VERSION, **arrays))
 
-    def save_matches(self, pairs, matches) -> Path:
-        return _save_pair_data(self.path("matches"), pairs, matches)
+    def save_matches(self, pairs, matches, **per_pair: np.ndarray) -> Path:
+        return _save_pair_data(self.path("matches"), pairs, matches, **per_pair)
 
     def save_inliers(self, pairs, matches, **per_pair: np.ndarray) -> Path:
         return _save_pair_data(self.path("inliers"), pairs, matches, **per_pair)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import replace
 from functools import cache
 
 import numpy as np
@@ -69,14 +68,26 @@ def project_descriptors(desc: np.ndarray, basis: np.ndarray | None) -> np.ndarra
     return np.column_stack([projected, np.sqrt(np.maximum(residual_sq, 0.0))]).astype(np.float32)
 
 
-def options_for_pair(options: MatchesOptions, noise_i: float, noise_j: float) -> MatchesOptions:
-    """The matching options of a pair whose images measure `noise_i`, `noise_j` grey levels of sensor noise: the
-    `noisy_ratio` test when the noisier one exceeds `noisy_min_noise`. Why: noise adds about the same energy to
-    the nearest and the second nearest descriptor distance, pushing true matches' ratios towards 1 (README,
+def match_pair(desc_i, desc_j, options: MatchesOptions, noise_i: float, noise_j: float, *, full=None
+               ) -> tuple[np.ndarray, int]:
+    """`match_descriptors` of a pair at `ratio_for_pair`'s ratio, and how many of its matches (a prefix: they come
+    most distinctive first) pass the strict `options.ratio`: the filter draws its hypotheses from those alone."""
+    ratio = ratio_for_pair(options, noise_i, noise_j)
+    if ratio == options.ratio:
+        matches = match_descriptors(desc_i, desc_j, options, full=full)
+        return matches, len(matches)
+    matches, ratios = match_descriptors(desc_i, desc_j, options, full=full, ratio=ratio, with_ratios=True)
+    return matches, int(np.searchsorted(ratios, options.ratio, side="left"))
+
+
+def ratio_for_pair(options: MatchesOptions, noise_i: float, noise_j: float) -> float:
+    """The ratio test of a pair whose images measure `noise_i`, `noise_j` grey levels of sensor noise: `noisy_ratio`
+    when the noisier one exceeds `noisy_min_noise` and it is the looser, else `ratio`. Why: noise adds about the same
+    energy to the nearest and the second nearest descriptor distance, pushing true matches' ratios towards 1 (README,
     "homenoise")."""
-    if max(noise_i, noise_j) <= options.noisy_min_noise or not options.noisy_ratio:
-        return options
-    return replace(options, ratio=options.noisy_ratio)
+    if max(noise_i, noise_j) <= options.noisy_min_noise or options.noisy_ratio <= options.ratio:
+        return options.ratio  # (noisy_ratio only ever loosens the test: 0, or below `ratio`, leaves it)
+    return options.noisy_ratio
 
 
 def pair_blocks(pairs: list[tuple[int, int]], block_images: int) -> list[list[int]]:
@@ -237,7 +248,7 @@ def _mutual_after_rescore(rows: np.ndarray, nearest: np.ndarray, desc_i, desc_j,
 
 def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchesOptions, *,
                       block_rows: int = BLOCK_ROWS, allowed=None, full=None,
-                      rerank_candidates: int | None = None) -> np.ndarray:
+                      rerank_candidates: int | None = None, ratio: float | None = None, with_ratios: bool = False):
     """(M, 2) int array of (feature in i, feature in j) passing the ratio test (and the mutual check), ordered from
     the most distinctive match (smallest ratio) to the least. With `allowed` (see `_nearest_both_ways`) the
     neighbours, the ratio test and the mutual check are taken among the allowed candidates only. With `full` =
@@ -245,9 +256,12 @@ def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchesOp
     them, each row's `rerank_candidates` nearest are re-ranked by full distances (`_rescore`), and the mutual check
     searches back from the chosen features of j the same way (`_mutual_after_rescore`). On unit rows with
     `options.int8_search` the search multiplies their `quantize`d coordinates (`_nearest_on_int8`), with
-    `INT8_RERANK_CANDIDATES` candidates unless `rerank_candidates` is given."""
+    `INT8_RERANK_CANDIDATES` candidates unless `rerank_candidates` is given. `ratio` replaces `options.ratio` in
+    the ratio test (a noisy pair's, `ratio_for_pair`). With `with_ratios`, also the (M,)
+    distance ratios (nearest / second nearest) of the matches, ascending."""
     if len(desc_i) < 2 or len(desc_j) < 2:
-        return np.zeros((0, 2), np.int64)
+        empty = np.zeros((0, 2), np.int64)
+        return (empty, np.zeros(0)) if with_ratios else empty
     desc_i = np.ascontiguousarray(desc_i, np.float32)
     desc_j = np.ascontiguousarray(desc_j, np.float32)
     quantized = None
@@ -264,7 +278,8 @@ def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchesOp
         full_i, full_j = (np.asarray(f, np.float32) for f in full)
         nn, d2 = _rescore(nn, full_i, full_j)
     with np.errstate(invalid="ignore"):  # inf second distances: a single candidate passes the ratio test
-        keep = np.isfinite(d2[:, 0]) & (d2[:, 0] < (options.ratio**2) * d2[:, 1])
+        bound = options.ratio if ratio is None else ratio
+        keep = np.isfinite(d2[:, 0]) & (d2[:, 0] < (bound**2) * d2[:, 1])
     if options.mutual and full is None:
         keep &= mutual[:, 0]
     elif options.mutual and keep.any():
@@ -273,8 +288,10 @@ def match_descriptors(desc_i: np.ndarray, desc_j: np.ndarray, options: MatchesOp
                                               candidates, quantized)
     rows = np.flatnonzero(keep)
     # Most distinctive first (smallest distance ratio): robust estimation samples the head more often.
-    rows = rows[np.argsort(d2[rows, 0] / np.maximum(d2[rows, 1], 1e-30), kind="stable")]
-    return np.column_stack([rows, nn[rows, 0]])
+    squared_ratios = d2[rows, 0] / np.maximum(d2[rows, 1], 1e-30)
+    order = np.argsort(squared_ratios, kind="stable")
+    matches = np.column_stack([rows[order], nn[rows[order], 0]])
+    return (matches, np.sqrt(squared_ratios[order])) if with_ratios else matches
 
 
 def epipolar_candidates(b_i: np.ndarray, b_j: np.ndarray, F: np.ndarray, threshold_rad: float):

@@ -79,9 +79,10 @@ class MatchesOptions:
                                     ge=0.0, le=1.0)
     ratio: float = setting(0.8, "Lowe's ratio test on descriptor distances", gt=0.0, le=1.0)
     mutual: bool = setting(True, "keep only mutual nearest neighbours")
-    noisy_ratio: float = setting(0.0, "the ratio test of a pair whose noisier image measures more sensor noise than "
-                                 "noisy_min_noise (noise blurs the nearest and second nearest distances alike)",
-                                 ge=0.0, le=1.0, zero_means="ratio, whatever the noise")
+    noisy_ratio: float = setting(0.85, "the ratio test of a pair whose noisier image measures more sensor noise than "
+                                 "noisy_min_noise (noise blurs the nearest and second nearest distances alike); the "
+                                 "filter draws its hypotheses from the matches that pass `ratio` and only counts the "
+                                 "others", ge=0.0, le=1.0, zero_means="ratio, whatever the noise")
     noisy_min_noise: float = setting(0.3, "sensor noise (grey levels, `features.noise_sigma` of the working image) "
                                      "above which an image counts as noisy (plain clean renders ~0.1, Theta S "
                                      "~0.55; fine texture reads as noise too: textured rooms 0.7-0.9)",

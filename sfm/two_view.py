@@ -106,6 +106,7 @@ class RansacOptions:
     confidence: float = FilterOptions.confidence  # adaptive stopping confidence (default from the settings)
     batch_size: int = 256  # hypotheses evaluated together (vectorised)
     head_share: float = 0.25  # guided samples draw from this leading share of the (quality-ordered) matches
+    sample_pool: int = 0  # samples draw from this many leading matches only (the strict ones); 0 = all of them
     local_optimization_steps: int = 4  # iterative re-fits on inliers of each new best model
     refine: bool = True  # final non-linear refinement of R, t on the inliers
     seed: int = FilterOptions.seed  # random seed for sampling (default from the settings)
@@ -157,6 +158,16 @@ def required_iterations(inlier_ratio: float, confidence: float, sample_size: int
     return np.log(1.0 - confidence) / np.log(1.0 - p)
 
 
+def sample_pool(n: int, options: RansacOptions) -> int:
+    """How many leading matches a search draws its samples from: `options.sample_pool`, all when 0 or larger.
+
+    Why: on noisy panoramas the matches are taken at a looser ratio test (`matches.noisy_ratio`) to win back true
+    matches the noise pushed past the strict one, and most of the added ones are wrong. Drawn only from the strict
+    head, hypotheses are as likely to be all-inlier as without them, while every match still counts towards a
+    hypothesis' score and inliers."""
+    return n if not options.sample_pool else min(n, options.sample_pool)
+
+
 def _draw_samples(rng: np.random.Generator, batch: int, n: int, head_share: float) -> np.ndarray:
     """(batch, 8) distinct indices; half the samples come from the first `head_share` of the correspondences.
 
@@ -177,17 +188,21 @@ def ransac_f(b_i: np.ndarray, b_j: np.ndarray, options: RansacOptions) -> FResul
         raise ValueError(f"need at least 8 correspondences for F, got {n}")
     rng = np.random.default_rng(options.seed)
     thr = options.threshold_rad
+    pool = sample_pool(n, options)
+    if pool < 8:
+        raise ValueError(f"need at least 8 correspondences to sample F from, got {pool}")
     best_F, best_cost, drawn = None, np.inf, 0
     while drawn < options.max_iterations:
         batch = min(options.batch_size, options.max_iterations - drawn)
-        samples = _draw_samples(rng, batch, n, options.head_share)
+        samples = _draw_samples(rng, batch, pool, options.head_share)
         Fs = estimate_f_linear(b_i[samples], b_j[samples])
         costs = msac_costs(Fs, b_i, b_j, thr)
         drawn += batch
         k = int(np.argmin(costs))
         if costs[k] < best_cost:
             best_F, best_cost = _local_optimization(b_i, b_j, Fs[k], thr, options.local_optimization_steps)
-        ratio = float((epipolar_angular_errors(best_F, b_i, b_j) < thr).mean())
+        # the inlier ratio among the matches samples are drawn from
+        ratio = float((epipolar_angular_errors(best_F, b_i[:pool], b_j[:pool]) < thr).mean())
         if drawn >= options.min_iterations and drawn >= required_iterations(ratio, options.confidence):
             break
     return _finish(b_i, b_j, best_F, thr, options.refine, drawn)

@@ -235,10 +235,13 @@ def ransac_f_upright(b_i: np.ndarray, b_j: np.ndarray, options: tv.RansacOptions
         raise ValueError(f"need at least {UPRIGHT_SAMPLE_SIZE} correspondences for an upright F, got {n}")
     rng = np.random.default_rng(options.seed)
     thr = options.threshold_rad
+    pool = tv.sample_pool(n, options)
+    if pool < UPRIGHT_SAMPLE_SIZE:
+        raise ValueError(f"need at least {UPRIGHT_SAMPLE_SIZE} correspondences to sample an upright F from, got {pool}")
     best_F, best_cost, drawn = None, np.inf, 0
     while drawn < options.max_iterations:
         batch = min(options.batch_size, options.max_iterations - drawn)
-        samples = _draw_upright_samples(rng, batch, n, options.head_share)
+        samples = _draw_upright_samples(rng, batch, pool, options.head_share)
         Fs, valid = upright_f_minimal_batch(b_i[samples], b_j[samples])
         drawn += batch
         if valid.any():
@@ -250,7 +253,8 @@ def ransac_f_upright(b_i: np.ndarray, b_j: np.ndarray, options: tv.RansacOptions
                                                                 options.local_optimization_steps)
         if best_F is None:
             continue
-        ratio = float((tv.epipolar_angular_errors(best_F, b_i, b_j) < thr).mean())
+        # the inlier ratio among the matches samples are drawn from
+        ratio = float((tv.epipolar_angular_errors(best_F, b_i[:pool], b_j[:pool]) < thr).mean())
         required = tv.required_iterations(ratio, options.confidence, sample_size=UPRIGHT_SAMPLE_SIZE)
         if drawn >= options.min_iterations and drawn >= required:
             break

@@ -58,9 +58,13 @@ def run(ctx: StageContext) -> dict:
                    if options.guided_matching else None)
     gravity, gravity_std, frames = _gravity(ctx, options.upright)
     num_sift = [int(o["num_sift"]) for o in obs]
+    # Per pair, its leading matches that pass the strict ratio (fewer than all on noisy pairs, `matches.noisy_ratio`;
+    # matches stored before the count existed: all of them).
+    num_strict = raw.extra.get("num_strict", np.array([len(m) for m in raw.matches], np.int64))
     guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)
     verify = partial(_filter_pair, ctx, options, obs, num_sift, raw, gravity, descriptors, guided,
-                     options.min_inliers_upright, frames=frames if options.wall_check else None,
+                     options.min_inliers_upright, num_strict=num_strict,
+                     frames=frames if options.wall_check else None,
                      wall_drop=options.wall_check_drop)
     # Pairs are independent and their random seeds fixed per pair: forked workers keep both cores busy and the results
     # are the same as in one thread. Not threads: between its numpy calls a pair's estimation holds the GIL, and two
@@ -101,11 +105,11 @@ def run(ctx: StageContext) -> dict:
 
 
 def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, gravity, descriptors,
-                 guided: MatchesOptions, min_upright: int, k: int, *, frames=None,
+                 guided: MatchesOptions, min_upright: int, k: int, *, num_strict=None, frames=None,
                  wall_drop: bool = False) -> _PairResult:
     """Verify pair k of the raw matches: fit, guided additions, the no-baseline and enough-inliers checks (frames:
     the images' Manhattan frames from `_gravity`, for the wall check; None: no check; wall_drop: a pair the check
-    would refit is dropped)."""
+    would refit is dropped; num_strict: per pair, the leading matches hypotheses are drawn from, None: all)."""
     i, j = raw.pairs[k]
     hand = (ctx.dataset.hand_pair_matches(num_sift, i, j) if options.use_hand_points
             else np.zeros((0, 2), int))
@@ -122,7 +126,8 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
         F, keep = _verify_pair(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], hand if use_seed else None,
                                threshold, options, seed=options.seed + k, gravity=(gravity[i], gravity[j]),
                                # the hand points (fewer than a seed) count towards the pair's inliers
-                               needed=max(1, min(minimum, options.min_inliers) - len(hand)))
+                               needed=max(1, min(minimum, options.min_inliers) - len(hand)),
+                               pool=len(raw.matches[k]) if num_strict is None else int(num_strict[k]))
     walled = ""
     if upright_pair and frames is not None and keep.sum() >= min(minimum, options.min_inliers):
         F, keep, walled = _checked_against_walls(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], F, keep,
@@ -284,17 +289,22 @@ def _fit_upright(b_i, b_j, gravity, opts: two_view.RansacOptions) -> two_view.FR
     return res
 
 
-def _verify_pair(bear_i, bear_j, matches, hand, threshold, options: FilterOptions, seed, gravity, needed=1):
+def _verify_pair(bear_i, bear_j, matches, hand, threshold, options: FilterOptions, seed, gravity, needed=1,
+                 pool: int | None = None):
     """F and the inlier mask over `matches` (hand correspondences, when given, seed the estimate; with both
     gravities known, the upright 3-point solver on levelled bearings). `needed`: the inliers the pair must have to
-    count at all, which bounds the search on pairs with few matches (`capped_for_verification`)."""
+    count at all, which bounds the search on pairs with few matches (`capped_for_verification`). `pool`: hypotheses
+    are drawn from the first `pool` matches only (the strict ones; all when None, or when too few to sample from),
+    and the search's bound is theirs: the looser matches after them only count."""
     b_i, b_j = bear_i[matches[:, 0]], bear_j[matches[:, 1]]
+    sample_size = upright.UPRIGHT_SAMPLE_SIZE if _upright(gravity) else 8
+    pool = len(b_i) if pool is None or pool < max(sample_size, 8) else min(pool, len(b_i))
     opts = two_view.RansacOptions(threshold_rad=threshold, max_iterations=options.max_iterations,
-                                  confidence=options.confidence, seed=seed)
+                                  confidence=options.confidence, seed=seed,
+                                  sample_pool=pool if pool < len(b_i) else 0)
     try:
         if hand is None:
-            sample_size = upright.UPRIGHT_SAMPLE_SIZE if _upright(gravity) else 8
-            res = _fit_matches(b_i, b_j, gravity, capped_for_verification(opts, needed, len(b_i), sample_size))
+            res = _fit_matches(b_i, b_j, gravity, capped_for_verification(opts, needed, pool, sample_size))
         else:
             h_i, h_j = bear_i[hand[:, 0]], bear_j[hand[:, 1]]
             res = two_view.fit_f_seeded(h_i, h_j, b_i, b_j, threshold)

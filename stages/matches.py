@@ -27,8 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fullview.io.workspace import Workspace
-from fullview.sfm.matching import (basis_from_moments, match_descriptors, options_for_pair, pair_blocks,
-                                   project_descriptors, second_moment)
+from fullview.sfm.matching import basis_from_moments, match_pair, pair_blocks, project_descriptors, second_moment
 from fullview.sfm.options import MatchesOptions
 from fullview.sfm.pairs import first_loop_proposals, loop_rounds, plan_pairs, uses_gps
 from fullview.stages.protocol import StageContext, thread_map
@@ -70,8 +69,9 @@ def run(ctx: StageContext) -> dict:
                                     options.descriptor_dims) if options.descriptor_dims else None)
         plan = plan.result()
     matched: dict[tuple[int, int], np.ndarray] = {}
+    strict: dict[tuple[int, int], int] = {}  # per pair: its leading matches that pass the strict ratio
     with tqdm(total=len(plan.all_pairs), desc="matches", unit="pair") as bar:
-        match = partial(_match_pairs, ctx, options, basis, matched, bar)
+        match = partial(_match_pairs, ctx, options, basis, matched, strict, bar)
         # The candidates matched whatever they find go with the other pairs (one round fewer of descriptor loads).
         first = first_loop_proposals(plan.loop_candidates, options.loop_patience)
         match(sorted([*plan.pairs, *first]))
@@ -85,7 +85,7 @@ def run(ctx: StageContext) -> dict:
         bar.refresh()
     pairs = sorted(matched)
     per_pair = [matched[p] for p in pairs]
-    ctx.out.save_matches(pairs, per_pair)
+    ctx.out.save_matches(pairs, per_pair, num_strict=np.array([strict[p] for p in pairs], np.int64))
     counts = [len(m) for m in per_pair]
     sources = {**plan.summary, **({"loop_matched": len(loops), "loop_rounds": rounds}
                                   if "loop_candidates" in plan.summary else {})}
@@ -94,8 +94,10 @@ def run(ctx: StageContext) -> dict:
 
 
 def _match_pairs(ctx: StageContext, options: MatchesOptions, basis: np.ndarray | None,
-                 matched: dict[tuple[int, int], np.ndarray], bar, pairs: list[tuple[int, int]]) -> list[np.ndarray]:
-    """Match `pairs` in blocks on the stage's fan-out, recording each pair's matches in `matched`."""
+                 matched: dict[tuple[int, int], np.ndarray], strict: dict[tuple[int, int], int], bar,
+                 pairs: list[tuple[int, int]]) -> list[np.ndarray]:
+    """Match `pairs` in blocks on the stage's fan-out, recording each pair's matches in `matched` and how many of
+    them lead at the strict ratio in `strict`."""
     names = ctx.dataset.image_names
     block_images = max(1, min(BLOCK_IMAGES, -(-len(names) // MIN_BLOCKS_PER_SIDE)))
     # Largest blocks first: the last tasks to start are small, so both threads finish together (at 6 images the
@@ -104,7 +106,8 @@ def _match_pairs(ctx: StageContext, options: MatchesOptions, basis: np.ndarray |
     jobs = ctx.map(partial(match_block, ctx.ws.root, names, options, basis=basis),
                    [[pairs[k] for k in b] for b in blocks])
     for block, found in zip(blocks, jobs):
-        for k, m in zip(block, found):
+        for k, (m, num_strict) in zip(block, found):
+            strict[pairs[k]] = num_strict
             matched[pairs[k]] = m.astype(np.int32)  # the stored format is int64; int32 halves what is held meanwhile
         bar.update(len(block))
     return [matched[p] for p in pairs]
@@ -127,16 +130,15 @@ def image_moment(ws_root: Path, names: list[str], k: int) -> np.ndarray:
 
 
 def match_block(ws_root: Path, names: list[str], options: MatchesOptions, pairs: list[tuple[int, int]], *,
-                basis: np.ndarray | None = None) -> list[np.ndarray]:
-    """The matches of `pairs`, reading the features of their images from the workspace itself (a top-level function
+                basis: np.ndarray | None = None) -> list[tuple[np.ndarray, int]]:
+    """The matches of `pairs` and how many of them pass the strict ratio (`match_pair`), reading the features of their images from the workspace itself (a top-level function
     of picklable arguments: a cluster task of its own), searched on `basis`'s components when given."""
     ws = Workspace(Path(ws_root).parent, Path(ws_root).name)
     images = sorted({i for p in pairs for i in p})
     full = {i: ws.load_descriptors(names[i]) for i in images}
     noise = {i: float(ws.load_features(names[i], ("noise_sigma",))["noise_sigma"]) for i in images}
-    pair_options = {p: options_for_pair(options, noise[p[0]], noise[p[1]]) for p in pairs}
     if basis is None:
-        return [match_descriptors(full[i], full[j], pair_options[i, j]) for i, j in pairs]
+        return [match_pair(full[i], full[j], options, noise[i], noise[j]) for i, j in pairs]
     projected = {i: project_descriptors(d, basis) for i, d in full.items()}
-    return [match_descriptors(projected[i], projected[j], pair_options[i, j], full=(full[i], full[j]))
+    return [match_pair(projected[i], projected[j], options, noise[i], noise[j], full=(full[i], full[j]))
             for i, j in pairs]

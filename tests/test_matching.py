@@ -223,20 +223,20 @@ def test_the_stored_int8_graph_is_the_one_onnx_builds():
 
 
 def test_noisy_ratio_applies_to_a_pair_with_one_noisy_image_only():
-    from fullview.sfm.matching import options_for_pair
+    from fullview.sfm.matching import ratio_for_pair
     options = MatchesOptions(ratio=0.8, noisy_ratio=0.85, noisy_min_noise=0.3)
-    assert options_for_pair(options, 0.08, 0.1) is options  # clean renders: the test as configured
-    assert options_for_pair(options, 0.08, 0.55).ratio == 0.85  # a Theta S image on either side
-    assert options_for_pair(options, 0.55, 0.5).ratio == 0.85
-    unchanged = replace(options, noisy_ratio=0.0)  # the default: the ratio test whatever the noise
-    assert options_for_pair(unchanged, 0.55, 0.55) is unchanged
+    assert ratio_for_pair(options, 0.08, 0.1) == 0.8  # clean renders: the test as configured
+    assert ratio_for_pair(options, 0.08, 0.55) == 0.85  # a Theta S image on either side
+    assert ratio_for_pair(options, 0.55, 0.5) == 0.85
+    assert ratio_for_pair(replace(options, noisy_ratio=0.0), 0.55, 0.55) == 0.8  # 0: the ratio whatever the noise
+    assert ratio_for_pair(replace(options, ratio=0.9), 0.55, 0.55) == 0.9  # it never tightens the test
 
 
 def test_matches_stage_takes_each_pairs_ratio_from_its_images_noise(tiny_dataset, make_pipeline, tmp_path):
     """The features stage stores each panorama's noise estimate; the matches stage matches a pair at noisy_ratio
     exactly when its noisier image measures above noisy_min_noise."""
     runs = {}
-    for tag, extra in {"base": [], "looser": ["matches.ratio=0.9"],
+    for tag, extra in {"base": ["matches.noisy_ratio=0"], "looser": ["matches.ratio=0.9"],
                        "clean": ["matches.noisy_ratio=0.9", "matches.noisy_min_noise=5"],
                        "all noisy": ["matches.noisy_ratio=0.9", "matches.noisy_min_noise=0"]}.items():
         pipe = make_pipeline(tiny_dataset, extra, workspace=tmp_path / tag.replace(" ", "_"))

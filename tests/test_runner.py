@@ -81,8 +81,8 @@ def test_interrupted_stage_keeps_previous_artifacts(tiny_dataset, make_pipeline,
             raise exc
         return original(*args, **kwargs)
 
-    original = matches_stage.match_descriptors
-    monkeypatch.setattr(matches_stage, "match_descriptors", failing)
+    original = matches_stage.match_pair
+    monkeypatch.setattr(matches_stage, "match_pair", failing)
     with pytest.raises(type(exc)):
         p.run_stage("matches")
     assert {f.name: f.read_bytes() for f in stage_dir.iterdir()} == before

@@ -139,7 +139,7 @@ def test_bundle_adjustment_residuals_in_two_halves_equal_one_piece(monkeypatch):
 def test_matches_stage_stores_each_pairs_own_matches_when_blocks_run_largest_first(tmp_path, make_pipeline):
     """The matches stage hands out its blocks of pairs largest first (5 images: blocks of 4, 2, 2, 1, 1 pairs, not
     in index order); every stored pair must still hold that pair's own matches."""
-    from fullview.sfm.matching import descriptor_basis, match_descriptors, project_descriptors
+    from fullview.sfm.matching import descriptor_basis, match_pair, project_descriptors
     from fullview.synth import write_synthetic_dataset
 
     pipe = make_pipeline(write_synthetic_dataset(tmp_path / "five", views=5, width=512, seed=2))
@@ -147,12 +147,13 @@ def test_matches_stage_stores_each_pairs_own_matches_when_blocks_run_largest_fir
     stored = pipe.ws.load_matches()
     options = pipe.config["matches"]
     full = [pipe.ws.load_features(n)["descriptors"] for n in pipe.dataset.image_names]
+    noise = [float(pipe.ws.load_features(n, ("noise_sigma",))["noise_sigma"]) for n in pipe.dataset.image_names]
     basis = descriptor_basis(full, options.descriptor_dims)
     assert len(stored.pairs) == 10
-    for (i, j), m in zip(stored.pairs, stored.matches):
-        own = match_descriptors(project_descriptors(full[i], basis), project_descriptors(full[j], basis), options,
-                                full=(full[i], full[j]))
-        assert len(own) > 20 and np.array_equal(m, own)
+    for k, ((i, j), m) in enumerate(zip(stored.pairs, stored.matches)):
+        own, strict = match_pair(project_descriptors(full[i], basis), project_descriptors(full[j], basis), options,
+                                 noise[i], noise[j], full=(full[i], full[j]))
+        assert len(own) > 20 and np.array_equal(m, own) and stored.extra["num_strict"][k] == strict
 
 
 def test_matches_stage_reads_gps_only_when_the_pair_selection_uses_it(tiny_dataset, make_pipeline, monkeypatch):
