@@ -177,6 +177,11 @@ class RegistrationOptions:
                                       "matches than under each of its quarter turns, and one more such pair sharing "
                                       "one of its cameras, that place the models consistently join them (a doorway "
                                       "in a box room, whose quarter turns rematch nearly as well)")
+    weak_join_guess: bool = setting(True, "last: a rematched pair confirmed alone (homejoin's margins; seeds from "
+                                    "the upright fits, then from every rotation the walls allow, most rematched "
+                                    "first) puts model b on its baseline ray at model a's median baseline, b's "
+                                    "scale the baselines' ratio (the triangulation's height prior measures them); "
+                                    "the join check guards it")
     join_check: bool = setting(True, "a weak join is undone when it puts 10+ and over 5% of the points one model "
                                "has on the other's observed rays in front of what those cameras saw (10%+ "
                                "closer): a chance pair places a model inside the other's rooms")

@@ -258,3 +258,52 @@ def test_a_box_rooms_quarter_turn_defeats_the_margins_but_two_pairs_above_it_joi
     for k in (2, 3):
         assert np.linalg.norm(scale * M @ kwargs["C_b"][k] + shift - C[k]) < 0.03
     assert strict is None
+
+
+def test_one_pair_confirmed_alone_places_b_on_its_true_ray_at_a_guessed_length():
+    # door2: one doorway pair (2-0), no companion, none of the models' points among its matches
+    rng = np.random.default_rng(8)
+    (R, C, M0, T0, s0), cross, _, _, kwargs = _one_doorway(rng)
+    fits = [(cross[0], _yaw(0.3) @ M0, normalize(C[2] - C[0]), np.ones(8, bool))]  # a rough seed fit
+    assert join_by_rematching(fits, cross, several=True, **kwargs) is None
+    join = join_by_rematching(fits, cross, several=True, guess=True, **kwargs)
+    assert join is not None
+    M, chosen, (scale, shift, guessed), rows = join
+    assert rotation_angle_deg(M, M0) < 0.05 and guessed and [(f[0].k, f[0].l) for f in chosen] == [(2, 0)]
+    assert scale == kwargs["step_a"] / kwargs["step_b"]
+    placed = scale * M @ kwargs["C_b"][2] + shift - C[0]  # camera 2 from camera 0: the true direction, a's step
+    assert np.degrees(np.arccos(normalize(placed) @ normalize(C[2] - C[0]))) < 0.3
+    assert abs(np.linalg.norm(placed) - kwargs["step_a"]) < 1e-9
+    assert len(rows) >= MIN_REMATCHED and {(k, l) for k, _, l, _ in rows} == {(2, 0)}
+
+
+def test_a_guess_joins_no_closed_door_and_none_the_check_refuses():
+    rng = np.random.default_rng(8)
+    (R, C, M0, T0, s0), cross, _, _, kwargs = _one_doorway(rng)
+    fits = [(cross[0], _yaw(0.3) @ M0, normalize(C[2] - C[0]), np.ones(8, bool))]
+    seen = []
+    refuse = lambda M, placed: seen.append(placed) and False  # noqa: E731 - records the joins offered, takes none
+    assert join_by_rematching(fits, cross, guess=True, accept=refuse, **kwargs) is None and len(seen) == 1
+    # the doorway closed: camera 2 sees another room, its seed fit (a chance fit) is not confirmed
+    kwargs["descriptors"][2] = _descriptors(rng, len(kwargs["descriptors"][2]))
+    raw = match_descriptors(kwargs["descriptors"][2], kwargs["descriptors"][0], MatchesOptions(ratio=0.8, mutual=True))
+    b = kwargs["bearings"]
+    closed = [CrossPair(k=2, l=0, b_k=b[2][raw[:, 0]], b_l=b[0][raw[:, 1]], matches=raw)]
+    assert join_by_rematching(fits, closed, several=True, guess=True, **kwargs) is None
+
+
+def test_without_a_seed_fit_the_walls_rotations_rematched_find_the_doorway_for_a_guess():
+    # door2: no upright fit of the doorway pair (too few true raw matches); the walls allow four rotations, each
+    # pair's most rematched ones are confirmed, the doorway's true rotation among them
+    rng = np.random.default_rng(9)
+    (R, C, M0, T0, s0), cross, _, walls, kwargs = _one_doorway(rng)
+    assert join_by_rematching([], cross, wall_axes=walls, several=True, **kwargs) is None
+    join = join_by_rematching([], cross, wall_axes=walls, guess=True, **kwargs)
+    assert join is not None
+    M, chosen, (scale, shift, guessed), rows = join
+    assert rotation_angle_deg(M, M0) < 0.05 and guessed
+    placed = scale * M @ kwargs["C_b"][2] + shift - C[0]
+    assert np.degrees(np.arccos(normalize(placed) @ normalize(C[2] - C[0]))) < 0.3
+    # the walls' rotations turned by 45 degrees (a wrong wall axis): no rotation the walls allow rematches the pair
+    wrong = np.array([_yaw(45.0) @ w if k == 2 else w for k, w in enumerate(walls)])
+    assert join_by_rematching([], cross, wall_axes=wrong, guess=True, **kwargs) is None

@@ -148,9 +148,10 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
             and weak_join_threshold_rad is not None):
         guided, rematch = options.weak_join_guided, options.weak_join_rematch
         one_pair, several = options.weak_join_one_pair and rematch, options.weak_join_several and rematch
+        guess = options.weak_join_guess and rematch
         while _join_once_by_weak_pairs(state, links, pair_matches, bearings, gravity, weak_join_threshold_rad,
                                        options, descriptors, guided, rematch, wall_axes if one_pair else None,
-                                       one_pair, several, options.join_check):
+                                       one_pair, several, options.join_check, guess):
             pass
     _renumber(state)
     if pair_matches is not None and options.min_weak_pair_inliers:
@@ -769,7 +770,7 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                              bearings, gravity: np.ndarray, threshold_rad: float, options: RegistrationOptions,
                              descriptors=None, guided: bool = False, rematch: bool = False,
                              wall_axes: np.ndarray | None = None, one_pair: bool = False,
-                             several: bool = False, check: bool = False) -> bool:
+                             several: bool = False, check: bool = False, guess: bool = False) -> bool:
     """Join the first pair of models (largest first) that several weak pairs between them agree on
     (`weak_joins.join_by_weak_pairs`; with ``guided``, single fits' rotations guide the other pairs; with
     ``rematch``, pairs rematched along their epipolar circles, `rematch_join`): the smaller
@@ -795,7 +796,7 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                       if check else None)
             rematching = (partial(join_by_rematching, cross=cross, bearings=bearings, descriptors=descriptors,
                                   points=points if one_pair else None, wall_axes=wall_axes if one_pair else None,
-                                  several=several, accept=accept, **frames)
+                                  several=several, guess=guess, accept=accept, **frames)
                           if rematch and descriptors is not None else None)
             join = join_by_weak_pairs(cross=cross, guided=guided, rematch=rematching, accept=accept, **frames)
             if join is None:

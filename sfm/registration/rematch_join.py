@@ -38,6 +38,15 @@ well as the true pose (1024 home seed 61: its doorway pair 007-009 37 rematched,
 it only beats every quarter turn (`SEVERAL_MARGINS`), with `MIN_SEVERAL_CONFIRMED` - 1 or more pairs sharing one of
 its cameras that do the same under its rotation and place b consistently. The guard is the join check
 (`accept`, `placement_check`), which every join found here passes before it is taken.
+
+A guess (`guess`, `registration.weak_join_guess`, the very last): a doorway pair that the rematch confirms by
+homejoin's margins, with no companion and none of either model's points among its matches (1024 home seed 92: 016-002,
+51 rematched, 1 point of each model), fixes b's rotation and the direction from l to k, not the length nor b's
+scale: k is put on the ray at model a's median baseline, b's scale is the median baselines' ratio, and the
+triangulation stage's height prior and bridge floor measure both. Where no upright fit of the doorway exists (seed
+96: 018-019, 5 true of 25 raw), every rotation the walls allow is tried on every cross pair, rematched once, and the
+most rematched are confirmed (among the first three there, the only one confirmed). A chance pair the rematch
+confirms (the closed door of seed 48: 023-005, 70 rematched) put at a guessed place is refused by the join check.
 Pure geometry: no file access.
 """
 
@@ -75,6 +84,9 @@ MAX_SCALE_FACTOR = 2.0  # b's scale from the points within this factor of the mo
 POINT_TOLERANCE = 2.0  # ... their error in the pair's other camera, in inlier thresholds (points carry their own)
 MIN_POINT_PARALLAX_DEG = 3.0  # points this close to the baseline's line fix no distance along it
 MAX_WALL_SEEDS = 6  # (pair, rotation the walls allow) hypotheses rematched, most 2-unknown inliers first
+SCAN_MIN_INLIERS = 3  # the guess rule's wall hypotheses: raw inliers of their 2-unknown baseline (1024 home seed 96:
+# doorway 018-019, 5 true of 25 raw, 4 inliers under the walls' rotation; 647 hypotheses, 18.7 CPU s to rematch)
+MAX_SCANNED = 1000  # ... at most this many rematched (most raw inliers first)
 MIN_SEVERAL_CONFIRMED = 2  # pairs (seed included) that place b when each only beats its quarter turns
 SEVERAL_MARGINS = (1.0, 1)  # ... by (factor, excess): more matches than under any quarter turn (doorway 007-009 of
 # 1024 home seed 61: 37 rematched from its seed fit, 34 under its 90-degree turn; 008-009 34 against 13-32)
@@ -149,7 +161,7 @@ def _refit(x_k: np.ndarray, x_l: np.ndarray, R_lk: np.ndarray, threshold_rad: fl
 def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: dict, C_b: dict, gravity: np.ndarray,
                        bearings, descriptors, threshold_rad: float, step_a: float, step_b: float, seed: int = 0,
                        points: tuple[ModelPoints, ModelPoints] | None = None, wall_axes: np.ndarray | None = None,
-                       several: bool = False, accept=None):
+                       several: bool = False, guess: bool = False, accept=None):
     """(M, chosen, placement, inlier rows) of the first seed fit (most inliers first) that the rematch confirms with
     companions placing model b consistently (see the module doc), or None.
 
@@ -215,7 +227,55 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
                 log.info("rematch: %d pairs (k, l, matches) %s, each above its quarter turns, place model b",
                          len(joined[1]), [(f[0].k, f[0].l, len(f[3])) for f in joined[1]])
                 return joined
+    if guess:
+        for pair, found in alone:
+            joined = _placed_by_a_guess(pair, *found, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, step_a=step_a,
+                                        step_b=step_b)
+            if accept(joined[0], joined[2]):
+                log.info("rematch: pair %d-%d (%d matches) confirmed alone places model b at a guessed length "
+                         "and scale", pair.k, pair.l, len(found[2]))
+                return joined
+        scanned = (_scanned_wall_seeds(cross, gravity, wall_axes, bearings, descriptors, threshold_rad, seed)
+                   if wall_axes is not None else [])
+        for n, (pair, R_lk, t_lk) in enumerate(scanned):
+            found = confirm(pair, R_lk, t_lk, False, 200 + n)
+            if found is None:
+                continue
+            joined = _placed_by_a_guess(pair, *found, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, step_a=step_a,
+                                        step_b=step_b)
+            if accept(joined[0], joined[2]):
+                log.info("rematch: pair %d-%d (%d matches) under the walls' rotation, confirmed alone, places model "
+                         "b at a guessed length and scale", pair.k, pair.l, len(found[2]))
+                return joined
     return None
+
+
+def _scanned_wall_seeds(cross: list, gravity, wall_axes, bearings, descriptors, threshold_rad: float, seed: int):
+    """[(pair, R_lk, t_lk)] of the MAX_WALL_SEEDS (pair, rotation the walls allow) hypotheses that rematch the most
+    matches (MIN_REMATCHED or more), among all with SCAN_MIN_INLIERS raw inliers or more (a doorway pair of 5 true
+    among 25 raw ranks by its raw inliers below hundreds of chance hypotheses, by its rematched matches among the
+    first three)."""
+    hypotheses = wall_hypotheses(cross, gravity, wall_axes, threshold_rad, seed, min_inliers=SCAN_MIN_INLIERS,
+                                 limit=MAX_SCANNED)
+    counts = []
+    for pair, R_lk, t_lk in hypotheses:
+        d_k, d_l = descriptors[pair.k], descriptors[pair.l]
+        counts.append(len(rematched(bearings[pair.k][:len(d_k)], bearings[pair.l][:len(d_l)], d_k, d_l, R_lk, t_lk,
+                                    threshold_rad)))
+    order = [n for n in np.argsort(-np.array(counts, int), kind="stable") if counts[n] >= MIN_REMATCHED]
+    return [hypotheses[n] for n in order[:MAX_WALL_SEEDS]]
+
+
+def _placed_by_a_guess(pair, R_lk, t_lk, m, *, R_a, C_a, R_b, C_b, step_a: float, step_b: float):
+    """(M, chosen, placement, inlier rows) of the join by one confirmed pair (k of b, l of a) alone: camera k on the
+    pair's baseline ray from l at model a's median baseline, b's scale the median baselines' ratio (guessed)."""
+    k, l = pair.k, pair.l
+    M = R_a[l].T @ R_lk @ R_b[k]
+    u = normalize(R_a[l].T @ t_lk)  # from C_l towards C_k, in a's frame
+    scale = step_a / step_b if step_b > 0 else 1.0
+    shift = C_a[l] + step_a * u - scale * M @ C_b[k]
+    rows = [(k, int(a), l, int(b)) for a, b in m]
+    return M, [(pair, M, u, m)], (float(scale), shift, True), rows
 
 
 def _join_by_one_pair(alone: list, confirm, cross: list, gravity, bearings, points, wall_axes, threshold_rad: float,
@@ -239,9 +299,10 @@ def _join_by_one_pair(alone: list, confirm, cross: list, gravity, bearings, poin
     return None
 
 
-def wall_hypotheses(cross: list, gravity: np.ndarray, wall_axes: np.ndarray, threshold_rad: float, seed: int = 0):
-    """[(pair, R_lk, t_lk)] of the MAX_WALL_SEEDS best (most 2-unknown baseline inliers, MIN_PAIR_INLIERS or more)
-    of the cross pairs under each of the four upright rotations their images' wall axes allow."""
+def wall_hypotheses(cross: list, gravity: np.ndarray, wall_axes: np.ndarray, threshold_rad: float, seed: int = 0, *,
+                    min_inliers: int = MIN_PAIR_INLIERS, limit: int = MAX_WALL_SEEDS):
+    """[(pair, R_lk, t_lk)] of the `limit` best (most 2-unknown baseline inliers, `min_inliers` or more) of the cross
+    pairs under each of the four upright rotations their images' wall axes allow."""
     found = []
     for n, pair in enumerate(cross):
         g_k, g_l, a_k, a_l = gravity[pair.k], gravity[pair.l], wall_axes[pair.k], wall_axes[pair.l]
@@ -252,10 +313,10 @@ def wall_hypotheses(cross: list, gravity: np.ndarray, wall_axes: np.ndarray, thr
         for q in range(4):
             R = turn(g_l, 90.0 * q) @ aligned
             t, inliers = two_view.baseline_given_rotation(pair.b_k, pair.b_l, R, threshold_rad, seed=seed + n)
-            if inliers.sum() >= MIN_PAIR_INLIERS:
+            if inliers.sum() >= min_inliers:
                 found.append((int(inliers.sum()), n, q, pair, R, t))
     found.sort(key=lambda f: (-f[0], f[1], f[2]))
-    return [(f[3], f[4], f[5]) for f in found[:MAX_WALL_SEEDS]]
+    return [(f[3], f[4], f[5]) for f in found[:limit]]
 
 
 def _joined_by_points(pair, R_lk, t_lk, m, bearings, points, *, R_a, C_a, R_b, C_b, tolerance_rad: float,
