@@ -228,25 +228,14 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
                          len(joined[1]), [(f[0].k, f[0].l, len(f[3])) for f in joined[1]])
                 return joined
     if guess:
-        for pair, found in alone:
-            joined = _placed_by_a_guess(pair, *found, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, step_a=step_a,
-                                        step_b=step_b)
-            if accept(joined[0], joined[2]):
-                log.info("rematch: pair %d-%d (%d matches) confirmed alone places model b at a guessed length "
-                         "and scale", pair.k, pair.l, len(found[2]))
-                return joined
-        scanned = (_scanned_wall_seeds(cross, gravity, wall_axes, bearings, descriptors, threshold_rad, seed)
-                   if wall_axes is not None else [])
-        for n, (pair, R_lk, t_lk) in enumerate(scanned):
-            found = confirm(pair, R_lk, t_lk, False, 200 + n)
-            if found is None:
-                continue
-            joined = _placed_by_a_guess(pair, *found, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, step_a=step_a,
-                                        step_b=step_b)
-            if accept(joined[0], joined[2]):
-                log.info("rematch: pair %d-%d (%d matches) under the walls' rotation, confirmed alone, places model "
-                         "b at a guessed length and scale", pair.k, pair.l, len(found[2]))
-                return joined
+        placed = dict(R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, step_a=step_a, step_b=step_b)
+        joined = _first_guess_accepted(alone, accept, "", **placed)
+        if joined is None and wall_axes is not None:
+            scanned = _confirmed_wall_scan(confirm, cross, gravity, wall_axes, bearings, descriptors, threshold_rad,
+                                           seed)
+            joined = _first_guess_accepted(scanned, accept, " under the walls' rotation", **placed)
+        if joined is not None:
+            return joined
     return None
 
 
@@ -264,6 +253,28 @@ def _scanned_wall_seeds(cross: list, gravity, wall_axes, bearings, descriptors, 
                                     threshold_rad)))
     order = [n for n in np.argsort(-np.array(counts, int), kind="stable") if counts[n] >= MIN_REMATCHED]
     return [hypotheses[n] for n in order[:MAX_WALL_SEEDS]]
+
+
+def _first_guess_accepted(candidates, accept, how: str, **placed):
+    """The join (`_placed_by_a_guess`) of the first (pair, (R_lk, t_lk, matches)) of `candidates` that `accept`
+    takes, or None."""
+    for pair, found in candidates:
+        joined = _placed_by_a_guess(pair, *found, **placed)
+        if accept(joined[0], joined[2]):
+            log.info("rematch: pair %d-%d (%d matches)%s, confirmed alone, places model b at a guessed length and "
+                     "scale", pair.k, pair.l, len(found[2]), how)
+            return joined
+    return None
+
+
+def _confirmed_wall_scan(confirm, cross, gravity, wall_axes, bearings, descriptors, threshold_rad: float, seed: int):
+    """(pair, (R_lk, t_lk, matches)) of the scanned wall seeds (`_scanned_wall_seeds`) the rematch confirms, lazily
+    (the scan runs only when no seed fit was confirmed alone)."""
+    for n, (pair, R_lk, t_lk) in enumerate(_scanned_wall_seeds(cross, gravity, wall_axes, bearings, descriptors,
+                                                                 threshold_rad, seed)):
+        found = confirm(pair, R_lk, t_lk, False, 200 + n)
+        if found is not None:
+            yield pair, found
 
 
 def _placed_by_a_guess(pair, R_lk, t_lk, m, *, R_a, C_a, R_b, C_b, step_a: float, step_b: float):
