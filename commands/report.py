@@ -184,14 +184,26 @@ def _metrics(pipeline: Pipeline) -> str:
     parts = []
     metrics = pipeline.ws.load_json("eval_metrics")
     if metrics:
-        rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{_num(v)}</td></tr>" for k, v in metrics.items()
-                       if isinstance(v, (int, float, str)))
+        rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{_num(v)}</td></tr>" for k, v in metric_rows(metrics))
         parts.append(f"<h3>eval</h3><table>{rows}</table>")
     for render_type in ("spherical", "perspective_overlapping", "perspective_non_overlapping"):
         path = pipeline.ws.path("compare_markdown", render_type=render_type)
         if path.exists():
             parts.append(f"<h3>COLMAP comparison ({render_type})</h3><pre>{html.escape(path.read_text())}</pre>")
     return "<h2>Metrics</h2>" + ("".join(parts) or "<p class='missing'>run fullview eval / fullview compare</p>")
+
+
+def metric_rows(metrics: dict) -> list[tuple[str, object]]:
+    """(name, value) of the eval's scalars, with those of its sections one level down as "section.name" (the
+    leave-one-out agreement and the dense figures of a dataset without ground truth live there); per-image and
+    per-model lists are left to the JSON."""
+    rows = []
+    for key, value in metrics.items():
+        if isinstance(value, dict):
+            rows += [(f"{key}.{k}", v) for k, v in value.items() if isinstance(v, (int, float, str))]
+        elif isinstance(value, (int, float, str)):
+            rows.append((key, value))
+    return rows
 
 
 def _viewer(pipeline: Pipeline) -> str:
