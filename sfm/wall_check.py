@@ -146,7 +146,7 @@ def pose_the_plane_allows(b_i: np.ndarray, b_j: np.ndarray, keep: np.ndarray, R_
         return None
     g_i, g_j = normalize(np.asarray(gravity_i, np.float64)), normalize(np.asarray(gravity_j, np.float64))
     normal_j = R_j_from_i @ plane[0]
-    if abs(np.degrees(np.arcsin(min(1.0, abs(normal_j @ g_j))))) > MAX_WALL_TILT_DEG:
+    if _tilt_deg(normal_j, g_j) > MAX_WALL_TILT_DEG:
         return None  # a floor or a ceiling: its normal says nothing about the yaw
     if abs(wall_residual_deg(R_j_from_i, plane[0], axis_j, g_j)) <= PLANE_TOLERANCE_DEG:
         return None
@@ -154,11 +154,15 @@ def pose_the_plane_allows(b_i: np.ndarray, b_j: np.ndarray, keep: np.ndarray, R_
     for R, _, n in plane_poses(R_j_from_i, t_j_from_i, *plane):
         R = two_view.rotation_between(R @ g_i, g_j) @ R  # levelled: the homography knows no gravity
         residual = wall_residual_deg(R, n, axis_j, g_j)
-        if abs(residual) > PLANE_TOLERANCE_DEG or np.degrees(np.arcsin(min(1.0, abs((R @ n) @ g_j)))) > \
-                MAX_WALL_TILT_DEG:
+        if abs(residual) > PLANE_TOLERANCE_DEG or _tilt_deg(R @ n, g_j) > MAX_WALL_TILT_DEG:
             continue
         R = turn(g_j, residual) @ R
         t, inliers = two_view.baseline_given_rotation(b_i, b_j, R, threshold_rad, seed=seed)
         if best is None or inliers.sum() > best[2].sum():
             best = (R, t, inliers)
     return best
+
+
+def _tilt_deg(normal: np.ndarray, gravity: np.ndarray) -> float:
+    """How far a plane of unit `normal` is from vertical (degrees; 0: a wall, 90: a floor) under unit `gravity`."""
+    return float(np.degrees(np.arcsin(min(1.0, abs(normal @ gravity)))))

@@ -246,10 +246,11 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
     if height is not None:  # the bridges: lengths from their floor points, or back where they were (`restore_bridges`)
         before = -np.einsum("nba,nb->na", R[cams], t[cams])
         centers = -np.einsum("nba,nb->na", result.R_cam_from_world, result.t_cam_from_world)
-        level, down = heights.model_levels(centers, points, local_height, model_id[cams])
+        level, down = (heights.model_levels(centers, points, local_height, model_id[cams]) if bridge_floor
+                       else (None, None))
         centers, points, bridges, measured = heights.restore_bridges(
             before, centers, points, tracks.track_ids, obs_camera, first,  # the held cameras stay where they are
-            level=level if bridge_floor else None, down=down)
+            level=level, down=down)
         if bridges:
             log.info("height prior: %d bridges (two cameras only two-view tracks join): %d set by their floor points, "
                      "the rest kept at their lengths", bridges, measured)

@@ -146,6 +146,15 @@ def _one_doorway(rng, scale_b: float = 0.6):
     return (R, C, M0, T0, scale_b), cross, points, walls, kwargs
 
 
+def _close_the_doorway(rng, kwargs) -> list:
+    """The cross pairs of `_one_doorway` with its camera 2 given another room's descriptors (in `kwargs`, in place):
+    the one pair 2-0 of raw matches by chance."""
+    kwargs["descriptors"][2] = _descriptors(rng, len(kwargs["descriptors"][2]))
+    raw = match_descriptors(kwargs["descriptors"][2], kwargs["descriptors"][0], MatchesOptions(ratio=0.8, mutual=True))
+    b = kwargs["bearings"]
+    return [CrossPair(k=2, l=0, b_k=b[2][raw[:, 0]], b_l=b[0][raw[:, 1]], matches=raw)]
+
+
 def test_one_pair_whose_points_agree_joins_two_models_at_the_true_similarity():
     rng = np.random.default_rng(3)
     (R, C, M0, T0, s0), cross, points, walls, kwargs = _one_doorway(rng)
@@ -171,10 +180,7 @@ def test_a_closed_door_or_points_that_disagree_join_nothing():
     moved = ModelPoints(X=rng.uniform([-3, -1, -1], [4, 1.2, 4], points[1].X.shape), point_of_feature=points[1].point_of_feature)
     assert join_by_rematching(fits, cross, points=(points[0], moved), wall_axes=walls, **kwargs) is None
     # the doorway closed: camera 2 sees another room
-    kwargs["descriptors"][2] = _descriptors(rng, len(kwargs["descriptors"][2]))
-    raw = match_descriptors(kwargs["descriptors"][2], kwargs["descriptors"][0], MatchesOptions(ratio=0.8, mutual=True))
-    b = kwargs["bearings"]
-    closed = [CrossPair(k=2, l=0, b_k=b[2][raw[:, 0]], b_l=b[0][raw[:, 1]], matches=raw)]
+    closed = _close_the_doorway(rng, kwargs)
     assert join_by_rematching(fits, closed, points=points, wall_axes=walls, **kwargs) is None
 
 
@@ -285,10 +291,7 @@ def test_a_guess_joins_no_closed_door_and_none_the_check_refuses():
     refuse = lambda M, placed: seen.append(placed) and False  # noqa: E731 - records the joins offered, takes none
     assert join_by_rematching(fits, cross, guess=True, accept=refuse, **kwargs) is None and len(seen) == 1
     # the doorway closed: camera 2 sees another room, its seed fit (a chance fit) is not confirmed
-    kwargs["descriptors"][2] = _descriptors(rng, len(kwargs["descriptors"][2]))
-    raw = match_descriptors(kwargs["descriptors"][2], kwargs["descriptors"][0], MatchesOptions(ratio=0.8, mutual=True))
-    b = kwargs["bearings"]
-    closed = [CrossPair(k=2, l=0, b_k=b[2][raw[:, 0]], b_l=b[0][raw[:, 1]], matches=raw)]
+    closed = _close_the_doorway(rng, kwargs)
     assert join_by_rematching(fits, closed, several=True, guess=True, **kwargs) is None
 
 

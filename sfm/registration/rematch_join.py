@@ -61,7 +61,7 @@ from fullview.sfm import two_view, upright
 from fullview.sfm.camera import normalize
 from fullview.sfm.matching import epipolar_candidates, match_descriptors
 from fullview.sfm.options import MatchesOptions
-from fullview.sfm.registration.weak_joins import MIN_PAIR_INLIERS, _place
+from fullview.sfm.registration.weak_joins import MIN_PAIR_INLIERS, _place, guessed_scale
 from fullview.sfm.wall_check import f_of_pose, turn, wall_residual_deg
 
 log = logging.getLogger(__name__)
@@ -215,7 +215,7 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
         joined = _join_by_one_pair(alone, confirm, cross, gravity, bearings, points, wall_axes, threshold_rad, seed,
                                    accept, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b,
                                    tolerance_rad=POINT_TOLERANCE * threshold_rad,
-                                   step_ratio=step_a / step_b if step_b > 0 else 1.0)
+                                   step_ratio=guessed_scale(step_a, step_b))
         if joined is not None:
             return joined
     if several:
@@ -283,7 +283,7 @@ def _placed_by_a_guess(pair, R_lk, t_lk, m, *, R_a, C_a, R_b, C_b, step_a: float
     k, l = pair.k, pair.l
     M = R_a[l].T @ R_lk @ R_b[k]
     u = normalize(R_a[l].T @ t_lk)  # from C_l towards C_k, in a's frame
-    scale = step_a / step_b if step_b > 0 else 1.0
+    scale = guessed_scale(step_a, step_b)
     shift = C_a[l] + step_a * u - scale * M @ C_b[k]
     rows = [(k, int(a), l, int(b)) for a, b in m]
     return M, [(pair, M, u, m)], (float(scale), shift, True), rows

@@ -204,6 +204,11 @@ def _mean_rotation(Ms: np.ndarray) -> np.ndarray:
     return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
 
 
+def guessed_scale(step_a: float, step_b: float) -> float:
+    """Model b's scale in model a's units when nothing measures it: the ratio of their median baselines."""
+    return step_a / step_b if step_b > 0 else 1.0
+
+
 def _place(M: np.ndarray, chosen: list, C_a: dict, C_b: dict, step_a: float, step_b: float):
     """(scale, shift, guessed) putting b's cameras of the chosen pairs on their baseline rays from a's cameras:
     u × (s M C_k + T − C_l) = 0 per pair; with one camera of b (or of a) the scale is the median-baseline guess. None when the
@@ -217,7 +222,7 @@ def _place(M: np.ndarray, chosen: list, C_a: dict, C_b: dict, step_a: float, ste
     A, y = np.concatenate(rows), np.concatenate(rhs)
     guessed = len(b_cameras) < 2 or len(a_cameras) < 2  # rays from one camera of a fix b's shape, not its size
     if guessed:
-        scale = step_a / step_b if step_b > 0 else 1.0
+        scale = guessed_scale(step_a, step_b)
         shift = np.linalg.lstsq(A[:, 1:], y - scale * A[:, 0], rcond=None)[0]
     else:
         x = np.linalg.lstsq(A, y, rcond=None)[0]
