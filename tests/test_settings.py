@@ -1,5 +1,6 @@
 """One source of settings: every key has a default, bounds and a meaning in sfm/options.py; the loader enforces every
-bound with an error naming the key; every key is read by the code it configures; docs/configuration.md's table is generated."""
+bound with an error naming the key; every key is read by the code it configures; docs/configuration.md's table is
+generated."""
 
 from __future__ import annotations
 
