@@ -246,7 +246,8 @@ class Dataset:
             backup = _keep_backup(path)
             save_text(path, text)
         except OSError as e:
-            raise DatasetError(f"{e.filename or path}: cannot save the hand points ({_reason(e)})") from None
+            where = f" at {e.filename}" if e.filename and Path(e.filename) != path else ""
+            raise DatasetError(f"{path}: cannot save the hand points ({_reason(e)}{where})") from None
         self.__dict__.pop("hand_observations", None)  # the cached parse is stale now
         return backup
 

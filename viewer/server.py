@@ -113,11 +113,16 @@ class ViewerApp:
         return shlex.join(["fullview", "run", str(self.pipeline.dataset.root), "-w", str(self.pipeline.ws.root.parent)])
 
 
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+
+    def handle_error(self, request, client_address):  # socketserver's default prints a traceback to stderr
+        log.error("viewer: a request from %s failed outside its handler", client_address[0], exc_info=True)
+
+
 def make_server(app: ViewerApp, port: int = 0) -> ThreadingHTTPServer:
     handler = type("Handler", (_Handler,), {"app": app})
-    server = ThreadingHTTPServer(("127.0.0.1", port), handler)
-    server.daemon_threads = True
-    return server
+    return _Server(("127.0.0.1", port), handler)
 
 
 def page_url(server: ThreadingHTTPServer) -> str:
@@ -130,8 +135,8 @@ class _Handler(BaseHTTPRequestHandler):
     server_version = "fullview-viewer"
     timeout = REQUEST_TIMEOUT_S
 
-    def log_message(self, fmt, *args):  # the default writes every request to stderr
-        log.debug("%s " + fmt, self.address_string(), *args)
+    def log_message(self, fmt, *args):  # the default writes every request to stderr; the token is not logged
+        log.debug("%s %s", self.address_string(), (fmt % args).replace(self.app.token, "<token>"))
 
     # ---------------------------------------------------------------------------------------------- routing
     def do_GET(self):

@@ -321,6 +321,7 @@ async function moveTo(target) {
 hooks.moveTo = moveTo;
 hooks.registeredNames = () => [...cams.values()].filter((c) => c.registered).map((c) => c.name);
 hooks.tourPosition = () => tour.getPosition();
+hooks.tourLookAt = (position) => tour.rotate(position);
 
 // ------------------------------------------------------------------------------------------------ correlated views
 const corr = { views: [], tracks: [], current: -1 };
