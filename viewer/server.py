@@ -115,6 +115,7 @@ class ViewerApp:
 
 class _Server(ThreadingHTTPServer):
     daemon_threads = True
+    request_queue_size = 64  # listen backlog (socketserver's 5 resets connections when a page opens many at once)
 
     def handle_error(self, request, client_address):  # socketserver's default prints a traceback to stderr
         log.error("viewer: a request from %s failed outside its handler", client_address[0], exc_info=True)
