@@ -245,11 +245,11 @@ def _picks(points, sizes: dict[str, tuple[int, int]]) -> dict[str, dict[str, tup
             raise RequestError(f"points[{k}]: the name must be a string")
         for image, xy in point.get("observations", {}).items():
             if image not in sizes:
-                raise RequestError(f"points[{k}] ({name!r}): unknown image {image[:80]!r}")
+                raise RequestError(f"points[{k}] ({name[:80]!r}): unknown image {image[:80]!r}")
             pixel = _pixel(xy)
             w, h = sizes[image]
             if pixel is None or not (0 <= pixel[0] <= w and 0 <= pixel[1] <= h):
-                raise RequestError(f"points[{k}] ({name!r}) in {image}: expected [x, y], two finite numbers "
+                raise RequestError(f"points[{k}] ({name[:80]!r}) in {image[:80]!r}: expected [x, y], two finite numbers "
                                    f"inside {w}x{h}")
             obs.setdefault(image, {})[name] = pixel
     return obs
