@@ -249,8 +249,8 @@ def _picks(points, sizes: dict[str, tuple[int, int]]) -> dict[str, dict[str, tup
             pixel = _pixel(xy)
             w, h = sizes[image]
             if pixel is None or not (0 <= pixel[0] <= w and 0 <= pixel[1] <= h):
-                raise RequestError(f"points[{k}] ({name[:80]!r}) in {image[:80]!r}: expected [x, y], two finite numbers "
-                                   f"inside {w}x{h}")
+                raise RequestError(f"points[{k}] ({name[:80]!r}) in {image[:80]!r}: expected [x, y], two finite "
+                                   f"numbers inside {w}x{h}")
             obs.setdefault(image, {})[name] = pixel
     return obs
 
