@@ -365,8 +365,9 @@ class Dataset:
 
 # ---------------------------------------------------------------------------------------------- file access
 # ------------------------------------------------------------------------------------------- hand point backups
-BACKUPS_KEPT = 50  # timestamped backups of hand_points.yaml kept (newest first): one per save, a few kB each, enough
-#                    for a long picking session; the .orig.bak (the file before the viewer's first save) is never removed
+# Timestamped backups of hand_points.yaml kept (the newest): one per save, a few kB each, enough for a long picking
+# session; the .orig.bak (the file before the viewer's first save) is never removed.
+BACKUPS_KEPT = 50
 _ORIGINAL_SUFFIX = ".orig.bak"
 
 

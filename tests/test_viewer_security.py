@@ -186,7 +186,7 @@ def _read_only(*folders: Path):
             subprocess.run(["umount", str(folder)], check=True)
 
 
-# ------------------------------------------------------------------------------------------------ 1. cross-site requests
+# ---------------------------------------------------------------------------------------- 1. cross-site requests
 def test_curl_reproductions_are_refused(copy_served, server_log):
     """issue 30 item 1: Origin evil / Content-Type text/plain / no Origin / no or wrong token: 403, nothing saved."""
     app, url = copy_served
@@ -716,7 +716,8 @@ def _json_values():
 
 def _near_valid_bodies(names: list[str]):
     """Bodies shaped like the page's: points with names and observations, with wrong bits mixed in."""
-    number = st.floats(allow_nan=False) | st.integers(-10, 600) | st.floats(0, 512) | st.booleans() | st.text(max_size=3)
+    number = (st.floats(allow_nan=False) | st.integers(-10, 600) | st.floats(0, 512) | st.booleans()
+              | st.text(max_size=3))
     pixel = st.lists(number, min_size=0, max_size=3) | number
     image = st.sampled_from(names) | st.text(max_size=12)
     point = st.fixed_dictionaries({"observations": st.dictionaries(image, pixel, max_size=4)},
