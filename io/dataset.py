@@ -31,6 +31,7 @@ nothing bad is accepted silently.
 
 from __future__ import annotations
 
+import datetime
 import hashlib
 import io
 import logging
@@ -39,8 +40,9 @@ import os
 import re
 import reprlib
 import struct
+import tempfile
 import threading
-import time
+import uuid
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -51,7 +53,7 @@ import PIL.Image
 import yaml
 from scipy.spatial import cKDTree
 
-from fullview.io.artifacts import save_text
+from fullview.io.artifacts import apply_umask, save_text
 from fullview.io.errors import FullviewError
 from fullview.io.yamlio import YamlError, load_yaml
 
@@ -233,18 +235,19 @@ class Dataset:
         return self._parse_hand_points(path, _load_yaml(path))
 
     def save_hand_points(self, points: list) -> Path | None:
-        """Validate `points` (the `points:` list of hand_points.yaml) and write the file atomically; the previous
-        file, with every point it held, is kept as hand_points.yaml.<UTC time>.bak. Returns the backup's path."""
+        """Validate `points` (the `points:` list of hand_points.yaml) and write the file atomically. The file it
+        replaces is kept first (`_keep_backup`); returns that backup's path (None when there was no file)."""
         tracks = self._parse_hand_points(self.hand_points_path, {"points": points})
         text = yaml.safe_dump({"points": [{"name": t.name, "observations": {i: [round(x, 3), round(y, 3)]
                                                                              for i, (x, y) in t.observations.items()}}
                                           for t in tracks]}, sort_keys=False, default_flow_style=None)
-        backup = None
-        if self.hand_points_path.exists():
-            stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
-            backup = self.hand_points_path.with_name(f"{self.hand_points_path.name}.{stamp}.bak")
-            save_text(backup, self.hand_points_path.read_text())
-        save_text(self.hand_points_path, text)
+        path = self.hand_points_path
+        try:
+            backup = _keep_backup(path)
+            save_text(path, text)
+        except OSError as e:
+            where = f" at {e.filename}" if e.filename and Path(e.filename) != path else ""
+            raise DatasetError(f"{path}: cannot save the hand points ({_reason(e)}{where})") from None
         self.__dict__.pop("hand_observations", None)  # the cached parse is stale now
         return backup
 
@@ -361,6 +364,50 @@ class Dataset:
 
 
 # ---------------------------------------------------------------------------------------------- file access
+# ------------------------------------------------------------------------------------------- hand point backups
+# Timestamped backups of hand_points.yaml kept (the newest): one per save, a few kB each, enough for a long picking
+# session; the .orig.bak (the file before the viewer's first save) is never removed.
+BACKUPS_KEPT = 50
+_ORIGINAL_SUFFIX = ".orig.bak"
+
+
+def _keep_backup(path: Path) -> Path | None:
+    """Copy `path` (when it exists) to a backup no other save can overwrite: `<name>.<UTC time, microseconds>Z-<random
+    hex>.bak`, each created exclusively. The very first save also writes `<name>.orig.bak`, exclusively, so it keeps
+    the file as it was before any save, whatever saves race. Only the newest BACKUPS_KEPT timestamped backups stay."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    _write_new(path.with_name(path.name + _ORIGINAL_SUFFIX), data)  # False once it exists: kept as it is
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+    while not _write_new(backup := path.with_name(f"{path.name}.{stamp}-{uuid.uuid4().hex[:8]}.bak"), data):
+        pass  # the same microsecond and the same 32 random bits: draw again
+    pattern = re.compile(re.escape(path.name) + r"\.\d{8}T\d{6}\.\d{6}Z-[0-9a-f]{8}\.bak")
+    stamped = sorted(p for p in path.parent.iterdir() if pattern.fullmatch(p.name))
+    for old in stamped[:-BACKUPS_KEPT]:
+        old.unlink(missing_ok=True)  # a concurrent save may have removed it already
+    return backup
+
+
+def _write_new(path: Path, data: bytes) -> bool:
+    """Create `path` holding `data`, complete or not at all; False (and nothing changed) when `path` exists."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        apply_umask(Path(tmp))
+        try:
+            os.link(tmp, path)  # unlike a rename, a link never replaces a file that exists
+        except FileExistsError:
+            return False
+        return True
+    finally:
+        os.unlink(tmp)
+
+
 def _reason(e: Exception) -> str:
     """One line saying what went wrong: an OSError's strerror ('Permission denied'), else the message."""
     text = (e.strerror if isinstance(e, OSError) else None) or str(e) or type(e).__name__
