@@ -104,6 +104,34 @@ HAND_COLOR = (255, 0, 0)  # hand points are drawn red in the sparse cloud
 MANIFEST_KEYS = {"fingerprint": str, "upstream": dict, "outputs": dict}
 
 
+# Descriptors of the locks this process holds (run, commit and shared reading locks). A forked child inherits
+# them, and an flock lives as long as any descriptor of it: `close_inherited_locks` closes the child's copies, so
+# a child that outlives its parent (kill -9) cannot keep the workspace locked.
+_LOCK_FDS: set[int] = set()
+
+
+def _open_lock(path: Path, flags: int = os.O_RDWR | os.O_CREAT) -> int:
+    fd = os.open(path, flags | os.O_CLOEXEC, 0o666)  # O_CLOEXEC: no exec'd program inherits it either
+    _LOCK_FDS.add(fd)
+    return fd
+
+
+def _close_lock(fd: int) -> None:
+    _LOCK_FDS.discard(fd)
+    os.close(fd)  # closing releases the lock (unless a forked child holds a copy)
+
+
+def close_inherited_locks() -> None:
+    """In a forked child only: close its copies of the parent's lock descriptors (closing, never unlocking: an
+    unlock would release the parent's lock too)."""
+    for fd in list(_LOCK_FDS):
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _LOCK_FDS.clear()
+
+
 class WorkspaceBusy(ArtifactError):
     """Another process holds the workspace's run lock."""
 
@@ -301,7 +329,7 @@ class Workspace:
                 self._lock_depth -= 1
             return
         make_dirs(self.root)
-        fd = os.open(self.root / RUN_LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+        fd = _open_lock(self.root / RUN_LOCK)
         try:
             _acquire(fd, self.root, wait)
             os.ftruncate(fd, 0)
@@ -312,7 +340,7 @@ class Workspace:
             yield
         finally:
             self._lock_depth, self._lock_fd = 0, None
-            os.close(fd)  # closing releases the lock
+            _close_lock(fd)
 
     @property
     def is_locked(self) -> bool:
@@ -329,7 +357,7 @@ class Workspace:
             fcntl.flock(fd, fcntl.LOCK_SH)
             yield
         finally:
-            os.close(fd)
+            _close_lock(fd)
 
     # ---- writing
     @contextmanager
@@ -343,12 +371,12 @@ class Workspace:
 
     @contextmanager
     def _commit_lock(self) -> Iterator[None]:
-        fd = os.open(self.root / COMMIT_LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+        fd = _open_lock(self.root / COMMIT_LOCK)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX)
             yield
         finally:
-            os.close(fd)
+            _close_lock(fd)
 
     def _clean_leftovers(self) -> None:
         """Under the lock only: remove temp folders of killed runs; restore a folder whose swap was cut short."""
@@ -567,10 +595,10 @@ def _open_for_shared_lock(path: Path) -> int | None:
     if not path.parent.is_dir():
         return None
     try:
-        return os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        return _open_lock(path)
     except OSError:
         try:
-            return os.open(path, os.O_RDONLY)
+            return _open_lock(path, os.O_RDONLY)
         except OSError:
             return None
 

@@ -1,0 +1,161 @@
+"""The hostile tester's runs, exports and processes (issue 30, items 5, 6, 7, 10 and parts of 11 and 13): a result is
+never marked fresh for inputs it was not computed from, an export removes only what an earlier export of its own
+wrote, COLMAP's text format never garbles a name, a killed run's children leave with it, a manifest that is no
+regular file is stale, the PLY export says when the dense cloud is not current, and the hashed artifacts hold no
+timings."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fullview.cli import main
+from fullview.io.workspace import RUN_LOCK, Workspace
+from fullview.stages import protocol
+
+pytestmark = pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _cli(capsys, *args) -> tuple[int, str, str]:
+    code = main([str(a) for a in args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def _status(capsys, dataset, ws, settings) -> dict[str, list[str]]:
+    code, out, err = _cli(capsys, "status", dataset, "-w", ws, "--verify", *settings)
+    assert code == 0, err
+    return {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.strip()}
+
+
+def _wait_for(condition, what: str, limit_s: float = 60.0) -> None:
+    """Poll `condition` until it holds; fail naming `what` after `limit_s` (a bound on a hang, not a timing claim)."""
+    end = time.monotonic() + limit_s
+    while not condition():
+        if time.monotonic() > end:
+            pytest.fail(f"gave up waiting for {what}")
+        time.sleep(0.05)
+
+
+# ------------------------------------------------------------------------------------- 10. children die with the run
+def _child_report(_: object) -> dict:
+    """What a forked worker holds: its open descriptors' targets and its parent-death signal."""
+    import ctypes
+
+    libc = ctypes.CDLL(None)
+    sig = ctypes.c_int(0)
+    libc.prctl(2, ctypes.byref(sig), 0, 0, 0)  # PR_GET_PDEATHSIG
+    fds = {}
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            fds[fd] = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            pass
+    return {"pdeathsig": sig.value, "fds": fds}
+
+
+@pytest.mark.parametrize("how", ["forked", "process_map"])
+def test_10_a_forked_child_holds_no_workspace_lock_and_dies_with_its_parent(tmp_path, how):
+    if not sys.platform.startswith("linux"):
+        pytest.skip("forked children are Linux only (other systems run the work on threads)")
+    ws = Workspace(tmp_path / "ws", "ds")
+    with ws.locked(command="test"), ws.reading():
+        if how == "forked":
+            with protocol.forked(_child_report, None) as job:
+                report = job.result()
+        else:
+            report = list(protocol.process_map(_child_report, [1, 2], processes=2))[0]
+    assert report["pdeathsig"] == signal.SIGKILL
+    held = [t for t in report["fds"].values() if t.endswith((RUN_LOCK, ".fullview.commit.lock"))]
+    assert held == [], f"the child holds the workspace's locks open: {held}"
+
+
+DENSE = ["--set", "densify.working_width=512", "--set", "densify.rect_height=256", "--set",
+         "densify.min_pair_inliers=30"]
+
+# `fullview run` with the world planes' child (forked by densify) replaced by one that reports its pid and sleeps:
+# a deterministic moment at which the run has a forked child, instead of a timed guess.
+_SLOW_CHILD_RUN = textwrap.dedent("""
+    import os, sys, time
+    from fullview.stages import densify
+    def asleep(*args):
+        with open(os.environ["FULLVIEW_TEST_CHILD_PID"] + ".tmp", "w") as f:
+            f.write(str(os.getpid()))
+        os.replace(os.environ["FULLVIEW_TEST_CHILD_PID"] + ".tmp", os.environ["FULLVIEW_TEST_CHILD_PID"])
+        time.sleep(600)
+    densify._world_planes = asleep
+    from fullview.cli import main
+    sys.exit(main(sys.argv[1:]))
+""")
+
+
+@pytest.fixture(scope="module")
+def sparse_ws(tiny_dataset, tmp_path_factory, tiny_set_args):
+    """The tiny dataset reconstructed up to triangulation (read-only: copy the workspace before changing it)."""
+    ws = tmp_path_factory.mktemp("sparse") / "ws"
+    assert main(["run", str(tiny_dataset), "-w", str(ws), "--until", "triangulation", *tiny_set_args]) == 0
+    return ws
+
+
+def _gone(pid: int) -> bool:
+    """The process has ended (a zombie nobody reaped yet has closed its descriptors too)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+def _lock_is_free(path: Path) -> bool:
+    fd = os.open(path, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except BlockingIOError:
+        return False
+    finally:
+        os.close(fd)
+
+
+def test_10_kill_9_during_densify_leaves_no_child_holding_the_lock(tiny_dataset, sparse_ws, tmp_path, tiny_set_args,
+                                                                   capsys):
+    if not sys.platform.startswith("linux"):
+        pytest.skip("forked children are Linux only")
+    ws = tmp_path / "ws"
+    import shutil
+    shutil.copytree(sparse_ws, ws)
+    marker = tmp_path / "child.pid"
+    env = {**os.environ, "FULLVIEW_TEST_CHILD_PID": str(marker), "PYTHONPATH": os.pathsep.join(sys.path)}
+    log = tmp_path / "run.log"
+    with open(log, "w") as stderr:  # a file, not a pipe: the orphan would keep a pipe open after its parent died
+        parent = subprocess.Popen([sys.executable, "-c", _SLOW_CHILD_RUN, "run", str(tiny_dataset), "-w", str(ws),
+                                   "--until", "densify", *tiny_set_args, *DENSE], env=env,
+                                  stdout=subprocess.DEVNULL, stderr=stderr)
+    child = None
+    try:
+        _wait_for(lambda: marker.exists() or parent.poll() is not None, "densify to fork its child", 300)
+        assert marker.exists(), f"the run ended before densify forked: {log.read_text()[-2000:]}"
+        child = int(marker.read_text())
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(timeout=30)
+        _wait_for(lambda: _gone(child), f"the orphaned child {child} to end with its parent", 20)
+        _wait_for(lambda: _lock_is_free(ws / "tiny" / RUN_LOCK), "the run lock to be free", 20)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+        if child is not None and not _gone(child):
+            os.kill(child, signal.SIGKILL)
+    code, _, err = _cli(capsys, "run", tiny_dataset, "-w", ws, "--until", "triangulation", *tiny_set_args)
+    assert code == 0 and "in use by" not in err, err
