@@ -35,6 +35,7 @@ import json
 import logging
 import os
 import shutil
+import stat
 import tempfile
 import time
 from contextlib import contextmanager
@@ -196,9 +197,12 @@ class Workspace:
         for rel, expected in manifest["outputs"].items():
             path = base / rel
             try:
-                size = path.stat().st_size
+                info = path.stat()
             except OSError:
                 return f"{path} is missing"
+            size = info.st_size
+            if not stat.S_ISREG(info.st_mode):  # a FIFO would block the hash, a device never end it
+                return f"{path} is not a regular file"
             if size != expected["size"]:
                 return f"{path} has {size} bytes, its stage wrote {expected['size']}"
             if deep and file_sha256(path) != expected["sha256"]:
@@ -400,13 +404,13 @@ class StageWriter:
     def _hashed(self, path: Path) -> Path:
         """Take `path`'s sha256 now, on the task that wrote it (in the page cache, and the tasks run in parallel):
         `commit_manifest` uses it instead of reading the file again while its size and mtime are unchanged."""
-        stat = path.stat()
-        self._hashes[path] = (stat.st_size, stat.st_mtime_ns, file_sha256(path))
+        st = path.stat()
+        self._hashes[path] = (st.st_size, st.st_mtime_ns, file_sha256(path))
         return path
 
     def _sha256(self, path: Path) -> str:
-        stat, known = path.stat(), self._hashes.get(path)
-        return known[2] if known is not None and known[:2] == (stat.st_size, stat.st_mtime_ns) else file_sha256(path)
+        st, known = path.stat(), self._hashes.get(path)
+        return known[2] if known is not None and known[:2] == (st.st_size, st.st_mtime_ns) else file_sha256(path)
 
     def path(self, artifact: str, **fields) -> Path:
         """Where `artifact` goes in this transaction; an artifact of another folder is refused."""
@@ -478,14 +482,34 @@ class StageWriter:
 
 
 # ---------------------------------------------------------------------------------------------------- helpers
+MANIFEST_MAX_BYTES = 64 << 20  # ~200 bytes an output: far above the largest manifest (a densify of 10k panoramas, 4 MB)
+
+
 def parse_manifest(path: Path) -> tuple[dict | None, str | None]:
-    """(manifest, problem) of a manifest file: (None, None) when absent, (None, reason) when malformed."""
-    if not path.exists():
-        return None, None
+    """(manifest, problem) of a manifest file: (None, None) when absent, (None, reason) when malformed. Only a
+    regular file of at most MANIFEST_MAX_BYTES is read: a link to /dev/zero would fill the memory, a FIFO block."""
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        # O_NONBLOCK: opening a FIFO returns at once (a regular file ignores the flag)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except (FileNotFoundError, NotADirectoryError):
+        return (None, f"{path}: broken symbolic link") if os.path.islink(path) else (None, None)
+    except OSError as e:
+        return None, f"{path}: unreadable manifest ({e.strerror or type(e).__name__})"
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            return None, f"{path}: not a regular file (a FIFO, device or folder named like a manifest)"
+        if info.st_size > MANIFEST_MAX_BYTES:
+            return None, f"{path}: {info.st_size} bytes, more than a manifest can hold ({MANIFEST_MAX_BYTES})"
+        with os.fdopen(os.dup(fd), "rb") as f:
+            raw = f.read(MANIFEST_MAX_BYTES + 1)
+        if len(raw) > MANIFEST_MAX_BYTES:
+            return None, f"{path}: more than a manifest can hold ({MANIFEST_MAX_BYTES} bytes)"
+        data = json.loads(raw.decode("utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
         return None, f"{path}: unreadable manifest ({type(e).__name__})"
+    finally:
+        os.close(fd)
     if not isinstance(data, dict):
         return None, f"{path}: malformed manifest (not a mapping)"
     for key, kind in MANIFEST_KEYS.items():

@@ -159,3 +159,78 @@ def test_10_kill_9_during_densify_leaves_no_child_holding_the_lock(tiny_dataset,
             os.kill(child, signal.SIGKILL)
     code, _, err = _cli(capsys, "run", tiny_dataset, "-w", ws, "--until", "triangulation", *tiny_set_args)
     assert code == 0 and "in use by" not in err, err
+
+
+# ------------------------------------------------------------------------------- 11. manifests that are no files
+@pytest.fixture
+def filtered(tiny_dataset, tmp_path, tiny_set_args):
+    ws = tmp_path / "ws"
+    assert main(["run", str(tiny_dataset), "-w", str(ws), "--until", "filter", *tiny_set_args]) == 0
+    return tiny_dataset, ws
+
+
+def _status_subprocess(dataset, ws, settings) -> subprocess.CompletedProcess:
+    """`fullview status --verify` in a child process with a time bound (a hang fails the test, never the suite) and a
+    memory bound (reading /dev/zero to the end would fail it instead of filling the machine)."""
+    import resource
+
+    def bounded():
+        resource.setrlimit(resource.RLIMIT_AS, (8 << 30, 8 << 30))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    return subprocess.run([sys.executable, "-m", "fullview", "status", str(dataset), "-w", str(ws), "--verify",
+                           *settings], capture_output=True, text=True, timeout=120, env=env, preexec_fn=bounded)
+
+
+@pytest.mark.parametrize("kind", ["dev_zero", "fifo", "output_fifo"])
+def test_11_a_manifest_that_is_a_device_or_fifo_is_stale_not_a_hang(filtered, tiny_set_args, kind):
+    dataset, ws = filtered
+    target = ws / "tiny" / "matches" / ("matches.npz" if kind == "output_fifo" else "manifest.json")
+    target.unlink()
+    if kind == "dev_zero":
+        target.symlink_to("/dev/zero")
+    else:
+        os.mkfifo(target)
+    done = _status_subprocess(dataset, ws, tiny_set_args)
+    assert done.returncode == 0, done.stderr
+    line = next(l for l in done.stdout.splitlines() if l.startswith("matches"))
+    assert "stale" in line and ("not a regular file" in line), line
+    assert main(["run", str(dataset), "-w", str(ws), "--until", "filter", *tiny_set_args]) == 0
+    assert "fresh" in next(l for l in _status_subprocess(dataset, ws, tiny_set_args).stdout.splitlines()
+                           if l.startswith("matches"))
+
+
+# --------------------------------------------------------------------------- 13. hashed outputs hold no timings
+@pytest.fixture(scope="module")
+def dense_ws(tiny_dataset, sparse_ws, tmp_path_factory, tiny_set_args):
+    """The tiny dataset reconstructed through densify (read-only)."""
+    import shutil
+
+    ws = tmp_path_factory.mktemp("dense") / "ws"
+    shutil.copytree(sparse_ws, ws)
+    assert main(["run", str(tiny_dataset), "-w", str(ws), "--until", "densify", *tiny_set_args, *DENSE]) == 0
+    return ws
+
+
+def test_13_densify_rerun_writes_the_same_bytes_its_summary_without_timings(tiny_dataset, dense_ws, tmp_path,
+                                                                            tiny_set_args):
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(dense_ws, ws)
+    before = json.loads((ws / "tiny" / "densify" / "manifest.json").read_text())
+    assert main(["run", str(tiny_dataset), "-w", str(ws), "--from", "densify", "--until", "densify", *tiny_set_args,
+                 *DENSE]) == 0
+    after = json.loads((ws / "tiny" / "densify" / "manifest.json").read_text())
+    assert after["outputs"] == before["outputs"]  # every hashed file, summary.json and the pictures included
+    written = json.loads((ws / "tiny" / "densify" / "summary.json").read_text())
+    keys = set()
+
+    def walk(obj):
+        if isinstance(obj, dict):
+            keys.update(obj)
+            [walk(v) for v in obj.values()]
+        elif isinstance(obj, list):
+            [walk(v) for v in obj]
+    walk(written)
+    assert not keys & {"time_s", "timings_s", "cpu_time_s", "wall_time_s", "phases_s", "median_pair_time_s"}
+    assert written["points"] == after["summary"]["points"] and "phases_s" in after["summary"]  # the manifest has them
