@@ -234,3 +234,86 @@ def test_13_densify_rerun_writes_the_same_bytes_its_summary_without_timings(tiny
     walk(written)
     assert not keys & {"time_s", "timings_s", "cpu_time_s", "wall_time_s", "phases_s", "median_pair_time_s"}
     assert written["points"] == after["summary"]["points"] and "phases_s" in after["summary"]  # the manifest has them
+
+
+# ----------------------------------------------------------------- 5. fingerprints of the very inputs that were used
+def _replace_right_after_the_lock(monkeypatch, path: Path, data: bytes) -> list[Path]:
+    """Replace `path` by `data` (atomically, as the picker saves) once, right after the next run takes its lock: the
+    window in which the tester's save made a result fresh for the file it was not computed from."""
+    done: list[Path] = []
+    original = Workspace._clean_leftovers
+
+    def then_replace(self):
+        original(self)
+        if not done:
+            tmp = path.with_name(path.name + ".new")
+            tmp.write_bytes(data)
+            os.replace(tmp, path)
+            done.append(path)
+    monkeypatch.setattr(Workspace, "_clean_leftovers", then_replace)
+    return done
+
+
+def test_5_hand_points_replaced_after_the_lock_never_leave_a_fresh_result_of_the_old_file(
+        dataset_copy, tmp_path, tiny_set_args, capsys, monkeypatch):
+    import hashlib
+
+    import yaml
+
+    hand = dataset_copy / "hand_points.yaml"
+    old = hand.read_bytes()
+    points = yaml.safe_load(old)["points"]
+    new = yaml.safe_dump({"points": points[: len(points) // 2]}, sort_keys=False).encode()
+    ws = tmp_path / "ws"
+    replaced = _replace_right_after_the_lock(monkeypatch, hand, new)
+    assert _cli(capsys, "run", dataset_copy, "-w", ws, "--until", "filter", *tiny_set_args)[0] == 0
+    assert replaced and hand.read_bytes() == new
+    manifest = json.loads((ws / "tiny" / "filter" / "manifest.json").read_text())
+    # the result is filed under the bytes it was computed from: the file as it was when the run read it
+    assert manifest["inputs"]["hand_points"]["hand_points.yaml"] == hashlib.sha256(old).hexdigest()
+    status = _status(capsys, dataset_copy, ws, tiny_set_args)
+    assert status["filter"][0] == "stale" and "hand_points changed" in " ".join(status["filter"]), status
+    # and a rerun computes it for the new file
+    monkeypatch.undo()
+    assert _cli(capsys, "run", dataset_copy, "-w", ws, "--until", "filter", *tiny_set_args)[0] == 0
+    assert _status(capsys, dataset_copy, ws, tiny_set_args)["filter"][0] == "fresh"
+    manifest = json.loads((ws / "tiny" / "filter" / "manifest.json").read_text())
+    assert manifest["inputs"]["hand_points"]["hand_points.yaml"] == hashlib.sha256(new).hexdigest()
+
+
+def test_5_an_image_replaced_after_the_lock_stops_the_run_naming_it(dataset_copy, tmp_path, tiny_set_args, capsys,
+                                                                   monkeypatch):
+    import cv2
+
+    images = sorted((dataset_copy / "images").iterdir())
+    flipped = cv2.imencode(images[0].suffix, cv2.imread(str(images[0]))[:, ::-1])[1].tobytes()  # valid, other pixels
+    ws = tmp_path / "ws"
+    replaced = _replace_right_after_the_lock(monkeypatch, images[0], flipped)
+    code, _, err = _cli(capsys, "run", dataset_copy, "-w", ws, "--until", "features", *tiny_set_args)
+    assert replaced
+    assert code == 2 and images[0].name in err and "changed while fullview was reading" in err, err
+    assert len(err.strip().splitlines()) == 1
+    assert not (ws / "tiny" / "features" / "manifest.json").exists()  # no result filed under either file's hash
+    monkeypatch.undo()
+    assert _cli(capsys, "run", dataset_copy, "-w", ws, "--until", "features", *tiny_set_args)[0] == 0
+    assert _status(capsys, dataset_copy, ws, tiny_set_args)["features"][0] == "fresh"
+
+
+def test_5_an_image_rewritten_in_place_during_a_run_is_caught_at_its_decode(dataset_copy, tmp_path, monkeypatch):
+    """The decode checks the file is still the one validated and hashed (same inode, size, mtime, ctime)."""
+    from fullview.io.dataset import Dataset, DatasetError
+
+    ds = Dataset(dataset_copy)
+    ds.validate_inputs()
+    name = ds.image_names[0]
+    ds.image_hash(name)
+    path = ds.image_path(name)
+    data = path.read_bytes()
+    # (past the kernel's coarse clock tick, which stamps change times: within one tick a rewrite cannot be seen)
+    _wait_for(lambda: time.time_ns() > path.stat().st_ctime_ns + 50_000_000, "the clock to move on", 5)
+    with open(path, "r+b") as f:  # the same bytes written again: the same inode, a new change time
+        f.write(data)
+    with pytest.raises(DatasetError, match="changed while fullview was reading"):
+        ds.load_image(name, width=256)
+    ds.refresh_inputs()  # a long-lived reader that expects the change takes the file as it is now
+    assert ds.load_image(name, width=256).shape == (128, 256, 3)
