@@ -64,6 +64,7 @@ _CAMERA_KEYS = ("image", "R_world_from_cam", "center")
 _COINCIDENT = 1e-9  # centres closer than this fraction of the scene extent count as one position
 
 # Values quoted in messages are abbreviated: a hostile file may nest aliases into an enormous structure.
+_ABSENT = object()  # no hand_points.yaml (an empty file parses as None, and is refused)
 _REPR = reprlib.Repr()
 _REPR.maxstring = _REPR.maxother = 60
 
@@ -267,13 +268,13 @@ class Dataset:
         """Hand-picked tracks as the file holds them now, validated against the image list and sizes; [] when the
         file is absent. (A run uses `hand_observations`, read once.)"""
         sha, data = self._read_hand_points()
-        return [] if data is None else self._parse_hand_points(self.hand_points_path, data)
+        return [] if data is _ABSENT else self._parse_hand_points(self.hand_points_path, data)
 
     def _read_hand_points(self) -> tuple[str, object]:
-        """(sha256, parsed YAML) of one read of hand_points.yaml: ('none', None) when absent."""
+        """(sha256, parsed YAML) of one read of hand_points.yaml: ('none', _ABSENT) when there is no file."""
         path = self.hand_points_path
         if not path.exists():
-            return "none", None
+            return "none", _ABSENT
         raw = _read_bytes(path, "file")
         try:
             text = raw.decode("utf-8")
@@ -339,7 +340,7 @@ class Dataset:
         """Per image: (track indices (K,), pixels (K, 2)) of its hand observations, tracks in file order; its
         ``sha256`` is that of the bytes they were parsed from (one read: the fingerprint names what was used)."""
         sha, data = self._read_hand_points()
-        tracks = [] if data is None else self._parse_hand_points(self.hand_points_path, data)
+        tracks = [] if data is _ABSENT else self._parse_hand_points(self.hand_points_path, data)
         out = {name: ([], []) for name in self.image_names}
         for k, track in enumerate(tracks):
             for image, xy in track.observations.items():
