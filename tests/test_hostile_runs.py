@@ -317,3 +317,65 @@ def test_5_an_image_rewritten_in_place_during_a_run_is_caught_at_its_decode(data
         ds.load_image(name, width=256)
     ds.refresh_inputs()  # a long-lived reader that expects the change takes the file as it is now
     assert ds.load_image(name, width=256).shape == (128, 256, 3)
+
+
+# ------------------------------------------------------------------------------- 7. COLMAP text names read back
+def _one_image_model(names: list[str]):
+    from fullview.io.exports import SparseModel
+
+    n = len(names)
+    R = np.tile(np.eye(3), (n, 1, 1))
+    t = np.column_stack([np.arange(n, dtype=float), np.zeros(n), np.zeros(n)])
+    return SparseModel(image_names=names, image_sizes=[(64, 32)] * n, registered=np.ones(n, bool),
+                       R_cam_from_world=R, t_cam_from_world=t, points=np.array([[0.0, 0.0, 5.0]]),
+                       colors=np.array([[10, 20, 30]], np.uint8), point_errors_rad=np.array([0.001]),
+                       track_point3d=np.zeros(n, np.int64), track_image=np.arange(n),
+                       track_point2d=np.zeros(n, np.int64), pixels=[np.array([[32.0, 16.0]])] * n)
+
+
+def _names_read_back(folder: Path) -> list[str]:
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(folder)
+    return [rec.images[k].name for k in sorted(rec.images)]
+
+
+@pytest.mark.parametrize("name", ["pano é 0.png", "a\tb.png", "trail .png", "a\nb.png", "a\rb.png", "a\x1fb.png"])
+def test_7_colmap_text_refuses_a_name_it_would_not_read_back(tmp_path, name):
+    from fullview.io.exports import ExportError, write_colmap_model
+
+    model = _one_image_model([name, "pano_1.png"])
+    with pytest.raises(ExportError, match="colmap-bin") as info:
+        write_colmap_model(model, tmp_path / "text", binary=False)
+    assert repr(name) in str(info.value) and "\n" not in str(info.value)
+    assert not list((tmp_path / "text").glob("*.txt"))  # nothing half written
+    write_colmap_model(model, tmp_path / "bin", binary=True)
+    assert _names_read_back(tmp_path / "bin") == [name, "pano_1.png"]  # the binary format keeps it exactly
+
+
+@pytest.mark.parametrize("name", ["pano_ü_é.png", "a\u00a0b.png", "日本.jpg", "#1.png"])
+def test_7_colmap_text_keeps_other_names_exactly(tmp_path, name):
+    from fullview.io.exports import write_colmap_model
+
+    write_colmap_model(_one_image_model([name, "pano_1.png"]), tmp_path, binary=False)
+    assert _names_read_back(tmp_path) == [name, "pano_1.png"]
+
+
+def test_7_a_dataset_with_a_space_in_a_name_runs_and_exports_binary_not_text(tiny_dataset, tmp_path, tiny_set_args,
+                                                                            capsys):
+    import shutil
+
+    data = tmp_path / "spaced"
+    shutil.copytree(tiny_dataset, data)
+    (data / "images" / "pano_000.png").rename(data / "images" / "pano é 0.png")
+    hand = data / "hand_points.yaml"
+    hand.write_text(hand.read_text().replace("pano_000.png", "pano é 0.png"))
+    ws = tmp_path / "ws"
+    assert _cli(capsys, "run", data, "-w", ws, "--until", "triangulation", *tiny_set_args)[0] == 0
+    model_dir = ws / "spaced" / "triangulation" / "models" / "0"  # the stage's own model: binary for this name
+    assert "pano é 0.png" in _names_read_back(model_dir)
+    code, _, err = _cli(capsys, "export", data, "-w", ws, "--format", "colmap", *tiny_set_args)
+    assert code == 2 and "'pano é 0.png'" in err and "--format colmap-bin" in err and len(err.strip().splitlines()) == 1
+    code, out, err = _cli(capsys, "export", data, "-w", ws, "--format", "colmap-bin", *tiny_set_args)
+    assert code == 0, err
+    assert "pano é 0.png" in _names_read_back(Path(out.strip()) / "0")
