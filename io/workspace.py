@@ -535,9 +535,9 @@ def read_manifest_file(folder: Path) -> dict | None:
 
 
 @contextmanager
-def folder_transaction(final: Path, commit_lock=None) -> Iterator[StageWriter]:
+def folder_transaction(final: Path, commit_lock=None, commit=None) -> Iterator[StageWriter]:
     """Write a folder's new content beside it and swap it in only when complete (manifest written); used for
-    workspace folders (under the run lock) and for export folders outside any workspace."""
+    workspace folders (under the run lock). `commit(tmp, final)` instead of the swap: `folder_update`."""
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.running.", dir=final.parent))
     apply_umask(tmp, directory=True)
     writer = StageWriter(final.name, tmp)
@@ -546,13 +546,106 @@ def folder_transaction(final: Path, commit_lock=None) -> Iterator[StageWriter]:
         if not writer.committed:
             raise RuntimeError(f"{final}: the transaction ended without a manifest")
         if commit_lock is None:
-            swap_in(tmp, final)
+            (commit or swap_in)(tmp, final)
         else:
             with commit_lock():
-                swap_in(tmp, final)
+                (commit or swap_in)(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    if commit is not None:
+        shutil.rmtree(tmp, ignore_errors=True)  # what the commit left of the temporary folder
+
+
+PENDING_KEY = "pending"  # in the manifest of a folder being updated: the outputs being moved in (`folder_update`)
+
+
+@contextmanager
+def folder_update(final: Path) -> Iterator[StageWriter]:
+    """Write a folder's new content beside it, then move it into `final` file by file: for a folder the user owns
+    (``export --out``), where other files may lie that must stay. Only the files the folder's manifest lists, with
+    the content it records, are replaced or removed; any other file is left as it is, and the update is refused
+    (ArtifactError, nothing moved) when one stands where a new file goes, or a listed file changed since (it is the
+    user's now), or a folder on the way is a symbolic link or a file. Each file is replaced atomically; until the new
+    manifest is written, last, the old one lists the incoming files as ``pending`` (still ours if the update is cut
+    short: the next one finishes it). Two updates of one folder take turns (an exclusive lock on the folder)."""
+    existed = final.exists()
+    make_dirs(final)
+    fd = os.open(final, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ArtifactError(f"{final}: another command is writing this folder; wait for it to finish") from None
+        for left in final.parent.glob(f".{final.name}.running.*"):  # of an update killed before it finished
+            shutil.rmtree(left, ignore_errors=True)
+        with folder_transaction(final, commit_lock=None, commit=_merge_into) as writer:
+            yield writer
+    except BaseException:
+        if not existed:
+            try:
+                final.rmdir()  # the folder made for it, when still empty
+            except OSError:
+                pass
+        raise
+    finally:
+        os.close(fd)
+
+
+def _merge_into(tmp: Path, final: Path) -> None:
+    """Move the files of `tmp` (a complete folder with its manifest) into `final` (`folder_update`)."""
+    new = read_manifest_file(tmp)
+    old, problem = parse_manifest(final / MANIFEST_NAME)
+    if problem:  # someone else's file of that name: never overwritten
+        raise ArtifactError(f"{problem}; {final} is not a folder a previous export wrote")
+    old = old or {"outputs": {}}
+    recorded: dict[str, set[str]] = {}  # file -> the contents (sha256) an update of ours wrote there
+    for listing in (old["outputs"], old.get(PENDING_KEY)):
+        for rel, entry in (listing.items() if isinstance(listing, dict) else ()):
+            if isinstance(entry, dict) and isinstance(entry.get("sha256"), str) and _inside_folder(rel):
+                recorded.setdefault(rel, set()).add(entry["sha256"])
+    incoming = new["outputs"]
+    for rel in sorted(set(incoming) | set(recorded)):
+        problem = _not_ours(final, rel, recorded.get(rel, set()))
+        if problem:
+            raise ArtifactError(f"{final / rel}: {problem}; move it out of {final} (or choose another folder), then "
+                                "export again")
+    save_json(final / MANIFEST_NAME, {**new, "outputs": old["outputs"], PENDING_KEY: incoming})
+    for rel in sorted(incoming):
+        make_dirs((final / rel).parent)
+        os.replace(tmp / rel, final / rel)
+    for rel in sorted(set(recorded) - set(incoming)):
+        path = final / rel
+        if path.is_file():
+            path.unlink()
+        for parent in path.parents:  # folders the removal left empty (rmdir: never one holding anything)
+            if parent == final:
+                break
+            try:
+                parent.rmdir()
+            except OSError:
+                break
+    os.replace(tmp / MANIFEST_NAME, final / MANIFEST_NAME)
+
+
+def _not_ours(final: Path, rel: str, contents: set[str]) -> str | None:
+    """Why `final/rel` may not be replaced or removed by an update whose earlier writes there had `contents`; None
+    when it may (absent, or a regular file holding one of them)."""
+    path = final
+    for part in Path(rel).parts[:-1]:
+        path = path / part
+        if path.is_symlink() or (path.exists() and not path.is_dir()):
+            return f"{path.name} on the way is not a folder of this export"
+    path = final / rel
+    if not os.path.lexists(path):
+        return None
+    if path.is_symlink() or not path.is_file():
+        return "not a regular file written by a previous export"
+    if not contents:
+        return "not written by a previous export"
+    if file_sha256(path) not in contents:
+        return "changed since a previous export wrote it"
+    return None
 
 
 def file_sha256(path: Path) -> str:

@@ -379,3 +379,105 @@ def test_7_a_dataset_with_a_space_in_a_name_runs_and_exports_binary_not_text(tin
     code, out, err = _cli(capsys, "export", data, "-w", ws, "--format", "colmap-bin", *tiny_set_args)
     assert code == 0, err
     assert "pano é 0.png" in _names_read_back(Path(out.strip()) / "0")
+
+
+# ------------------------------------------------------------------- 6. an export removes only what it wrote itself
+def _export(dataset, ws, settings, fmt, out, *extra) -> int:
+    return main(["export", str(dataset), "-w", str(ws), "--format", fmt, *settings, "--out", str(out), *extra])
+
+
+def _listed_files_are_there(out: Path) -> dict:
+    from fullview.io.workspace import file_sha256
+
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert "pending" not in manifest
+    for rel, entry in manifest["outputs"].items():
+        assert file_sha256(out / rel) == entry["sha256"], rel
+    return manifest
+
+
+def test_6_reexport_keeps_the_users_files_and_is_complete(tiny_dataset, sparse_ws, tmp_path, tiny_set_args):
+    out = tmp_path / "X"
+    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap", out) == 0
+    (out / "notes.txt").write_text("my notes")
+    (out / "0" / "mine").mkdir()
+    (out / "0" / "mine" / "keep.txt").write_text("keep me")
+    first = _listed_files_are_there(out)
+    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap", out) == 0
+    assert (out / "notes.txt").read_text() == "my notes" and (out / "0" / "mine" / "keep.txt").read_text() == "keep me"
+    assert _listed_files_are_there(out)["outputs"] == first["outputs"]
+    assert len(_names_read_back(out / "0")) > 0
+    # another format into the same folder: the earlier export's files go, the user's stay
+    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap-bin", out) == 0
+    assert not list(out.glob("*/*.txt")) and (out / "0" / "images.bin").exists()
+    assert (out / "notes.txt").exists() and (out / "0" / "mine" / "keep.txt").exists()
+    assert set(_listed_files_are_there(out)["outputs"]) == {str(p.relative_to(out)) for p in out.rglob("*.bin")}
+
+
+@pytest.mark.parametrize("intrusion", ["changed", "foreign_in_the_way", "symlinked_folder"])
+def test_6_an_export_that_would_overwrite_a_file_not_its_own_is_refused(tiny_dataset, sparse_ws, tmp_path,
+                                                                        tiny_set_args, capsys, intrusion):
+    out = tmp_path / "X"
+    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap", out) == 0
+    elsewhere = tmp_path / "elsewhere"
+    if intrusion == "changed":  # the user edited a file of the export: it is theirs now
+        victim, fmt = out / "0" / "cameras.txt", "colmap"
+        victim.write_text(victim.read_text() + "# my edit\n")
+    elif intrusion == "foreign_in_the_way":  # a file of the user's where the binary export would write
+        victim, fmt = out / "0" / "cameras.bin", "colmap-bin"
+        victim.write_bytes(b"mine")
+    else:  # the model folder is a link to a folder of the user's
+        (out / "0").rename(elsewhere)
+        (out / "0").symlink_to(elsewhere)
+        victim, fmt = elsewhere / "cameras.txt", "colmap"
+    kept = victim.read_bytes()
+    capsys.readouterr()
+    assert _export(tiny_dataset, sparse_ws, tiny_set_args, fmt, out) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "export again" in err, err
+    assert victim.read_bytes() == kept
+
+
+def test_6_an_export_cut_short_is_finished_by_the_next(tiny_dataset, sparse_ws, tmp_path, tiny_set_args, capsys,
+                                                       monkeypatch):
+    from fullview.io import workspace
+
+    out = tmp_path / "X"
+    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap", out) == 0
+    (out / "notes.txt").write_text("my notes")
+    moved = []
+    real_replace = os.replace
+
+    def cut_short(src, dst):
+        if str(dst).startswith(f"{out}{os.sep}") and Path(dst).name != "manifest.json":  # a file moved into X
+            if len(moved) == 2:
+                raise KeyboardInterrupt  # as a kill between two files would leave it
+            moved.append(dst)
+        real_replace(src, dst)
+    monkeypatch.setattr(workspace.os, "replace", cut_short)
+    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap-bin", out) != 0
+    monkeypatch.undo()
+    assert len(moved) == 2  # two of the new files are in, the others not
+    assert "pending" in json.loads((out / "manifest.json").read_text())
+    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap-bin", out) == 0
+    _listed_files_are_there(out)
+    assert not list(out.glob("*/*.txt")) and (out / "notes.txt").exists()
+    assert not list(tmp_path.glob(".X.running.*"))
+
+
+# ------------------------------------------------------------ 13. a PLY export says when the dense cloud is not current
+def test_13_ply_export_with_densify_stale_or_missing_exits_2_unless_sparse_only(tiny_dataset, sparse_ws, dense_ws,
+                                                                               tmp_path, tiny_set_args, capsys):
+    settings = [*tiny_set_args, *DENSE]
+    assert _export(tiny_dataset, dense_ws, settings, "ply", tmp_path / "fresh") == 0
+    assert (tmp_path / "fresh" / "0" / "dense.ply").exists() and (tmp_path / "fresh" / "0" / "sparse.ply").exists()
+    capsys.readouterr()
+    stale = [*settings, "--set", "densify.min_pair_inliers=31"]
+    assert _export(tiny_dataset, dense_ws, stale, "ply", tmp_path / "stale") == 2
+    err = capsys.readouterr().err
+    assert "densify is stale" in err and "densify.min_pair_inliers" in err and "--sparse-only" in err, err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "stale").exists()
+    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "ply", tmp_path / "never") == 2
+    assert "densify has not run" in capsys.readouterr().err
+    assert _export(tiny_dataset, dense_ws, stale, "ply", tmp_path / "sparse", "--sparse-only") == 0
+    assert sorted(p.name for p in (tmp_path / "sparse").rglob("*.ply")) == ["sparse.ply"]
