@@ -63,8 +63,9 @@ _HAND_POINT_KEYS = {"name", "observations"}
 _CAMERA_KEYS = ("image", "R_world_from_cam", "center")
 _COINCIDENT = 1e-9  # centres closer than this fraction of the scene extent count as one position
 
-# Values quoted in messages are abbreviated: a hostile file may nest aliases into an enormous structure.
 _ABSENT = object()  # no hand_points.yaml (an empty file parses as None, and is refused)
+
+# Values quoted in messages are abbreviated: a hostile file may nest aliases into an enormous structure.
 _REPR = reprlib.Repr()
 _REPR.maxstring = _REPR.maxother = 60
 

@@ -11,7 +11,9 @@ Layout (``FILES`` is the single table of names; nothing else in fullview spells 
         epipoles/epipoles.npz                relative poses of every pair
         registration/registration.npz, registration.json
         triangulation/sparse.npz, sparse.ply (model 0), summary.json, models/<k>/{cameras,images,points3D,...}.txt
-        densify/dense.ply, dense_preview.png, summary.json, depth/<stem>.npz, depth/<stem>.png,
+                (.bin when an image name would not read back from COLMAP's text format)
+        densify/dense.ply, dense_preview.png, summary.json (no timings: those are in the manifest's summary),
+                depth/<stem>.npz, depth/<stem>.png,
                 dense_mesh.ply, dense_mesh_preview.png   (the trimmed Poisson mesh, densify.mesh)
         eval/metrics.json                                    (fullview eval)
         colmap_<render type>/model/                          (fullview compare: cached COLMAP reference)
@@ -557,7 +559,8 @@ def folder_transaction(final: Path, commit_lock=None, commit=None) -> Iterator[S
         shutil.rmtree(tmp, ignore_errors=True)  # what the commit left of the temporary folder
 
 
-PENDING_KEY = "pending"  # in the manifest of a folder being updated: the outputs being moved in (`folder_update`)
+PENDING_KEY = "pending"  # in the manifest of a folder being updated: the outputs being moved in, and those of
+# earlier updates cut short (`folder_update`)
 
 
 @contextmanager
@@ -599,8 +602,9 @@ def _merge_into(tmp: Path, final: Path) -> None:
     if problem:  # someone else's file of that name: never overwritten
         raise ArtifactError(f"{problem}; {final} is not a folder a previous export wrote")
     old = old or {"outputs": {}}
+    pending = old.get(PENDING_KEY) if isinstance(old.get(PENDING_KEY), list) else []  # of updates cut short
     recorded: dict[str, set[str]] = {}  # file -> the contents (sha256) an update of ours wrote there
-    for listing in (old["outputs"], old.get(PENDING_KEY)):
+    for listing in (old["outputs"], *pending):
         for rel, entry in (listing.items() if isinstance(listing, dict) else ()):
             if isinstance(entry, dict) and isinstance(entry.get("sha256"), str) and _inside_folder(rel):
                 recorded.setdefault(rel, set()).add(entry["sha256"])
@@ -610,7 +614,7 @@ def _merge_into(tmp: Path, final: Path) -> None:
         if problem:
             raise ArtifactError(f"{final / rel}: {problem}; move it out of {final} (or choose another folder), then "
                                 "export again")
-    save_json(final / MANIFEST_NAME, {**new, "outputs": old["outputs"], PENDING_KEY: incoming})
+    save_json(final / MANIFEST_NAME, {**new, "outputs": old["outputs"], PENDING_KEY: [incoming, *pending]})
     for rel in sorted(incoming):
         make_dirs((final / rel).parent)
         os.replace(tmp / rel, final / rel)

@@ -438,30 +438,36 @@ def test_6_an_export_that_would_overwrite_a_file_not_its_own_is_refused(tiny_dat
     assert victim.read_bytes() == kept
 
 
-def test_6_an_export_cut_short_is_finished_by_the_next(tiny_dataset, sparse_ws, tmp_path, tiny_set_args, capsys,
-                                                       monkeypatch):
+@pytest.mark.parametrize("cuts", [1, 2])
+def test_6_an_export_cut_short_is_finished_by_the_next(tiny_dataset, sparse_ws, tmp_path, tiny_set_args, monkeypatch,
+                                                       cuts):
+    """Cut between two files (as a kill would), once or twice in a row with other formats: the record keeps every
+    file an export of its own wrote, so the next export replaces them all and keeps the user's."""
     from fullview.io import workspace
 
     out = tmp_path / "X"
     assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap", out) == 0
     (out / "notes.txt").write_text("my notes")
-    moved = []
     real_replace = os.replace
+    for fmt in ["colmap-bin", "nerfstudio"][:cuts]:
+        moved = []
 
-    def cut_short(src, dst):
-        if str(dst).startswith(f"{out}{os.sep}") and Path(dst).name != "manifest.json":  # a file moved into X
-            if len(moved) == 2:
-                raise KeyboardInterrupt  # as a kill between two files would leave it
-            moved.append(dst)
-        real_replace(src, dst)
-    monkeypatch.setattr(workspace.os, "replace", cut_short)
-    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap-bin", out) != 0
-    monkeypatch.undo()
-    assert len(moved) == 2  # two of the new files are in, the others not
-    assert "pending" in json.loads((out / "manifest.json").read_text())
-    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap-bin", out) == 0
-    _listed_files_are_there(out)
-    assert not list(out.glob("*/*.txt")) and (out / "notes.txt").exists()
+        def cut_short(src, dst):
+            if str(dst).startswith(f"{out}{os.sep}") and Path(dst).name != "manifest.json":  # a file moved into X
+                if len(moved) == 1:
+                    raise KeyboardInterrupt  # as a kill between two files would leave it
+                moved.append(dst)
+            real_replace(src, dst)
+        monkeypatch.setattr(workspace.os, "replace", cut_short)
+        assert _export(tiny_dataset, sparse_ws, tiny_set_args, fmt, out) != 0
+        monkeypatch.undo()
+        assert len(moved) == 1  # one of the new files is in, the others not
+        assert "pending" in json.loads((out / "manifest.json").read_text())
+    assert _export(tiny_dataset, sparse_ws, tiny_set_args, "colmap", out) == 0
+    manifest = _listed_files_are_there(out)
+    on_disk = {str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()} - {"manifest.json", "notes.txt"}
+    assert on_disk == set(manifest["outputs"])  # nothing of the cut exports is left
+    assert (out / "notes.txt").read_text() == "my notes"
     assert not list(tmp_path.glob(".X.running.*"))
 
 
