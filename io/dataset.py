@@ -268,7 +268,7 @@ class Dataset:
     def hand_tracks(self) -> list[HandTrack]:
         """Hand-picked tracks as the file holds them now, validated against the image list and sizes; [] when the
         file is absent. (A run uses `hand_observations`, read once.)"""
-        sha, data = self._read_hand_points()
+        _, data = self._read_hand_points()
         return [] if data is _ABSENT else self._parse_hand_points(self.hand_points_path, data)
 
     def _read_hand_points(self) -> tuple[str, object]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import fcntl
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -133,7 +134,6 @@ def test_10_kill_9_during_densify_leaves_no_child_holding_the_lock(tiny_dataset,
     if not sys.platform.startswith("linux"):
         pytest.skip("forked children are Linux only")
     ws = tmp_path / "ws"
-    import shutil
     shutil.copytree(sparse_ws, ws)
     marker = tmp_path / "child.pid"
     env = {**os.environ, "FULLVIEW_TEST_CHILD_PID": str(marker), "PYTHONPATH": os.pathsep.join(sys.path)}
@@ -203,8 +203,6 @@ def test_11_a_manifest_that_is_a_device_or_fifo_is_stale_not_a_hang(filtered, ti
 @pytest.fixture(scope="module")
 def dense_ws(tiny_dataset, sparse_ws, tmp_path_factory, tiny_set_args):
     """The tiny dataset reconstructed through densify (read-only)."""
-    import shutil
-
     ws = tmp_path_factory.mktemp("dense") / "ws"
     shutil.copytree(sparse_ws, ws)
     assert main(["run", str(tiny_dataset), "-w", str(ws), "--until", "densify", *tiny_set_args, *DENSE]) == 0
@@ -213,8 +211,6 @@ def dense_ws(tiny_dataset, sparse_ws, tmp_path_factory, tiny_set_args):
 
 def test_13_densify_rerun_writes_the_same_bytes_its_summary_without_timings(tiny_dataset, dense_ws, tmp_path,
                                                                             tiny_set_args):
-    import shutil
-
     ws = tmp_path / "ws"
     shutil.copytree(dense_ws, ws)
     before = json.loads((ws / "tiny" / "densify" / "manifest.json").read_text())
@@ -363,8 +359,6 @@ def test_7_colmap_text_keeps_other_names_exactly(tmp_path, name):
 
 def test_7_a_dataset_with_a_space_in_a_name_runs_and_exports_binary_not_text(tiny_dataset, tmp_path, tiny_set_args,
                                                                             capsys):
-    import shutil
-
     data = tmp_path / "spaced"
     shutil.copytree(tiny_dataset, data)
     (data / "images" / "pano_000.png").rename(data / "images" / "pano é 0.png")
