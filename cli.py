@@ -133,7 +133,7 @@ def cmd_compare(args) -> int:
 
 def cmd_export(args) -> int:
     from fullview.commands.export import export
-    print(export(_pipeline(args), args.format, args.out))
+    print(export(_pipeline(args), args.format, args.out, sparse_only=args.sparse_only))
     return 0
 
 
@@ -237,7 +237,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="the reconstruction as COLMAP, nerfstudio or PLY files")
     _common(p)
     p.add_argument("--format", required=True, help="colmap | colmap-bin | nerfstudio | ply")
-    p.add_argument("--out", type=Path, default=None, help="output folder (default: WORKSPACE/DATASET/export_FORMAT)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: WORKSPACE/DATASET/export_FORMAT); "
+                   "new, empty or a previous export, of which only the files it wrote are replaced")
+    p.add_argument("--sparse-only", action="store_true",
+                   help="ply: the sparse cloud alone (otherwise a stale or missing densify is an error)")
     p.set_defaults(func=cmd_export)
     p = sub.add_parser("report", help="a static HTML report of the run: workspace/<dataset>/report/index.html")
     _common(p)

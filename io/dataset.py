@@ -44,7 +44,7 @@ import tempfile
 import threading
 import uuid
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, partial
 from pathlib import Path
 
 import cv2
@@ -65,6 +65,8 @@ _HAND_POINT_KEYS = {"name", "observations"}
 _CAMERA_KEYS = ("image", "R_world_from_cam", "center")
 _COINCIDENT = 1e-9  # centres closer than this fraction of the scene extent count as one position
 
+_ABSENT = object()  # no hand_points.yaml (an empty file parses as None, and is refused)
+
 # Values quoted in messages are abbreviated: a hostile file may nest aliases into an enormous structure.
 _REPR = reprlib.Repr()
 _REPR.maxstring = _REPR.maxother = 60
@@ -80,6 +82,14 @@ class HandTrack:
     observations: dict[str, tuple[float, float]]  # image name -> equirectangular pixel (x, y)
 
 
+class HandObservations(dict):
+    """`Dataset.hand_observations`: image name -> (track indices, pixels), and the sha256 of the file read."""
+
+    def __init__(self, per_image: dict, *, sha256: str):
+        super().__init__(per_image)
+        self.sha256 = sha256
+
+
 @dataclass(kw_only=True)
 class GroundTruthPose:
     R_world_from_cam: np.ndarray  # (3, 3)
@@ -91,6 +101,7 @@ class Dataset:
 
     def __init__(self, root: Path):
         self.root = Path(root)
+        self._pins: dict[str, tuple | None] = {}  # file -> its signature when first read (see `_pinned`)
         self._sizes: dict[str, tuple[int, int]] | None = None
         self._sizes_lock = threading.Lock()  # the features stage asks for sizes from several threads at once
         if not self.root.is_dir():
@@ -143,7 +154,27 @@ class Dataset:
         return self.images_dir / name
 
     def image_hash(self, name: str) -> str:
-        return hashlib.sha256(_read_bytes(self.image_path(name), "image")).hexdigest()
+        path = self.image_path(name)
+        return hashlib.sha256(self._pinned(path, lambda: _read_bytes(path, "image"))).hexdigest()
+
+    def _pinned(self, path: Path, read):
+        """``read()`` of `path`, which must be the same file (device, inode, size, mtime and ctime) before and after
+        the read as when this dataset first read it: the images and masks a run hashes for its fingerprints are the
+        ones it validated and decodes, without holding their bytes (a panorama is megabytes). A replaced or
+        rewritten file is an error, never a result filed under the other file's hash."""
+        before = _signature(path)
+        value = read()
+        first = self._pins.setdefault(str(path), before)  # one atomic step: threads read images at once
+        if before != first or _signature(path) != first:
+            raise DatasetError(f"{path}: changed while fullview was reading the dataset; run again once it is "
+                               f"complete")
+        return value
+
+    def refresh_inputs(self) -> None:
+        """Forget the hand points read and the files pinned (a long-lived reader, the viewer, calls this when the
+        dataset may have changed on purpose)."""
+        self.__dict__.pop("hand_observations", None)
+        self._pins.clear()
 
     # ------------------------------------------------------------------------------------------------- masks
     @property
@@ -156,8 +187,12 @@ class Dataset:
 
     def mask_hashes(self) -> dict[str, str]:
         """sha256 of every image's mask ('none' where it has none): the fingerprint input of masked stages."""
-        return {name: hashlib.sha256(_read_bytes(self.mask_path(name), "mask")).hexdigest()
+        return {name: hashlib.sha256(self._read_mask(name)).hexdigest()
                 if self.mask_path(name).exists() else "none" for name in self.image_names}
+
+    def _read_mask(self, name: str) -> bytes:
+        path = self.mask_path(name)
+        return self._pinned(path, lambda: _read_bytes(path, "mask"))
 
     def load_mask(self, name: str) -> np.ndarray | None:
         """(H, W) bool, True where the image is kept, at the image's own size; None when it has no mask. A mask of
@@ -165,7 +200,7 @@ class Dataset:
         path = self.mask_path(name)
         if not path.exists():
             return None
-        data = _read_bytes(path, "mask")
+        data = self._read_mask(name)
         mask = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
         if mask is None:
             raise DatasetError(f"{path}: not a readable image (a mask is a PNG, white = keep)")
@@ -193,8 +228,12 @@ class Dataset:
             self.load_mask(name)
 
     def hand_points_hash(self) -> str:
-        p = self.hand_points_path
-        return hashlib.sha256(_read_bytes(p, "file")).hexdigest() if p.exists() else "none"
+        """sha256 of the very bytes `hand_observations` was parsed from ('none' without the file); of the file's
+        bytes now when they are invalid (so that a status still tells the change; a run refuses the file)."""
+        try:
+            return self.hand_observations.sha256
+        except DatasetError:
+            return self._read_hand_points()[0]
 
     @property
     def image_sizes(self) -> dict[str, tuple[int, int]]:
@@ -202,7 +241,8 @@ class Dataset:
         validates every image (complete JPEG or PNG file, 2:1)."""
         with self._sizes_lock:
             if self._sizes is None:
-                self._sizes = {name: image_size(self.image_path(name)) for name in self.image_names}
+                self._sizes = {name: self._pinned(self.image_path(name), partial(image_size, self.image_path(name)))
+                               for name in self.image_names}
         return self._sizes
 
     def gps_positions(self) -> np.ndarray | None:
@@ -220,7 +260,7 @@ class Dataset:
         # reductions that divide the size exactly keep the 2:1 shape.
         reduction = max((r for r in (1, 2, 4, 8) if width and native_w // r >= width
                          and native_w % r == 0 and native_h % r == 0), default=1)
-        image = read_image(self.image_path(name), reduction)
+        image = self._pinned(self.image_path(name), partial(read_image, self.image_path(name), reduction))
         if width and image.shape[1] != width:
             interp = cv2.INTER_AREA if width < image.shape[1] else cv2.INTER_LINEAR
             image = cv2.resize(image, (width, width // 2), interpolation=interp)
@@ -228,11 +268,26 @@ class Dataset:
 
     # ------------------------------------------------------------------------------------------- hand points
     def hand_tracks(self) -> list[HandTrack]:
-        """Hand-picked tracks, validated against the image list and sizes; [] when the file is absent."""
+        """Hand-picked tracks as the file holds them now, validated against the image list and sizes; [] when the
+        file is absent. (A run uses `hand_observations`, read once.)"""
+        _, data = self._read_hand_points()
+        return [] if data is _ABSENT else self._parse_hand_points(self.hand_points_path, data)
+
+    def _read_hand_points(self) -> tuple[str, object]:
+        """(sha256, parsed YAML) of one read of hand_points.yaml: ('none', _ABSENT) when there is no file."""
         path = self.hand_points_path
         if not path.exists():
-            return []
-        return self._parse_hand_points(path, _load_yaml(path))
+            return "none", _ABSENT
+        raw = _read_bytes(path, "file")
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise DatasetError(f"{path}: not UTF-8 text (byte {e.start})") from None
+        sha = hashlib.sha256(raw).hexdigest()
+        try:
+            return sha, load_yaml(text, where=str(path))
+        except YamlError as e:
+            raise DatasetError(str(e)) from None
 
     def save_hand_points(self, points: list) -> Path | None:
         """Validate `points` (the `points:` list of hand_points.yaml) and write the file atomically. The file it
@@ -285,14 +340,18 @@ class Dataset:
         return x, y
 
     @cached_property
-    def hand_observations(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Per image: (track indices (K,), pixels (K, 2)) of its hand observations, tracks in file order."""
+    def hand_observations(self) -> HandObservations:
+        """Per image: (track indices (K,), pixels (K, 2)) of its hand observations, tracks in file order; its
+        ``sha256`` is that of the bytes they were parsed from (one read: the fingerprint names what was used)."""
+        sha, data = self._read_hand_points()
+        tracks = [] if data is _ABSENT else self._parse_hand_points(self.hand_points_path, data)
         out = {name: ([], []) for name in self.image_names}
-        for k, track in enumerate(self.hand_tracks()):
+        for k, track in enumerate(tracks):
             for image, xy in track.observations.items():
                 out[image][0].append(k)
                 out[image][1].append(xy)
-        return {n: (np.array(t, np.int64), np.array(p, np.float64).reshape(-1, 2)) for n, (t, p) in out.items()}
+        return HandObservations({n: (np.array(t, np.int64), np.array(p, np.float64).reshape(-1, 2))
+                                 for n, (t, p) in out.items()}, sha256=sha)
 
     def hand_pair_matches(self, num_sift: list[int], i: int, j: int) -> np.ndarray:
         """(K, 2) hand correspondences of images i, j in the extended feature index space (SIFT features first, then
@@ -420,6 +479,16 @@ def _read_bytes(path: Path, what: str) -> bytes:
         return path.read_bytes()
     except OSError as e:
         raise DatasetError(f"cannot read {what} {path}: {_reason(e)}") from None
+
+
+def _signature(path: Path) -> tuple | None:
+    """What changes when a file is replaced or rewritten (None when it cannot be stat'ed): its device and inode,
+    size, modification time and change time (which no program sets at will)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns
 
 
 def _check_regular_file(p: Path) -> None:

@@ -48,7 +48,7 @@ process while the maps are saved on the side thread and each point's observing c
 the cloud's preview is drawn on the side thread while the mesh's Poisson runs in a child process, and BLAS keeps one
 thread; every result is gathered in a fixed order, so
 the outputs are the same bytes on any number of threads (``tests/test_densify_stage.py``). ``phases_s`` in the
-summary gives each phase's wall and CPU seconds (the process's and its reaped children's: a side thread's or a
+manifest's summary (not in ``summary.json``: a hashed output holds no timings) gives each phase's wall and CPU seconds (the process's and its reaped children's: a side thread's or a
 child's count in the phase it ends in).
 """
 
@@ -191,7 +191,22 @@ def _run(ctx: StageContext) -> dict:
         "phases_s": clock.phases,
     }
     summary["wall_time_s"] = round(time.perf_counter() - t_start, 2)  # mesh included
-    ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=summary)
+    # summary.json is a hashed output, the same bytes on every run of the same inputs: its figures without the
+    # times and memory (which the manifest's summary keeps, beside the stage's own wall time)
+    ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=_without_timings(summary))
+    return summary
+
+
+TIMING_KEYS = frozenset({"time_s", "timings_s", "cpu_time_s", "wall_time_s", "phases_s", "median_pair_time_s",
+                         "process_peak_rss_mb"})  # what varies from run to run of the same inputs
+
+
+def _without_timings(summary):
+    """`summary` with every TIMING_KEYS entry left out, at any depth."""
+    if isinstance(summary, dict):
+        return {k: _without_timings(v) for k, v in summary.items() if k not in TIMING_KEYS}
+    if isinstance(summary, list):
+        return [_without_timings(v) for v in summary]
     return summary
 
 

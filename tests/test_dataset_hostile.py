@@ -343,8 +343,9 @@ def test_unreadable_yaml(ds_root, monkeypatch):
     path.write_text(_points(GOOD_OBS))
     path.chmod(0)
     if os.geteuid() == 0:  # root reads it anyway: make reading raise what the OS would
-        monkeypatch.setattr(Path, "read_text", lambda self, **kw: (_ for _ in ()).throw(
-            PermissionError(13, "Permission denied", str(self))))
+        for reader in ("read_text", "read_bytes"):
+            monkeypatch.setattr(Path, reader, lambda self, **kw: (_ for _ in ()).throw(
+                PermissionError(13, "Permission denied", str(self))))
     assert "Permission denied" in _error(Dataset(ds_root).hand_tracks, "hand_points.yaml")
 
 
