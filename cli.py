@@ -259,8 +259,19 @@ def cmd_report(args) -> int:
 def cmd_view(args) -> int:
     from fullview.commands.view import view
     pipeline = _pipeline(args)
+    log.info("%s", _freshness(args, pipeline))
     view(pipeline, pipeline.config, port=args.port, open_browser=not args.no_browser)
     return 0
+
+
+def _freshness(args, pipeline: Pipeline) -> str:
+    """One line: are the workspace's results those of its settings, and if not what brings them up to date."""
+    with pipeline.ws.reading():
+        behind = [stage for stage in PIPELINE if pipeline.status(stage).state != "fresh"]
+    if not behind:
+        return f"results of {pipeline.ws.root}: every stage fresh"
+    return (f"results of {pipeline.ws.root}: {', '.join(behind)} not fresh for these settings; "
+            f"`{_command('run', args)}` brings them up to date")
 
 
 def cmd_batch(args) -> int:
