@@ -62,6 +62,9 @@ def cmd_run(args) -> int:
     t0 = time.perf_counter()
     dataset = Dataset(args.dataset)
     ws = _workspace(args, dataset)
+    if args.workspace is None and not ws.root.exists() and not os.access(dataset.root, os.W_OK):
+        raise ConfigError(f"{dataset.root}: not writable, so its workspace {ws.root} cannot be made; pass -w FOLDER "
+                          "to keep the results elsewhere (and the same -w to every later command)")
     # Settings are read and recorded under the run lock: a run waiting for another (--wait) builds on what it recorded.
     with ws.locked(wait=args.wait, command="fullview run"):
         settings = effective_settings(ws, args.config, args.set or [], reset=args.reset_settings)
@@ -127,9 +130,8 @@ def _run_summary(args, pipeline: Pipeline, ran: list[str], seconds: float, page:
 
 
 def _command(name: str, args) -> str:
-    """The shortest command line that runs `fullview NAME` on this run's dataset and workspace."""
-    where = f" -w {args.workspace}" if args.workspace is not None else ""
-    return f"fullview {name} {args.dataset}{where}"
+    """The command line that runs `fullview NAME` on this command's dataset and workspace."""
+    return f"fullview {name} {args.dataset}{f' -w {args.workspace}' if args.workspace is not None else ''}"
 
 
 def cmd_status(args) -> int:

@@ -147,6 +147,10 @@ class Workspace:
         """The default workspace of a dataset (no -w): <dataset>/.fullview/, whatever the current folder."""
         return cls(Path(dataset_root).resolve(), DATASET_WORKSPACE)
 
+    def workspace_option(self, dataset_root: Path) -> str:
+        """What a command line needs to find this workspace: "" for the dataset's default one, else " -w ROOT"."""
+        return "" if self.root == Path(dataset_root).resolve() / DATASET_WORKSPACE else f" -w {self.root.parent}"
+
     def check_root(self) -> None:
         """An error when the workspace path cannot be a folder (it or a parent is a file)."""
         for p in [self.root, *self.root.parents]:

@@ -216,6 +216,7 @@ def test_done_when_plain_commands_from_another_folder_see_the_fresh_run(dataset_
     assert f"workspace: {ws}" in run.stdout and "view: fullview view" in run.stdout
     assert re.search(r"mesh: \d+ vertices, \d+ triangles", run.stdout), run.stdout
     assert (ws / "report" / "index.html").is_file() and f"report: {ws / 'report' / 'index.html'}" in run.stdout
+    assert f"<code>fullview view {dataset_copy}</code>" in (ws / "report" / "index.html").read_text()  # no -w needed
     dense_manifest = json.loads((ws / "densify" / "manifest.json").read_text())
     assert dense_manifest["params"]["mesh_cell_voxels"] == 3.0
 

@@ -126,8 +126,8 @@ class _Handler(BaseHTTPRequestHandler):
                                                                     else None)
                 return self._json({"saved": str(self.app.pipeline.dataset.hand_points_path),
                                    "backup": str(backup) if backup else None,
-                                   "command": f"fullview run {self.app.pipeline.dataset.root} "
-                                              f"-w {self.app.pipeline.ws.root.parent}"})
+                                   "command": f"fullview run {self.app.pipeline.dataset.root}"
+                                              f"{self.app.pipeline.ws.workspace_option(self.app.pipeline.dataset.root)}"})
             if path == "/api/hand_check":
                 body = self._body()
                 threshold = HAND_CHECK_FACTOR * self.app.config["filter"].threshold_deg
