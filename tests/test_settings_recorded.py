@@ -13,7 +13,6 @@ import threading
 import urllib.request
 from pathlib import Path
 
-import pytest
 import yaml
 
 from fullview.cli import main
