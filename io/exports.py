@@ -137,8 +137,8 @@ def write_colmap_model(model: SparseModel, out_dir: Path, *, binary: bool) -> Pa
             (out_dir / (name + other)).unlink(missing_ok=True)
             if (Path(tmp) / (name + ext)).exists():
                 os.replace(Path(tmp) / (name + ext), out_dir / (name + ext))
-    log.info("COLMAP %s model: %d images, %d points -> %s", "binary" if binary else "text",
-             np.count_nonzero(model.registered), len(model.points), out_dir)
+    log.debug("COLMAP %s model: %d images, %d points -> %s", "binary" if binary else "text",
+              np.count_nonzero(model.registered), len(model.points), out_dir)
     return out_dir
 
 

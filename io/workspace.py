@@ -4,6 +4,7 @@ Layout (``FILES`` is the single table of names; nothing else in fullview spells 
 
     <workspace>/<dataset name>/
         .fullview.lock, .fullview.commit.lock   run lock and commit lock (see Guarantees in the README)
+        settings.yaml                        the settings every command on this workspace uses (io/settings.py)
         <folder>/manifest.json               fingerprint, params, inputs, outputs (size + sha256), summary; last
         features/<stem>.npz                  per-image features
         matches/matches.npz                  raw matches of every pair
@@ -61,6 +62,7 @@ COMMIT_LOCK = ".fullview.commit.lock"  # exclusive while a folder is swapped in,
 # Every file of a workspace: artifact -> (folder, name pattern). Patterns take `stem`, `render_type`, `format`, ...
 FILES: dict[str, tuple[str, str]] = {
     "manifest": ("{folder}", MANIFEST_NAME),
+    "settings": ("", "settings.yaml"),
     "features": ("features", "{stem}.npz"),
     "matches": ("matches", "matches.npz"),
     "inliers": ("filter", "inliers.npz"),
@@ -105,6 +107,9 @@ FEATURE_KEYS = ("pixels", "bearings", "descriptors", "scales", "colors", "image_
 POSE_KEYS = ("image_names", "registered", "model_id", "R_cam_from_world", "t_cam_from_world", "centers")
 HAND_COLOR = (255, 0, 0)  # hand points are drawn red in the sparse cloud
 MANIFEST_KEYS = {"fingerprint": str, "upstream": dict, "outputs": dict}
+# Without -w a dataset's workspace is this hidden folder inside it: found from any folder, moved with the dataset,
+# never listed as input (images are read from images/ only).
+DATASET_WORKSPACE = ".fullview"
 
 
 # Descriptors of the locks this process holds (run, commit and shared reading locks). A forked child inherits
@@ -167,6 +172,15 @@ class Workspace:
         self.root = Path(root) / dataset_name
         self._lock_depth = 0
         self._lock_fd: int | None = None
+
+    @classmethod
+    def of_dataset(cls, dataset_root: Path) -> "Workspace":
+        """The default workspace of a dataset (no -w): <dataset>/.fullview/, whatever the current folder."""
+        return cls(Path(dataset_root).resolve(), DATASET_WORKSPACE)
+
+    def workspace_option(self, dataset_root: Path) -> str:
+        """What a command line needs to find this workspace: "" for the dataset's default one, else " -w ROOT"."""
+        return "" if self.root == Path(dataset_root).resolve() / DATASET_WORKSPACE else f" -w {self.root.parent}"
 
     def check_root(self) -> None:
         """An error when the workspace path cannot be a folder (it or a parent is a file)."""

@@ -42,7 +42,7 @@ class FeaturesOptions:
     denoise_min_noise: float = setting(0.0, "panoramas with more sensor noise than this (grey levels, estimated) are "
                                        "denoised (non-local means) before detection (loses true matches: README)",
                                        ge=0.0, le=255.0, zero_means="never")
-    min_latitude_deg: float = setting(-90.0, "drop features below this latitude (nadir cap: tripod, hand)",
+    min_latitude_deg: float = setting(-65.0, "drop features below this latitude (nadir cap: tripod, hand)",
                                       ge=-90.0, le=90.0)
     max_latitude_deg: float = setting(90.0, "drop features above this latitude (zenith cap)", ge=-90.0, le=90.0)
     root_sift: bool = setting(True, "Hellinger-normalised descriptors (RootSIFT)")
@@ -259,7 +259,7 @@ class DensifyOptions:
     block_size: int = setting(5, "SGBM matching window side", ge=1, le=31, odd=True)
     min_texture_std: float = setting(2.0, "grey-level std below which a pixel counts as untextured (not matched)",
                                      ge=0.0, le=255.0)
-    min_latitude_deg: float = setting(-90.0, "range maps are invalid below this latitude (nadir cap: tripod, hand)",
+    min_latitude_deg: float = setting(-65.0, "range maps are invalid below this latitude (nadir cap: tripod, hand)",
                                       ge=-90.0, le=90.0)
     max_latitude_deg: float = setting(90.0, "range maps are invalid above this latitude (zenith cap)", ge=-90.0,
                                       le=90.0)

@@ -179,7 +179,7 @@ def _run(ctx: StageContext) -> dict:
             if job is not None:
                 job.result()
     clock.lap("mesh_and_previews")
-    log.info("densify phases (wall / CPU s): %s", ", ".join(f"{k} {v['wall']} / {v['cpu']}" for k, v in clock.phases.items()))
+    log.debug("densify phases (wall / CPU s): %s", ", ".join(f"{k} {v['wall']} / {v['cpu']}" for k, v in clock.phases.items()))
     summary = {
         "pairs": int(len(pairs)), "panoramas": len(maps), "points": int(len(points)), "voxel_size": voxel,
         "width": int(width), "median_pair_time_s": float(np.median([p["time_s"] for p in pair_log])),
@@ -273,18 +273,18 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs, sweep=None):
     # never upsample: the rectified grid spans 180° in at most as many rows as the panoramas have
     rect_height = min(config.rect_height, min(image.shape[0] for image in images.values()))
     work = partial(_densify_pair, config, images, R, t, near, rect_height, sweep)
-    for (i, j), (res, pair_errors, kept, ratio, baseline, elapsed, swept) in zip(
-            pairs, tqdm(thread_map(work, [tuple(p) for p in pairs], threads=PAIR_THREADS), total=len(pairs),
-                        desc="densify", unit="pair")):
+    for (i, j), (res, pair_errors, kept, ratio, baseline, elapsed, swept) in tqdm(zip(
+            pairs, thread_map(work, [tuple(p) for p in pairs], threads=PAIR_THREADS)), total=len(pairs),
+            desc="densify", unit="pair"):
         pair_log.append({"pair": [names[i], names[j]], "baseline": baseline, "min_depth_ratio": ratio,
                          "num_disparities": dense.disparity_search_range(rect_height, ratio),
                          "valid_i": float(res.valid_i.mean()), "valid_j": float(res.valid_j.mean()),
                          "well_conditioned_i": kept[0], "well_conditioned_j": kept[1],
                          "ground_sweep_i": swept[0], "ground_sweep_j": swept[1],
                          "time_s": round(elapsed, 3), "timings_s": {k: round(v, 3) for k, v in res.timings.items()}})
-        log.info("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%% (well conditioned %.0f%% / "
-                 "%.0f%%), %.1f s", names[i], names[j], baseline, ratio, 100 * res.valid_i.mean(),
-                 100 * res.valid_j.mean(), 100 * kept[0], 100 * kept[1], elapsed)
+        log.debug("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%% (well conditioned %.0f%% / "
+                  "%.0f%%), %.1f s", names[i], names[j], baseline, ratio, 100 * res.valid_i.mean(),
+                  100 * res.valid_j.mean(), 100 * kept[0], 100 * kept[1], elapsed)
         for cam, other, rng, err in ((i, j, res.range_i, pair_errors[0]), (j, i, res.range_j, pair_errors[1])):
             estimates[cam].append(rng)
             errors[cam].append(err)
@@ -313,7 +313,7 @@ def _resolve_conflicts(config: DensifyOptions, maps, singles, conflicts, R, t, c
     settled = dict(zip(cams, thread_map(lambda a: dense.resolve_conflicts(
         ranges, [singles[k] for k in cams], cams, R[cams], t[cams], neighbours, config.consistency_tolerance, a,
         *conflicts[cams[a]]), range(len(cams)))))
-    log.info("conflicting pair estimates settled: %s", ", ".join(
+    log.debug("conflicting pair estimates settled: %s", ", ".join(
         f"{k} {100 * len(p) / maps[k][0].size:.1f}%" for k, (p, _) in settled.items()))
     return settled
 
@@ -330,7 +330,7 @@ def _seen_through_stereo(config: DensifyOptions, maps, singles, R, t, centers) -
         ranges, [singles[k] for k in cams], cams, R[cams], t[cams], neighbours, config.consistency_tolerance,
         views=[a], points=points)[0], range(len(cams)))
     drops = dict(zip(cams, drops))
-    log.info("stereo check: %s", ", ".join(f"{k} {100 * d.mean():.1f}%" for k, d in drops.items()))
+    log.debug("stereo check: %s", ", ".join(f"{k} {100 * d.mean():.1f}%" for k, d in drops.items()))
     return drops
 
 
@@ -453,7 +453,7 @@ def _fill_textureless(ctx: StageContext, inputs: _FillInputs, maps, world) -> di
         new = ~valid & np.isfinite(fill) & inputs.observable[a]
         maps[k] = (np.where(new, fill, rng).astype(np.float32), valid | new)
         shares[names[k]] = float(new.mean())
-        log.info("planes: %s %.0f%% filled, %.0f%% valid", names[k], 100 * new.mean(), 100 * np.mean(maps[k][1]))
+        log.debug("planes: %s %.0f%% filled, %.0f%% valid", names[k], 100 * new.mean(), 100 * np.mean(maps[k][1]))
     return shares
 
 
@@ -490,8 +490,8 @@ def _world_planes(wopt: world_planes.WorldPlaneOptions, seed: int, views, sparse
         found, points, ranges, np.array([camera_center(v.R_cam_from_world, v.t_cam_from_world) for v in views]),
         up, np.random.default_rng(seed), wopt)
     for plane in (p for p in tilted if not any(p is q for q in found)):
-        log.info("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
-                 np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support, len(found) - len(tilted))
+        log.debug("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
+                  np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support, len(found) - len(tilted))
     found = tilted
     return wopt, found, len(points), time.perf_counter() - t0
 

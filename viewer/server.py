@@ -110,7 +110,9 @@ class ViewerApp:
 
     def rerun_command(self) -> str:
         """The shell command that reruns what the saved hand points made stale (quoted: names may hold spaces)."""
-        return shlex.join(["fullview", "run", str(self.pipeline.dataset.root), "-w", str(self.pipeline.ws.root.parent)])
+        root, ws = self.pipeline.dataset.root, self.pipeline.ws
+        own = ["-w", str(ws.root.parent)] if ws.workspace_option(root) else []  # the dataset's own workspace: no -w
+        return shlex.join(["fullview", "run", str(root), *own])
 
 
 class _Server(ThreadingHTTPServer):
