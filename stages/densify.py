@@ -119,7 +119,9 @@ def _run(ctx: StageContext) -> dict:
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
     clock.lap("load")
-    sweep = _ground_sweep_setup(config, R, centers, cams, sparse["points"])
+    scene = ground_sweep.indoor_or_outdoor(centers[cams], sparse["points"], camera_up(R[cams]),
+                                           *_observations_of(sparse, cams))
+    sweep = _ground_sweep_setup(config, R, centers, cams, sparse["points"], scene)
     maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs, sweep)
     clock.lap("stereo")
     # the world planes come from the combined stereo alone (not from the stereo check's settlements and drops,
@@ -186,6 +188,8 @@ def _run(ctx: StageContext) -> dict:
         "valid_share": {names[k]: float(np.mean(m[1])) for k, m in maps.items()},
         "filled_share": filled,
         "stereo_dropped_share": {names[k]: float(np.mean(drop)) for k, drop in unconfirmed.items()},
+        "scene": {**scene.as_dict(), "ground_sweep": sweep is not None,
+                  "cameras": dict(zip((names[k] for k in cams), scene.cameras))},
         "pair_log": pair_log,
         "mesh": mesh,
         "phases_s": clock.phases,
@@ -345,10 +349,19 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
     return res, pair_errors, kept, ratio, baseline, elapsed, swept
 
 
-def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points):
+def _observations_of(sparse: dict, cams: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """(camera row in ``cams``, point) of every sparse observation by one of ``cams``."""
+    row = np.full(len(sparse["registered"]), -1, np.intp)
+    row[cams] = np.arange(len(cams))
+    mine = row[sparse["image_ids"]] >= 0
+    return row[sparse["image_ids"][mine]], np.asarray(sparse["track_ids"][mine], np.intp)
+
+
+def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points, scene=None):
     """(up, {camera: height above its ground, NaN where the sparse points do not tell}, the sweep's options, its
-    width) for the ground sweep, or None where it does not run (never, or a room with ``no_ceiling``: indoors the
-    fills own the floor, ``ground_sweep.has_ceiling``)."""
+    width) for the ground sweep, or None where it does not run (never, or indoors with ``no_ceiling``: there the
+    fills own the floor). ``scene``: ``ground_sweep.indoor_or_outdoor`` of the cameras (from ``sparse_points``
+    alone, every camera seeing every point, when None)."""
     if config.ground_sweep == "never":
         return None
     options = ground_sweep.GroundSweepOptions(window=config.ground_sweep_window, min_ncc=config.ground_sweep_min_ncc,
@@ -358,9 +371,13 @@ def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points)
     width = config.ground_sweep_width  # read here: the settings are the stage's whether the sweep runs or not
     up = camera_up(R[cams])
     points = np.asarray(sparse_points, np.float64).reshape(-1, 3)
-    if config.ground_sweep == "no_ceiling" and ground_sweep.has_ceiling(centers[cams], points, up):
-        log.info("ground sweep: off (a ceiling over the cameras)")
-        return None
+    if scene is None:
+        scene = ground_sweep.indoor_or_outdoor(centers[cams], points, up)
+    if config.ground_sweep == "no_ceiling":
+        log.info("scene %s", scene.reason)
+        if scene.indoors:
+            log.info("ground sweep: off (indoors: a ceiling over the cameras)")
+            return None
     heights = ground_sweep.ground_heights(centers[cams], points, up)  # NaN: a coarse sweep of each pair finds it
     log.info("ground sweep: on, camera heights from the sparse points %s", ", ".join(f"{h:.3g}" for h in heights))
     return up, dict(zip(cams, heights.tolist())), options, width
