@@ -119,8 +119,7 @@ def _run(ctx: StageContext) -> dict:
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
     clock.lap("load")
-    scene = ground_sweep.indoor_or_outdoor(centers[cams], sparse["points"], camera_up(R[cams]),
-                                           *_observations_of(sparse, cams))
+    scene = scene_kind(sparse, cams)
     sweep = _ground_sweep_setup(config, R, centers, cams, sparse["points"], scene)
     maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs, sweep)
     clock.lap("stereo")
@@ -347,6 +346,12 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
         kept.append(float(np.isfinite(rng).mean()))
         pair_errors.append(err)
     return res, pair_errors, kept, ratio, baseline, elapsed, swept
+
+
+def scene_kind(sparse: dict, cams: list[int]) -> ground_sweep.SceneKind:
+    """Indoors or outdoors (``ground_sweep.indoor_or_outdoor``) from the points each of ``cams`` sees."""
+    return ground_sweep.indoor_or_outdoor(sparse["centers"][cams], sparse["points"],
+                                          camera_up(sparse["R_cam_from_world"][cams]), *_observations_of(sparse, cams))
 
 
 def _observations_of(sparse: dict, cams: list[int]) -> tuple[np.ndarray, np.ndarray]:
