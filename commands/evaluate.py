@@ -9,11 +9,10 @@ import logging
 import numpy as np
 
 from fullview.io.dataset import Dataset, DatasetError
-from fullview.io.workspace import Workspace, WorkspaceBusy, folder_of
-from fullview.sfm.dense_agreement import visible_agreement
-from fullview.io.workspace import select_model
+from fullview.io.workspace import Workspace, WorkspaceBusy, folder_of, select_model
 from fullview.sfm import pose_check as pose_check_module
 from fullview.sfm.dense import scene_size
+from fullview.sfm.dense_agreement import visible_agreement
 from fullview.sfm.dense_metrics import dense_metrics, leave_one_out_agreement
 from fullview.sfm.metrics import Similarity, pose_metrics, umeyama
 from fullview.stages.runner import Pipeline, RunnerError

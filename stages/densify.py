@@ -5,7 +5,8 @@
    back to both panoramas. The disparity search covers depths down to the nearest plausible one, taken from the
    sparse points (a low percentile of the camera-to-point distances), since the model's scale is arbitrary.
 2a. Ground sweep (``densify.ground_sweep``, ``fullview.sfm.dense.ground_sweep``): where no ceiling spans over the
-   cameras (outdoors), each pair's pixels below the horizon are matched again under hypotheses of ground-parallel
+   cameras (outdoors: ``ground_sweep.indoor_or_outdoor``, the highest points around the cameras taller than a room;
+   the decision and its evidence are logged and kept in the summary's ``scene``), each pair's pixels below the horizon are matched again under hypotheses of ground-parallel
    planes (plane-induced warps, NCC, a unique peak, a left-right check), so the near and slanted ground is matched
    as if fronto-parallel and without a disparity cap; its range is taken where SGBM has none or one it disagrees
    with, and goes through the same conditioning and checks as SGBM's.
@@ -120,6 +121,7 @@ def _run(ctx: StageContext) -> dict:
     images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
     clock.lap("load")
     scene = scene_kind(sparse, cams)
+    log.info("scene %s", scene.reason)
     sweep = _ground_sweep_setup(config, R, centers, cams, sparse["points"], scene)
     maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs, sweep)
     clock.lap("stereo")
@@ -378,11 +380,9 @@ def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points,
     points = np.asarray(sparse_points, np.float64).reshape(-1, 3)
     if scene is None:
         scene = ground_sweep.indoor_or_outdoor(centers[cams], points, up)
-    if config.ground_sweep == "no_ceiling":
-        log.info("scene %s", scene.reason)
-        if scene.indoors:
-            log.info("ground sweep: off (indoors: a ceiling over the cameras)")
-            return None
+    if config.ground_sweep == "no_ceiling" and scene.indoors:
+        log.info("ground sweep: off (indoors: a ceiling over the cameras)")
+        return None
     heights = ground_sweep.ground_heights(centers[cams], points, up)  # NaN: a coarse sweep of each pair finds it
     log.info("ground sweep: on, camera heights from the sparse points %s", ", ".join(f"{h:.3g}" for h in heights))
     return up, dict(zip(cams, heights.tolist())), options, width
