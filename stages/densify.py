@@ -6,10 +6,11 @@
    sparse points (a low percentile of the camera-to-point distances), since the model's scale is arbitrary.
 2a. Ground sweep (``densify.ground_sweep``, ``fullview.sfm.dense.ground_sweep``): where no ceiling spans over the
    cameras (outdoors: ``ground_sweep.indoor_or_outdoor``, the highest points around the cameras taller than a room;
-   the decision and its evidence are logged and kept in the summary's ``scene``), each pair's pixels below the horizon are matched again under hypotheses of ground-parallel
-   planes (plane-induced warps, NCC, a unique peak, a left-right check), so the near and slanted ground is matched
-   as if fronto-parallel and without a disparity cap; its range is taken where SGBM has none or one it disagrees
-   with, and goes through the same conditioning and checks as SGBM's.
+   the decision and its evidence are logged and kept in the summary's ``scene``), each pair's pixels below the
+   horizon are matched again under hypotheses of ground-parallel planes (plane-induced warps, NCC, a unique peak, a
+   left-right check), so the near and slanted ground is matched as if fronto-parallel and without a disparity cap;
+   its range is taken where SGBM has none or one it disagrees with, and goes through the same conditioning and
+   checks as SGBM's.
 3. Per panorama: the pair estimates are combined (median of the agreeing ones; pixels whose estimates conflict are
    dropped).
 3a. Stereo check (``densify.stereo_check``): where a panorama's pair estimates conflict, the one its neighbours'
