@@ -88,14 +88,13 @@ def leave_one_out_points(track_ids: np.ndarray, image_ids: np.ndarray, feature_i
     lengths = np.bincount(tid, minlength=int(tid.max(initial=-1)) + 1)
     start = np.cumsum(lengths) - lengths
     held = np.flatnonzero(lengths[tid] >= 3)
+    if not len(held):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
     reps = lengths[tid[held]]
     owner = np.repeat(np.arange(len(held)), reps)
     member = start[tid[held]][owner] + np.arange(reps.sum()) - np.repeat(np.cumsum(reps) - reps, reps)
     others = member != held[owner]
     owner, member = owner[others], member[others]
-    empty = np.zeros(0, np.int64)
-    if not len(held):
-        return empty, empty, np.zeros((0, 3))
     tracks = Tracks(track_ids=owner, image_ids=img[member], feature_ids=fid[member],
                     offsets=np.r_[0, np.cumsum(reps - 1)].astype(np.int64), num_images=len(R_cam_from_world))
     tri = triangulate_multiview(tracks, bearings_per_image, R_cam_from_world, t_cam_from_world)
