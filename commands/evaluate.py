@@ -133,6 +133,17 @@ def _log_summary(metrics: dict) -> None:
                  _fmt(dense["median_valid_share"]))
 
 
+def eval_summary(metrics: dict) -> dict:
+    """``metrics`` without its per-image and per-model lists (eval/metrics.json keeps them): what a terminal needs."""
+    out = {}
+    for key, value in metrics.items():
+        if isinstance(value, dict):
+            out[key] = {k: v for k, v in value.items() if k != "per_image"}
+        elif key != "models":
+            out[key] = value
+    return out
+
+
 def _fmt(value) -> str:
     return "n/a" if value is None else f"{value:.3g}"
 
