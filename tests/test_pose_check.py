@@ -113,7 +113,7 @@ def test_leave_one_out_points_owe_nothing_to_the_left_out_camera():
 def test_eval_reports_the_pose_check_of_a_rendered_room(tmp_path, capsys, tiny_set_args, make_pipeline):
     # a rendered room (5 views at 512 px with sensor noise) through the pipeline: eval's pose_check flags nothing;
     # with one camera's centre moved by a tenth of the scene's size in the model, that camera and no other is
-    from fullview.commands.evaluate import pose_check as eval_pose_check
+    from fullview.commands.evaluate import eval_summary, pose_check as eval_pose_check
     from fullview.synth import write_synthetic_dataset
     from fullview.synth.capture import CaptureTraits
 
@@ -123,8 +123,11 @@ def test_eval_reports_the_pose_check_of_a_rendered_room(tmp_path, capsys, tiny_s
     assert main(["run", str(dataset), "-w", str(ws), "--until", "triangulation", *tiny_set_args]) == 0
     capsys.readouterr()
     assert main(["eval", str(dataset), "-w", str(ws), *tiny_set_args]) == 0
-    check = json.loads(capsys.readouterr().out)["pose_check"]
+    metrics = json.loads(capsys.readouterr().out)
+    check = metrics["pose_check"]
     assert len(check["per_image"]) == 5
+    short = eval_summary(metrics)["pose_check"]  # the terminal's summary: no per-image entries, the flags kept
+    assert "per_image" not in short and short["flagged"] == check["flagged"]
     assert check["flagged"] == [], check["per_image"]
     assert check["threshold_deg"] == 1.5  # the tiny settings' triangulation threshold
 
