@@ -5,10 +5,12 @@
    back to both panoramas. The disparity search covers depths down to the nearest plausible one, taken from the
    sparse points (a low percentile of the camera-to-point distances), since the model's scale is arbitrary.
 2a. Ground sweep (``densify.ground_sweep``, ``fullview.sfm.dense.ground_sweep``): where no ceiling spans over the
-   cameras (outdoors), each pair's pixels below the horizon are matched again under hypotheses of ground-parallel
-   planes (plane-induced warps, NCC, a unique peak, a left-right check), so the near and slanted ground is matched
-   as if fronto-parallel and without a disparity cap; its range is taken where SGBM has none or one it disagrees
-   with, and goes through the same conditioning and checks as SGBM's.
+   cameras (outdoors: ``ground_sweep.indoor_or_outdoor``, the highest points around the cameras taller than a room;
+   the decision and its evidence are logged and kept in the summary's ``scene``), each pair's pixels below the
+   horizon are matched again under hypotheses of ground-parallel planes (plane-induced warps, NCC, a unique peak, a
+   left-right check), so the near and slanted ground is matched as if fronto-parallel and without a disparity cap;
+   its range is taken where SGBM has none or one it disagrees with, and goes through the same conditioning and
+   checks as SGBM's.
 3. Per panorama: the pair estimates are combined (median of the agreeing ones; pixels whose estimates conflict are
    dropped).
 3a. Stereo check (``densify.stereo_check``): where a panorama's pair estimates conflict, the one its neighbours'
@@ -119,7 +121,9 @@ def _run(ctx: StageContext) -> dict:
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
     clock.lap("load")
-    sweep = _ground_sweep_setup(config, R, centers, cams, sparse["points"])
+    scene = scene_kind(sparse, cams)
+    log.info("scene %s", scene.reason)
+    sweep = _ground_sweep_setup(config, R, centers, cams, sparse["points"], scene)
     maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs, sweep)
     clock.lap("stereo")
     # the world planes come from the combined stereo alone (not from the stereo check's settlements and drops,
@@ -186,6 +190,8 @@ def _run(ctx: StageContext) -> dict:
         "valid_share": {names[k]: float(np.mean(m[1])) for k, m in maps.items()},
         "filled_share": filled,
         "stereo_dropped_share": {names[k]: float(np.mean(drop)) for k, drop in unconfirmed.items()},
+        "scene": {**scene.as_dict(), "ground_sweep": sweep is not None,
+                  "cameras": dict(zip((names[k] for k in cams), scene.cameras))},
         "pair_log": pair_log,
         "mesh": mesh,
         "phases_s": clock.phases,
@@ -360,10 +366,25 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
     return res, pair_errors, kept, ratio, baseline, elapsed, swept
 
 
-def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points):
+def scene_kind(sparse: dict, cams: list[int]) -> ground_sweep.SceneKind:
+    """Indoors or outdoors (``ground_sweep.indoor_or_outdoor``) from the points each of ``cams`` sees."""
+    return ground_sweep.indoor_or_outdoor(sparse["centers"][cams], sparse["points"],
+                                          camera_up(sparse["R_cam_from_world"][cams]), *_observations_of(sparse, cams))
+
+
+def _observations_of(sparse: dict, cams: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """(camera row in ``cams``, point) of every sparse observation by one of ``cams``."""
+    row = np.full(len(sparse["registered"]), -1, np.intp)
+    row[cams] = np.arange(len(cams))
+    mine = row[sparse["image_ids"]] >= 0
+    return row[sparse["image_ids"][mine]], np.asarray(sparse["track_ids"][mine], np.intp)
+
+
+def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points, scene=None):
     """(up, {camera: height above its ground, NaN where the sparse points do not tell}, the sweep's options, its
-    width) for the ground sweep, or None where it does not run (never, or a room with ``no_ceiling``: indoors the
-    fills own the floor, ``ground_sweep.has_ceiling``)."""
+    width) for the ground sweep, or None where it does not run (never, or indoors with ``no_ceiling``: there the
+    fills own the floor). ``scene``: ``ground_sweep.indoor_or_outdoor`` of the cameras (from ``sparse_points``
+    alone, every camera seeing every point, when None)."""
     if config.ground_sweep == "never":
         return None
     options = ground_sweep.GroundSweepOptions(window=config.ground_sweep_window, min_ncc=config.ground_sweep_min_ncc,
@@ -373,8 +394,10 @@ def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points)
     width = config.ground_sweep_width  # read here: the settings are the stage's whether the sweep runs or not
     up = camera_up(R[cams])
     points = np.asarray(sparse_points, np.float64).reshape(-1, 3)
-    if config.ground_sweep == "no_ceiling" and ground_sweep.has_ceiling(centers[cams], points, up):
-        log.info("ground sweep: off (a ceiling over the cameras)")
+    if scene is None:
+        scene = ground_sweep.indoor_or_outdoor(centers[cams], points, up)
+    if config.ground_sweep == "no_ceiling" and scene.indoors:
+        log.info("ground sweep: off (indoors: a ceiling over the cameras)")
         return None
     heights = ground_sweep.ground_heights(centers[cams], points, up)  # NaN: a coarse sweep of each pair finds it
     log.info("ground sweep: on, camera heights from the sparse points %s", ", ".join(f"{h:.3g}" for h in heights))
