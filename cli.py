@@ -214,8 +214,8 @@ def cmd_synth(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from fullview.commands.evaluate import evaluate
-    json.dump(evaluate(_pipeline(args)), sys.stdout, indent=2)
+    from fullview.commands.evaluate import eval_summary, evaluate
+    json.dump(eval_summary(evaluate(_pipeline(args))), sys.stdout, indent=2)  # per image: eval/metrics.json
     print()
     return 0
 

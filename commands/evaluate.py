@@ -4,18 +4,21 @@ the dataset has ground-truth depth), and on any dataset the checks that need non
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import sys
 
 import numpy as np
 
 from fullview.io.dataset import Dataset, DatasetError
+from fullview.io.artifacts import ArtifactError
 from fullview.io.workspace import Workspace, WorkspaceBusy, folder_of, select_model
 from fullview.sfm import pose_check as pose_check_module
 from fullview.sfm.dense import scene_size
 from fullview.sfm.dense_agreement import visible_agreement
 from fullview.sfm.dense_metrics import dense_metrics, leave_one_out_agreement
 from fullview.sfm.metrics import Similarity, pose_metrics, umeyama
-from fullview.stages.runner import Pipeline, RunnerError
+from fullview.stages.runner import Pipeline, RunnerError, code_hashes, record_fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -31,21 +34,54 @@ def evaluate(pipeline: Pipeline) -> dict:
     dataset, ws = pipeline.dataset, pipeline.ws
     with ws.reading():
         source = _current_model(pipeline)
+        dense_current = source == "triangulation" and pipeline.status("densify", deep=True).state == "fresh"
+        key = _cache_key(pipeline, source, dense_current)
+        cached = _cached(ws, key)
+        if cached is not None:
+            log.info("eval: the results are unchanged since the last eval; its metrics are reused (%s)",
+                     ws.path("eval_metrics"))
+            _log_summary(cached)
+            return cached
         est = ws.load_sparse() if source == "triangulation" else ws.load_registration()
         metrics = {"dataset": dataset.name, "poses_from": source}
         if dataset.has_ground_truth():
             metrics.update(_against_ground_truth(pipeline, est, source))
         if source == "triangulation":
             metrics["pose_check"] = pose_check(pipeline, est)
-        dense_current = source == "triangulation" and pipeline.status("densify", deep=True).state == "fresh"
         if dense_current:
             metrics["dense_agreement"] = dense_agreement(dataset, ws, est)
         elif not dataset.has_ground_truth() and source != "triangulation":
             raise DatasetError(f"{dataset.root}: no ground_truth/poses.yaml and no triangulation results: nothing "
                                "to evaluate")
     _log_summary(metrics)
-    _save(pipeline, metrics)
+    _save(pipeline, metrics, key)
     return metrics
+
+
+def _cache_key(pipeline: Pipeline, source: str, dense_current: bool) -> str:
+    """What the metrics depend on, like a stage's fingerprint: the evaluated stages' fingerprints (settings, inputs,
+    code), whether densify is current, eval's own code and the ground truth's bytes."""
+    truth = pipeline.dataset.ground_truth_dir
+    files = sorted(p for p in truth.rglob("*") if p.is_file()) if truth.is_dir() else []
+    digest = hashlib.sha256()
+    for path in files:
+        digest.update(str(path.relative_to(truth)).encode() + b"\0" + path.read_bytes())
+    return record_fingerprint({"poses_from": source, "dense_current": dense_current,
+                               "upstream": {s: pipeline.fingerprint(s) for s in ("registration", "triangulation",
+                                                                               "densify")},
+                               "code": code_hashes(sys.modules[__name__]), "ground_truth": digest.hexdigest()})
+
+
+def _cached(ws: Workspace, key: str) -> dict | None:
+    """The metrics of the last eval when they were computed for `key` and their file is intact, else None."""
+    manifest = ws.read_manifest(folder_of("eval_metrics"))
+    if manifest is None or manifest.get("eval_key") != key or ws.verify(folder_of("eval_metrics"), manifest,
+                                                                          deep=True):
+        return None
+    try:
+        return ws.load_json("eval_metrics")
+    except ArtifactError:
+        return None
 
 
 def _against_ground_truth(pipeline: Pipeline, est: dict, source: str) -> dict:
@@ -170,13 +206,14 @@ def _current_model(pipeline: Pipeline) -> str:
                       "run the pipeline first")
 
 
-def _save(pipeline: Pipeline, metrics: dict) -> None:
+def _save(pipeline: Pipeline, metrics: dict, key: str) -> None:
     ws = pipeline.ws
     try:
         with ws.locked(command="fullview eval"), ws.transaction(folder_of("eval_metrics")) as out:
             out.save_json("eval_metrics", metrics)
             upstream = {s: pipeline.fingerprint(s) for s in ("registration", "triangulation", "densify")}
             out.commit_manifest({"fingerprint": pipeline.fingerprint(metrics["poses_from"]), "upstream": upstream,
+                                 "eval_key": key,
                                  "summary": {"poses_from": metrics["poses_from"]}})
     except (WorkspaceBusy, OSError) as e:  # eval reads; a busy or read-only workspace only loses the copy on disk
         log.warning("metrics not written to %s: %s", ws.path("eval_metrics"), e)
