@@ -330,8 +330,9 @@ class DensifyOptions:
                                          "points (outdoor ground slopes)", ge=0.0, le=30.0, zero_means="always level")
     ground_sweep: str = setting("no_ceiling", "stereo on the ground by a sweep of ground-parallel planes (sfm/dense/"
                                 "ground_sweep.py), where a pair's SGBM has no range below the horizon or one it "
-                                "disagrees with: never, always, or no_ceiling = not in a room (no level band holds "
-                                "half the sparse points overhead, nor are there twice as many low ones)",
+                                "disagrees with: never, always, or no_ceiling = outdoors (the highest points around "
+                                "most cameras stand more than twice the camera's height above it: "
+                                "ground_sweep.indoor_or_outdoor)",
                                 choices=("never", "no_ceiling", "always"))  # not "off": YAML reads a bool
     ground_sweep_width: int = setting(1280, "the ground sweep works at this width (at most the range maps'; its "
                                       "ranges are resized to them)", ge=64, le=65536)
