@@ -17,10 +17,11 @@ from __future__ import annotations
 
 import os
 import re
-import selectors
+import queue
 import shlex
 import shutil
 import subprocess
+import threading
 import sys
 import urllib.request
 from pathlib import Path
@@ -98,11 +99,14 @@ def _view(argv: list[str], cwd: Path) -> tuple[int, str]:
     proc = subprocess.Popen([sys.executable, "-m", "fullview", *argv], cwd=cwd, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     out = ""
+    lines: queue.Queue = queue.Queue()  # a reader thread: a selector misses lines already in the pipe's buffer
+    threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True).start()
     try:
-        sel = selectors.DefaultSelector()
-        sel.register(proc.stdout, selectors.EVENT_READ)
-        while "http://" not in out and proc.poll() is None and sel.select(timeout=120):
-            out += proc.stdout.readline()
+        while "http://" not in out:
+            try:
+                out += lines.get(timeout=120)
+            except queue.Empty:
+                break
         url = re.search(r"http://127\.0\.0\.1:\d+/?", out)
         if url is None:
             return 1, out
