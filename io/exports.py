@@ -19,7 +19,7 @@ import numpy as np
 
 from fullview.io.artifacts import atomic_path, save_json, save_mesh_ply, save_ply
 from fullview.io.errors import FullviewError
-from fullview.sfm.camera import bearings_to_pixels
+from fullview.sfm.camera import pixels_to_bearings
 from fullview.sfm.open3d_module import open3d
 
 log = logging.getLogger(__name__)
@@ -118,10 +118,9 @@ def write_colmap_model(model: SparseModel, out_dir: Path, *, binary: bool) -> Pa
     text models are formatted here, byte for byte the files pycolmap writes (tests compare them). One EQUIRECTANGULAR camera per distinct image size;
     image id = image index + 1, point id = point index + 1 (so ids match the rows of our arrays); only registered
     images are written, with all their 2-D features, and observations in unregistered images are dropped.
-    A point's ERROR is COLMAP's: the mean over its observations in the written images of the pixel distance from
-    the observation to the point's projection under the EQUIRECTANGULAR camera (`point_errors_px`), so it equals
-    what pycolmap recomputes (`Reconstruction.update_point_3d_errors`) except across the seam, where ours goes
-    the short way round (pycolmap's takes the long way, nearly an image width).
+    A point's ERROR is COLMAP's mean reprojection error in pixels over its observations in the written images,
+    as COLMAP itself computes it for this camera (`point_errors_px`: equal to pycolmap's
+    `Reconstruction.update_point_3d_errors`).
     The files are written to a temporary folder first and then moved in, so a failure leaves no half model; the
     other format's files of the same model are removed (pycolmap would read a stale .bin before a fresh .txt).
     """
@@ -269,28 +268,29 @@ def _write_text_model(model: SparseModel, folder: Path) -> None:
 
 
 def point_errors_px(model: SparseModel) -> np.ndarray:
-    """(P,) each point's mean reprojection error in pixels over its observations in registered images (COLMAP's
-    points3D ERROR): the distance on the equirectangular image from the observed pixel to the projection of the
-    point (`camera.bearings_to_pixels`, COLMAP's EQUIRECTANGULAR model), the column difference taken the short way
-    round the seam (a point seen at x = 0.2 and projected at x = W − 0.1 is 0.3 px off, not W − 0.1). -1 (COLMAP's
-    "unknown") for a point without such an observation."""
+    """(P,) each point's mean reprojection error in pixels over its observations in registered images, as COLMAP
+    computes it for an EQUIRECTANGULAR camera (pycolmap 4.2.1's `Reconstruction.update_point_3d_errors`, checked to
+    1e-10 px): the angle between the observed ray and the ray to the point, times W / 2π, the pixels per radian
+    of the panorama's columns. It is the pixel distance on the image at the equator, and does not stretch towards
+    the poles nor jump at the seam (an image-plane distance would do both). -1 (COLMAP's "unknown") for a point
+    without such an observation."""
     point, image, feature = _registered_observations(model)
     sizes = np.asarray(model.image_sizes, np.float64).reshape(-1, 2)
     R = np.asarray(model.R_cam_from_world, np.float64)
-    x_cam = np.einsum("kab,kb->ka", R[image], np.asarray(model.points, np.float64)[point]) \
+    to_point = np.einsum("kab,kb->ka", R[image], np.asarray(model.points, np.float64)[point]) \
         + np.asarray(model.t_cam_from_world, np.float64)[image]
+    to_point /= np.linalg.norm(to_point, axis=1, keepdims=True)
     offsets = np.cumsum([0] + [len(px) for px in model.pixels])
     flat = np.concatenate([np.asarray(px, np.float64).reshape(-1, 2) for px in model.pixels]) if len(offsets) > 1 \
         else np.zeros((0, 2))
     observed = flat[offsets[image] + feature]
-    projected = np.zeros_like(observed)
+    rays = np.zeros((len(observed), 3))
     for size in np.unique(sizes[image], axis=0):
         sel = (sizes[image] == size).all(axis=1)
-        projected[sel] = bearings_to_pixels(x_cam[sel], int(size[0]), int(size[1]))
-    w = sizes[image, 0]
-    d = observed - projected
-    d[:, 0] = (d[:, 0] + 0.5 * w) % w - 0.5 * w  # the short way round the seam
-    error = np.hypot(d[:, 0], d[:, 1])
+        rays[sel] = pixels_to_bearings(observed[sel], int(size[0]), int(size[1]))
+    # the angle from its sine and cosine: accurate for the small angles of good observations
+    angle = np.arctan2(np.linalg.norm(np.cross(rays, to_point), axis=1), np.einsum("ka,ka->k", rays, to_point))
+    error = angle * sizes[image, 0] / (2.0 * np.pi)
     count = np.bincount(point, minlength=len(model.points))
     total = np.bincount(point, error, minlength=len(model.points))
     return np.where(count > 0, total / np.maximum(count, 1), -1.0)
