@@ -153,11 +153,14 @@ def metric_scales(pipeline: Pipeline, models: list[SparseModel], statement: dict
         return [None] * len(models)
     if "camera_height_m" in statement:
         down = _model_down(pipeline, models)
+        tri = pipeline.config["triangulation"]
+        floor = tri.height_prior_sigma if tri.bundle_adjust and tri.height_prior else 0.0  # see sfm.scale
         out = []
         for k, m in enumerate(models):
             try:
                 out.append(metric.camera_height_scale(float(statement["camera_height_m"]), m.centers, down[k],
-                                                      m.points, m.track_point3d, m.track_image))
+                                                      m.points, m.track_point3d, m.track_image,
+                                                      min_spread=floor))
             except ScaleError as e:
                 if k == 0:
                     raise ExportError(f"--camera-height: model 0: {e}") from None
