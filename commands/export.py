@@ -221,8 +221,9 @@ def _angular_sigma(pipeline: Pipeline) -> float:
 
 def _hand_point(pipeline: Pipeline, model: SparseModel, name: str
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(position, observing camera indices, their observed world bearings) of the sparse point of `model` that holds the hand point `name`'s
-    observations (most of them, when tracks split), or None when the model holds none of them."""
+    """(position, observing camera indices, their observed world bearings) of the sparse point of `model` that
+    holds the hand point `name`'s observations (most of them, when tracks split), or None when the model holds none
+    of them."""
     tracks = [t.name for t in pipeline.dataset.hand_tracks()]
     if name not in tracks:
         return None

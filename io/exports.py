@@ -48,7 +48,7 @@ class SparseModel:
     t_cam_from_world: np.ndarray  # (N, 3) translations
     points: np.ndarray  # (P, 3) world coordinates
     colors: np.ndarray  # (P, 3) uint8 RGB
-    point_errors_rad: np.ndarray  # (P,) mean angular reprojection error, radians
+    point_errors_rad: np.ndarray  # (P,) angular reprojection error, radians (COLMAP gets pixels: point_errors_px)
     track_point3d: np.ndarray  # (K,) observation -> point index
     track_image: np.ndarray  # (K,) observation -> image index
     track_point2d: np.ndarray  # (K,) observation -> index into pixels[image]
@@ -413,7 +413,7 @@ def hold_images(model: SparseModel, out_dir: Path, sources: list[Path], *, link:
         paths[k] = f"{NERFSTUDIO_IMAGES}/{name}"
     if link and copied:
         log.warning("nerfstudio: %d of %d images copied, not linked: a hard link cannot cross file systems (the "
-                    "dataset and the export lie on different ones)", len(copied), int(np.count_nonzero(model.registered)))
+                    "dataset and the export lie on different ones)", len(copied), len(paths) - paths.count(""))
     return paths
 
 

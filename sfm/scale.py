@@ -124,8 +124,9 @@ def camera_height_scale(height_m: float, centers: np.ndarray, down: np.ndarray, 
     """The scale that puts the model's cameras `height_m` above their floor. `centers` (N, 3) and `down` (N, 3,
     unit, nan where unknown: one direction for the model, refined on its floor by `floor_down`) of its cameras;
     `min_spread`: the least per-camera relative error the uncertainty assumes (the adjustment's height prior
-    pulled the heights together, so their spread after it understates their independent errors); `points` (P, 3) and the observations (`track_ids` → point,
-    `image_ids` → camera) of the model. ScaleError when no camera sees its floor."""
+    pulled the heights together, so their spread after it understates their independent errors); `points` (P, 3)
+    and the observations (`track_ids` → point, `image_ids` → camera) of the model. ScaleError when no camera sees
+    its floor."""
     if not (np.isfinite(height_m) and height_m > 0):
         raise ScaleError(f"camera height {height_m} m: expected a positive length in metres")
     down = floor_down(centers, down, points, track_ids, image_ids)
