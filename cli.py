@@ -248,7 +248,8 @@ def cmd_compare(args) -> int:
 
 def cmd_export(args) -> int:
     from fullview.commands.export import export
-    print(export(_pipeline(args), args.format, args.out, sparse_only=args.sparse_only))
+    print(export(_pipeline(args), args.format, args.out, sparse_only=args.sparse_only, link=args.link,
+                 camera_height=args.camera_height, known_distance=args.known_distance, model_units=args.model_units))
     return 0
 
 
@@ -371,6 +372,17 @@ def build_parser() -> argparse.ArgumentParser:
                    "new, empty or a previous export, of which only the files it wrote are replaced")
     p.add_argument("--sparse-only", action="store_true",
                    help="ply: the sparse cloud alone (otherwise a stale or missing densify is an error)")
+    images = p.add_mutually_exclusive_group()  # nerfstudio: the export holds its images (docs/exports.md)
+    images.add_argument("--copy-images", dest="link", action="store_false", help="nerfstudio: copy the images into "
+                        "<k>/images/ (default)")
+    images.add_argument("--link", dest="link", action="store_true", help="nerfstudio: hard-link them instead (copied "
+                        "where a link cannot be made: another file system)")
+    scale = p.add_mutually_exclusive_group()  # a metric scale, kept in the workspace for later exports and the viewer
+    scale.add_argument("--camera-height", type=float, default=None, metavar="METRES",
+                       help="metres from the floor to the lens: every export in metres from now on")
+    scale.add_argument("--known-distance", nargs=3, default=None, metavar=("NAME_A", "NAME_B", "METRES"),
+                       help="two hand points (hand_points.yaml names) and their distance: exports in metres")
+    scale.add_argument("--model-units", action="store_true", help="forget a stated scale: exports in model units")
     p.set_defaults(func=cmd_export)
     p = sub.add_parser("report", help="a static HTML report of the run: workspace/<dataset>/report/index.html")
     _common(p)

@@ -19,7 +19,8 @@ def write_text_model(out_dir: Path, *, image_sizes: list[tuple[int, int]], image
                      track_point2d: np.ndarray, track_point3d: np.ndarray, pixels: list[np.ndarray]) -> Path:
     """COLMAP text model in `out_dir` (cameras/images/points3D/rigs/frames.txt), written by pycolmap through
     `exports.write_colmap_model`: one EQUIRECTANGULAR camera per image size, image id = index + 1, point id =
-    index + 1, point errors in degrees.
+    index + 1, point errors in pixels as COLMAP computes them (`exports.point_errors_px`; `errors_rad` is not
+    written).
 
     Observations are given flat: image index, index of the 2-D point within that image's `pixels`, 3-D point index.
     """

@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import re
+import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,7 @@ import numpy as np
 
 from fullview.io.artifacts import atomic_path, save_json, save_mesh_ply, save_ply
 from fullview.io.errors import FullviewError
+from fullview.sfm.camera import pixels_to_bearings
 from fullview.sfm.open3d_module import open3d
 
 log = logging.getLogger(__name__)
@@ -46,7 +48,7 @@ class SparseModel:
     t_cam_from_world: np.ndarray  # (N, 3) translations
     points: np.ndarray  # (P, 3) world coordinates
     colors: np.ndarray  # (P, 3) uint8 RGB
-    point_errors_rad: np.ndarray  # (P,) mean angular reprojection error, radians
+    point_errors_rad: np.ndarray  # (P,) angular reprojection error, radians (COLMAP gets pixels: point_errors_px)
     track_point3d: np.ndarray  # (K,) observation -> point index
     track_image: np.ndarray  # (K,) observation -> image index
     track_point2d: np.ndarray  # (K,) observation -> index into pixels[image]
@@ -116,8 +118,9 @@ def write_colmap_model(model: SparseModel, out_dir: Path, *, binary: bool) -> Pa
     text models are formatted here, byte for byte the files pycolmap writes (tests compare them). One EQUIRECTANGULAR camera per distinct image size;
     image id = image index + 1, point id = point index + 1 (so ids match the rows of our arrays); only registered
     images are written, with all their 2-D features, and observations in unregistered images are dropped.
-    A point's ERROR is our angular reprojection error in DEGREES, not pixels: the equirectangular pixel size
-    varies with latitude, so a pixel error would not compare across the image.
+    A point's ERROR is COLMAP's mean reprojection error in pixels over its observations in the written images,
+    as COLMAP itself computes it for this camera (`point_errors_px`: equal to pycolmap's
+    `Reconstruction.update_point_3d_errors`).
     The files are written to a temporary folder first and then moved in, so a failure leaves no half model; the
     other format's files of the same model are removed (pycolmap would read a stale .bin before a fresh .txt).
     """
@@ -251,7 +254,7 @@ def _write_text_model(model: SparseModel, folder: Path) -> None:
     (folder / "images.txt").write_text("".join(lines))
 
     xyz = list(map(G17, np.asarray(model.points, np.float64).ravel().tolist()))
-    errors = list(map(G17, np.degrees(np.asarray(model.point_errors_rad, np.float64)).tolist()))
+    errors = list(map(G17, point_errors_px(model).tolist()))
     rgb = np.asarray(model.colors, np.uint8).tolist()
     observations = list(map("%d %d".__mod__, zip((image + 1).tolist(), feature.tolist())))
     starts = np.searchsorted(point, np.arange(num_points + 1)).tolist()
@@ -262,6 +265,43 @@ def _write_text_model(model: SparseModel, folder: Path) -> None:
         "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
         f"# Number of points: {num_points}, mean track length: {G17(num_obs / num_points if num_points else 0)}\n"
         + "".join(rows))
+
+
+def point_errors_px(model: SparseModel) -> np.ndarray:
+    """(P,) each point's mean reprojection error in pixels over its observations in registered images, as COLMAP
+    computes it for an EQUIRECTANGULAR camera (pycolmap 4.2.1's `Reconstruction.update_point_3d_errors`, checked to
+    1e-10 px): the angle between the observed ray and the ray to the point, times W / 2π, the pixels per radian
+    of the panorama's columns. It is the pixel distance on the image at the equator, and does not stretch towards
+    the poles nor jump at the seam (an image-plane distance would do both). -1 (COLMAP's "unknown") for a point
+    without such an observation."""
+    point, image, feature = _registered_observations(model)
+    sizes = np.asarray(model.image_sizes, np.float64).reshape(-1, 2)
+    R = np.asarray(model.R_cam_from_world, np.float64)
+    to_point = np.einsum("kab,kb->ka", R[image], np.asarray(model.points, np.float64)[point]) \
+        + np.asarray(model.t_cam_from_world, np.float64)[image]
+    to_point /= np.linalg.norm(to_point, axis=1, keepdims=True)
+    offsets = np.cumsum([0] + [len(px) for px in model.pixels])
+    flat = np.concatenate([np.asarray(px, np.float64).reshape(-1, 2) for px in model.pixels]) if len(offsets) > 1 \
+        else np.zeros((0, 2))
+    observed = flat[offsets[image] + feature]
+    rays = np.zeros((len(observed), 3))
+    for size in np.unique(sizes[image], axis=0):
+        sel = (sizes[image] == size).all(axis=1)
+        rays[sel] = pixels_to_bearings(observed[sel], int(size[0]), int(size[1]))
+    # the angle from its sine and cosine: accurate for the small angles of good observations
+    angle = np.arctan2(np.linalg.norm(np.cross(rays, to_point), axis=1), np.einsum("ka,ka->k", rays, to_point))
+    error = angle * sizes[image, 0] / (2.0 * np.pi)
+    count = np.bincount(point, minlength=len(model.points))
+    total = np.bincount(point, error, minlength=len(model.points))
+    return np.where(count > 0, total / np.maximum(count, 1), -1.0)
+
+
+def scaled(model: SparseModel, metres_per_unit: float) -> SparseModel:
+    """`model` with every length multiplied by `metres_per_unit` (translations and points; rotations, pixels and
+    angular errors unchanged): a similarity, so every bearing and reprojection error stays as it was."""
+    s = float(metres_per_unit)
+    return dataclasses.replace(model, t_cam_from_world=np.asarray(model.t_cam_from_world, np.float64) * s,
+                               points=np.asarray(model.points, np.float64) * s)
 
 
 def build_reconstruction(model: SparseModel):
@@ -287,19 +327,19 @@ def build_reconstruction(model: SparseModel):
 
 
 def _add_points(rec, model: SparseModel) -> None:
-    """Every point with its track (observations in registered images), colour and error in degrees."""
+    """Every point with its track (observations in registered images), colour and error in pixels."""
     import pycolmap
 
     point, image, feature = _registered_observations(model)
     starts = np.searchsorted(point, np.arange(len(model.points) + 1)).tolist()
     image, feature = (image + 1).tolist(), feature.tolist()
-    errors_deg = np.degrees(np.asarray(model.point_errors_rad, np.float64)).tolist()
+    errors_px = point_errors_px(model).tolist()
     points = np.asarray(model.points, np.float64)
     colors = np.asarray(model.colors, np.uint8)
     for p in range(len(points)):
         s, e = starts[p], starts[p + 1]
         track = pycolmap.Track([pycolmap.TrackElement(i, j) for i, j in zip(image[s:e], feature[s:e])])
-        rec.add_point3D_with_id(p + 1, pycolmap.Point3D(xyz=points[p], color=colors[p], error=errors_deg[p],
+        rec.add_point3D_with_id(p + 1, pycolmap.Point3D(xyz=points[p], color=colors[p], error=errors_px[p],
                                                         track=track))
 
 
@@ -316,7 +356,8 @@ def write_nerfstudio(model: SparseModel, out_dir: Path, *, image_paths: list[str
     spherical sensors) that is exactly our bearing with y and z negated, so `transform_matrix` is our
     camera-to-world [Rᵀ | c] with its y and z columns negated. Pixel centres sit at +0.5 in both.
     Only registered images become frames; `file_path` is `image_paths[k]` as given (nerfstudio resolves a
-    relative path against the folder of transforms.json). w, h and the intrinsics are top-level when all frames
+    relative path against the folder of transforms.json; `hold_images` gives ``images/<name>``, the export's own
+    copies, so the folder travels). w, h and the intrinsics are top-level when all frames
     share a size, else per frame.
     World frame: kept as ours (no re-orientation to nerfstudio's z-up world; its dataparser orients and centres
     the poses itself, `orientation_method="up"` by default), so `applied_transform` is written as the identity.
@@ -338,6 +379,42 @@ def write_nerfstudio(model: SparseModel, out_dir: Path, *, image_paths: list[str
     meta = {"camera_model": "EQUIRECTANGULAR", **shared, "frames": frames,
             "applied_transform": np.eye(4)[:3].tolist(), "ply_file_path": ply_name}
     return save_json(out_dir / "transforms.json", meta)
+
+
+NERFSTUDIO_IMAGES = "images"  # the export's own copies of its frames' images, beside transforms.json
+
+
+def hold_images(model: SparseModel, out_dir: Path, sources: list[Path], *, link: bool = False) -> list[str]:
+    """Put the image of every registered frame into ``out_dir/images/<name>`` (copied, or with `link` hard-linked:
+    no extra space, but the export's file is the dataset's, so an edit of one is an edit of both) and return, per
+    image, its `file_path` for transforms.json: ``images/<name>``, relative to transforms.json, never climbing out
+    (unregistered images: ""). A hard link is impossible across file systems (and on some): those images are
+    copied instead, and the log says how many. An image name that is not a plain file name is an ExportError."""
+    if len(sources) != len(model.image_names):
+        raise ValueError(f"sources has {len(sources)} entries for {len(model.image_names)} images")
+    folder = Path(out_dir) / NERFSTUDIO_IMAGES
+    folder.mkdir(parents=True, exist_ok=True)
+    paths, copied = [""] * len(model.image_names), []
+    for k in np.flatnonzero(model.registered).tolist():
+        name = model.image_names[k]
+        if Path(name).name != name or name in ("", ".", ".."):
+            raise ExportError(f"image name {name!r} is not a plain file name; nerfstudio's images/ cannot hold it")
+        dst = folder / name
+        dst.unlink(missing_ok=True)
+        if link:
+            try:
+                os.link(sources[k], dst)
+            except OSError as e:  # EXDEV across file systems; EPERM, ENOTSUP where the file system has none
+                log.debug("hard link %s -> %s impossible (%s): copied", sources[k], dst, e.strerror)
+                copied.append(name)
+                shutil.copyfile(sources[k], dst)
+        else:
+            shutil.copyfile(sources[k], dst)
+        paths[k] = f"{NERFSTUDIO_IMAGES}/{name}"
+    if link and copied:
+        log.warning("nerfstudio: %d of %d images copied, not linked: a hard link cannot cross file systems (the "
+                    "dataset and the export lie on different ones)", len(copied), len(paths) - paths.count(""))
+    return paths
 
 
 def _equirect_intrinsics(w: int, h: int) -> dict:

@@ -21,6 +21,8 @@ Layout (``FILES`` is the single table of names; nothing else in fullview spells 
         compare_<render type>/colmap.json, colmap.md, top_view.png   (fullview compare)
         colmap_check/check.json, check.md, database.db, faces/       (fullview colmap-check)
         export_<format>/...                                  (fullview export)
+        scale/statement.json                                 (export --camera-height / --known-distance: the
+                                                             user's statement of the metric scale, kept)
         view_cache/<stem>_<width>_<image hash>.jpg           (fullview view: panoramas at display width)
         report/index.html, *.png                             (fullview report)
 
@@ -91,6 +93,7 @@ FILES: dict[str, tuple[str, str]] = {
     "check_database": ("colmap_check", "database.db"),
     "check_face": ("colmap_check", "faces/{face}.png"),
     "export_dir": ("export_{format}", ""),
+    "scale_statement": ("scale", "statement.json"),
     "view_cache": ("view_cache", "{stem}.jpg"),
     "report_page": ("report", "index.html"),
     "report_asset": ("report", "{file}"),

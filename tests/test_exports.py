@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from fullview.io.artifacts import load_ply
 from fullview.io.colmap import load_reconstruction, model_arrays, write_text_model
-from fullview.io.exports import (SparseModel, nerfstudio_camera_to_world, read_nerfstudio, sparse_point_normals,
-                                 write_colmap_model, write_nerfstudio, write_point_cloud)
+from fullview.io.exports import (SparseModel, nerfstudio_camera_to_world, point_errors_px, read_nerfstudio,
+                                 sparse_point_normals, write_colmap_model, write_nerfstudio, write_point_cloud)
 from fullview.sfm.camera import bearings_to_pixels, pixels_to_bearings
 
 pycolmap = pytest.importorskip("pycolmap")
@@ -68,11 +68,12 @@ def test_colmap_model_round_trips_through_pycolmap(tmp_path, binary):
         assert np.allclose([p.xy for p in image.points2D], m.pixels[k], rtol=0, atol=1e-9)
     assert rec.num_points3D() == len(m.points)
     keep = m.registered[m.track_image]
+    errors_px = point_errors_px(m)
     for p in range(len(m.points)):
         point = rec.points3D[p + 1]
         assert np.allclose(point.xyz, m.points[p], rtol=0, atol=1e-9)
         assert np.array_equal(point.color, m.colors[p])
-        assert point.error == pytest.approx(np.degrees(m.point_errors_rad[p]), abs=1e-9)
+        assert point.error == pytest.approx(errors_px[p], abs=1e-9)  # pixels, as COLMAP's ERROR
         sel = keep & (m.track_point3d == p)
         expected = set(zip((m.track_image[sel] + 1).tolist(), m.track_point2d[sel].tolist()))
         assert {(e.image_id, e.point2D_idx) for e in point.track.elements} == expected
