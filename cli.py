@@ -41,6 +41,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_status(args) -> int:
+    from fullview.sfm.registration.evidence import verdict_line
     pipeline = _pipeline(args)
     pipeline.ws.check_root()
     with pipeline.ws.reading():
@@ -49,8 +50,11 @@ def cmd_status(args) -> int:
             why = f" ({'; '.join(st.reasons)})" if st.state != "fresh" else ""
             print(f"{stage:<14}{st.state}{why}")
         line = _models_line(pipeline)
-    if line:
-        print(line)
+        verdicts = verdict_line((pipeline.ws.read_manifest("registration") or {}).get("summary", {})) \
+            if pipeline.status("registration").state == "fresh" else None  # docs/trust.md
+    for text in (line, verdicts):
+        if text:
+            print(text)
     return 0
 
 

@@ -120,3 +120,14 @@ def weakest_links(records: dict[str, dict], toward_main: dict[int, list[tuple[st
                                                                           if pairs else ""),
                     "confirm": f"a panorama between {name} and {other}, or hand points on {name} / {other}"})
     return out[:count] if count else out
+
+
+def verdict_line(summary: dict) -> str | None:
+    """`status`'s line, e.g. "registration: 28 verified, 2 approximate, 2 in own models", from the registration
+    summary (None when it holds no verdicts: a workspace from before they existed)."""
+    v = summary.get("verdicts")
+    if not v:
+        return None
+    rest = f", {v['unregistered']} in no model" if v.get("unregistered") else ""
+    return (f"registration: {v['verified']} verified, {v['approximate']} approximate, {v['own_model']} in own "
+            f"models{rest}")
