@@ -33,6 +33,9 @@ from typing import Sequence
 import numpy as np
 
 from fullview.sfm.attach import attach_cameras, model_points
+from fullview.sfm.heights import (BRIDGE_FLOOR_AGREEMENT, BRIDGE_MIN_FLOOR_POINTS, MAX_NEIGHBOUR_DEVIATION,
+                                  MIN_SHARE)
+from fullview.sfm.registration.free_blocks import camera_heights, floor_clusters
 from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.metrics import umeyama
 from fullview.sfm.options import MatchesOptions, RegistrationOptions
@@ -152,8 +155,10 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
         _grow(state, m, links, bearings, options, descriptors)
     merge_points = options.min_merge_points if options.merge_models else None
     while (merge_points is not None and _merge_once(state, links, bearings, options, merge_points, descriptors)) or \
-            _join_along_verified_pairs(state, links, bearings, options, descriptors):
+            _join_along_verified_pairs(state, links, bearings, options, descriptors, gravity=gravity):
         pass
+    # a camera only verified pairs tie to a model (a leaf past a doorway): joined where its floor measures the length
+    _join_single_images(state, links, bearings, options, descriptors, gravity=gravity)
     if options.resection and descriptors is not None:
         while _absorb_a_model_by_matching(state, links, bearings, options, descriptors):
             pass
@@ -172,13 +177,8 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
         # last, and nothing grows from them: along verified pairs between two models (an image in none is a model
         # of one here), else by a weak join whose scale is a guess (one rematched pair alone, or pairs touching one
         # camera of a model)
-        alone = _free_images_as_models(state, links)
-        while _join_along_verified_pairs(state, links, bearings, options, unconfirmed=True) or (
-                weak is not None and weak(unconfirmed=True, guess=rematch)):
-            pass
-        for k in alone[state.sizes_of(alone) == 1]:  # nothing joined it: in no model again
-            state.model_id[k] = -1
-            state.own.pop(int(k), None)
+        _join_single_images(state, links, bearings, options, descriptors, gravity=gravity, unconfirmed=True,
+                            weak=partial(weak, unconfirmed=True, guess=rematch) if weak is not None else None)
     _renumber(state)
     if pair_matches is not None and options.min_weak_pair_inliers:
         joined = set(state.weak_pair_matches)  # the weak joins' matches, if any: not added twice
@@ -777,6 +777,22 @@ def _record_join(state: ModelSet, kind: str, images, *, confirmed: bool, **evide
                                "scale": "measured" if confirmed else "guessed", "evidence": evidence})
 
 
+def _join_single_images(state: ModelSet, links: PairLinks, bearings, options: RegistrationOptions, descriptors=None,
+                        *, gravity=None, unconfirmed: bool = False, weak=None) -> None:
+    """Images in no model that verified pairs tie to one, each a model of one image while
+    `_join_along_verified_pairs` (then `weak`, when given) joins what it can; those still alone are in no model
+    again."""
+    alone = _free_images_as_models(state, links)
+    if not len(alone):
+        return
+    while _join_along_verified_pairs(state, links, bearings, options, descriptors, unconfirmed=unconfirmed,
+                                     gravity=gravity) or (weak is not None and weak()):
+        pass
+    for k in alone[state.sizes_of(alone) == 1]:  # nothing joined it: in no model again
+        state.model_id[k] = -1
+        state.own.pop(int(k), None)
+
+
 def _free_images_as_models(state: ModelSet, links: PairLinks) -> np.ndarray:
     """Each image in no model that a verified pair ties to one becomes a model of one image (identity pose), so
     that `_join_along_verified_pairs` may attach it; their ids."""
@@ -791,12 +807,16 @@ def _free_images_as_models(state: ModelSet, links: PairLinks) -> np.ndarray:
 
 
 def _join_along_verified_pairs(state: ModelSet, links: PairLinks, bearings, options: RegistrationOptions,
-                               descriptors=None, *, unconfirmed: bool = False) -> bool:
+                               descriptors=None, *, unconfirmed: bool = False, gravity: np.ndarray | None = None
+                               ) -> bool:
     """Two models that verified pairs join (never pairs averaging rejected): the smaller moves into the larger by
     the rotation of the strongest pair between them and the placement its cross pairs' baseline rays give
     (`weak_joins._place`, every pair within its 2 degrees). Rays from two or more cameras of each model fix the scale:
     the join is confirmed, the model is adjusted and grows again. Rays from one camera of either fix the shape, not
-    the size: model a's median baseline sets b's scale (`weak_joins.guessed_scale`), a guess, taken only when
+    the size: with ``gravity`` ((N, 3) per image, zero rows unknown) the camera height measures it where both models'
+    cameras agree on their height above the floor (a tripod keeps it: `_scale_by_camera_height`), and the floor
+    below one pair's two cameras measures that pair's length (`_length_by_floor`); the join is then confirmed.
+    Otherwise model a's median baseline sets b's scale (`weak_joins.guessed_scale`), a guess, taken only when
     ``unconfirmed`` (`unconfirmed_joins: approximate`), its cameras marked approximate and nothing grown from them.
     True if a model was moved."""
     pairs, model_id = links.pairs, state.model_id
@@ -834,6 +854,11 @@ def _join_along_verified_pairs(state: ModelSet, links: PairLinks, bearings, opti
                 pair, _, u, _ = agree[0]
                 scale = guessed_scale(step_a, step_b)
                 placed = scale, C[pair.l] + step_a * u - scale * M @ C[pair.k], True
+            heights = None
+            if placed[2] and gravity is not None:
+                heights = _placement_by_camera_height(state, a, b, agree, M, bearings, gravity)
+                if heights is not None:
+                    placed, heights = heights
             if placed[2] and not unconfirmed:
                 continue
             scale, shift, guessed = placed
@@ -842,8 +867,10 @@ def _join_along_verified_pairs(state: ModelSet, links: PairLinks, bearings, opti
             state.centers[cams_b] = scale * C[cams_b] @ M.T + shift
             state.model_id[cams_b] = a
             evidence = [[f[0].k, f[0].l, f[3]] for f in agree]
-            _record_join(state, "verified pairs" if not guessed else "verified pairs, guessed scale", cams_b,
-                         confirmed=not guessed, pairs=evidence)
+            kind = ("verified pairs, guessed scale" if guessed else "verified pairs, scale by camera height"
+                    if heights is not None else "verified pairs")
+            _record_join(state, kind, cams_b, confirmed=not guessed, pairs=evidence,
+                         **({"camera_height": heights} if heights is not None else {}))
             if guessed:
                 state.approximate[cams_b] = True
                 log.warning("model %d (%d images) attached to model %d along verified pairs %s at a guessed scale: "
@@ -855,6 +882,109 @@ def _join_along_verified_pairs(state: ModelSet, links: PairLinks, bearings, opti
             _grow(state, a, links, bearings, options, descriptors)
             return True
     return False
+
+
+def _placement_by_camera_height(state: ModelSet, a: int, b: int, agree: list, M: np.ndarray, bearings,
+                                gravity: np.ndarray):
+    """((scale, shift, False), heights) placing model b by verified pairs' rays (`agree`: (pair, M, u, inliers) with
+    the rotation M of b into a) whose scale the camera height measures: a tripod tour keeps one height, and each
+    model's cameras see the floor below them in its own units (`free_blocks.camera_heights`), so b's scale is the
+    ratio of the models' common heights (`_common_height`). A model of one camera has no size; the pair's length
+    along one ray is measured by the floor below its two cameras (`_length_by_floor`). None where a height is not
+    measured."""
+    H_a = _common_height(state, a, bearings, gravity)
+    cams_b = np.flatnonzero(state.model_id == b)
+    H_b = _common_height(state, b, bearings, gravity) if len(cams_b) > 1 else None
+    if H_a is None or (len(cams_b) > 1 and H_b is None):
+        return None
+    scale = H_a / H_b if H_b is not None else 1.0
+    C = state.centers
+    C_a = {int(k): C[k] for k in np.flatnonzero(state.model_id == a)}
+    C_b = {int(k): C[k] for k in cams_b}
+    if len({f[0].k for f in agree}) > 1 or len({f[0].l for f in agree}) > 1:
+        placed = _place(M, agree, C_a, C_b, scale, 1.0)  # the rays fix the shift under the measured scale
+        if placed is None:
+            return None
+        shift = placed[1]
+    else:
+        pair, _, u, _ = agree[0]
+        length = _length_by_floor(state, pair.l, pair.k, M, u, H_a, bearings, _model_down(state, a, gravity))
+        if length is None:
+            return None
+        shift = C[pair.l] + length * u - scale * M @ C[pair.k]
+    heights = {"model": round(float(H_a), 4), "joined": None if H_b is None else round(float(H_b), 4)}
+    log.info("model %d joined to model %d at the scale its camera height measures (%.4f against %s)", b, a, H_a,
+             "one camera" if H_b is None else f"{H_b:.4f}")
+    return (float(scale), shift, False), heights
+
+
+def _model_down(state: ModelSet, m: int, gravity: np.ndarray) -> np.ndarray | None:
+    """Model m's down direction (world), the mean of its cameras' measured gravity carried to the world."""
+    cams = np.flatnonzero((state.model_id == m) & (np.linalg.norm(gravity, axis=1) > 0))
+    if not len(cams):
+        return None
+    mean = np.einsum("nji,nj->i", state.R_cam_from_world[cams], gravity[cams])
+    return mean / np.linalg.norm(mean)
+
+
+def _common_height(state: ModelSet, m: int, bearings, gravity: np.ndarray) -> float | None:
+    """Model m's cameras' common height above their floor points (its units): the median of the cameras that
+    measure one and agree with it within `heights.MAX_NEIGHBOUR_DEVIATION` (furniture tops sit 20-50% higher),
+    two cameras or more and `heights.MIN_SHARE` of those that measure; None otherwise."""
+    down = _model_down(state, m, gravity)
+    if down is None:
+        return None
+    X, point_of_track = _points_of(state, m, state.tracks, bearings)
+    tracks = state.tracks
+    sel = (state.model_id[tracks.image_ids] == m) & (point_of_track[tracks.track_ids] >= 0)
+    if not sel.any():
+        return None
+    h = camera_heights(state.centers, np.broadcast_to(down, state.centers.shape), X,
+                       point_of_track[tracks.track_ids[sel]], tracks.image_ids[sel])
+    h = h[(state.model_id == m) & np.isfinite(h) & (h > 0)]
+    if len(h) < 2:
+        return None
+    level = float(np.median(h))
+    agreeing = np.abs(np.log(h / level)) <= MAX_NEIGHBOUR_DEVIATION
+    if agreeing.sum() < max(2, MIN_SHARE * len(h)):
+        return None
+    return float(np.median(h[agreeing]))
+
+
+def _length_by_floor(state: ModelSet, l: int, k: int, M: np.ndarray, u: np.ndarray, level: float, bearings,
+                     down: np.ndarray | None) -> float | None:
+    """The length of the verified pair from camera l (model a) to camera k (model b, rotated by M) along u that puts
+    the floor its own tracks show below both cameras at model a's camera height `level` (the triangulation's bridge
+    rule, `heights.bridge_floor_scale`): the pair's tracks triangulated at unit length, their farthest-down cluster
+    below each camera (BRIDGE_MIN_FLOOR_POINTS), both depths agreeing within BRIDGE_FLOOR_AGREEMENT. None without."""
+    if down is None:
+        return None
+    tracks = state.tracks
+    on_l, on_k = tracks.image_ids == l, tracks.image_ids == k
+    common, at_l, at_k = np.intersect1d(tracks.track_ids[on_l], tracks.track_ids[on_k], return_indices=True)
+    if len(common) < BRIDGE_MIN_FLOOR_POINTS:
+        return None
+    z_l = bearings[l][tracks.feature_ids[on_l][at_l]] @ state.R_cam_from_world[l]  # world rays
+    z_k = bearings[k][tracks.feature_ids[on_k][at_k]] @ (state.R_cam_from_world[k] @ M.T)
+    C_l, C_k = state.centers[l], state.centers[l] + u
+    # closest points of the two rays: C_l + s z_l = C_k + t z_k (least squares in s, t)
+    w = C_k - C_l
+    A11, A12, A22 = (z_l * z_l).sum(1), -(z_l * z_k).sum(1), (z_k * z_k).sum(1)
+    r1, r2 = z_l @ w, -(z_k @ w)
+    det = A11 * A22 - A12 * A12
+    ok = np.abs(det) > 1e-9
+    s_l = np.where(ok, (r1 * A22 - A12 * r2) / np.where(ok, det, 1.0), -1.0)
+    t_k = np.where(ok, (A11 * r2 - A12 * r1) / np.where(ok, det, 1.0), -1.0)
+    front = (s_l > 0) & (t_k > 0)
+    if front.sum() < BRIDGE_MIN_FLOOR_POINTS:
+        return None
+    X = 0.5 * (C_l + s_l[front, None] * z_l[front] + C_k + t_k[front, None] * z_k[front])
+    n = len(X)
+    _, _, h = floor_clusters(np.stack([C_l, C_k]), np.stack([down, down]), X, np.r_[np.arange(n), np.arange(n)],
+                             np.repeat([0, 1], n), min_points=BRIDGE_MIN_FLOOR_POINTS)
+    if not (np.isfinite(h).all() and (h > 0).all() and abs(np.log(h[0] / h[1])) <= BRIDGE_FLOOR_AGREEMENT):
+        return None
+    return float(level / np.mean(h))
 
 
 def _placement_agrees(M: np.ndarray, placed: tuple, *, points: tuple[ModelPoints, ModelPoints], bearings,
