@@ -780,10 +780,10 @@ def _record_join(state: ModelSet, kind: str, images, *, confirmed: bool, **evide
 def _join_single_images(state: ModelSet, links: PairLinks, bearings, options: RegistrationOptions, descriptors=None,
                         *, gravity=None, unconfirmed: bool = False, weak=None) -> None:
     """Images in no model that verified pairs tie to one, each a model of one image while
-    `_join_along_verified_pairs` (then `weak`, when given) joins what it can; those still alone are in no model
-    again."""
+    `_join_along_verified_pairs` (then `weak`, when given) joins what it can (every model, with ``unconfirmed``);
+    those still alone are in no model again."""
     alone = _free_images_as_models(state, links)
-    if not len(alone):
+    if not len(alone) and weak is None and not unconfirmed:
         return
     while _join_along_verified_pairs(state, links, bearings, options, descriptors, unconfirmed=unconfirmed,
                                      gravity=gravity) or (weak is not None and weak()):
