@@ -9,8 +9,9 @@ A camera's verdict:
   approximate``). Approximate cameras stay out of densify and the exports.
 
 A join is confirmed when shared points (``registration.min_merge_points`` or more, or ``min_join_points`` for
-parts of one averaged layout), independent 2D-3D resections, or a second independent pair agree with it and fix its
-scale; one that rests on a guessed scale or length (one pair alone, or pairs that touch one camera of a side) is not.
+parts of one averaged layout), independent 2D-3D resections, a second independent pair, or the camera height above
+the floor (a tripod keeps it) agree with it and fix its scale; one that rests on a guessed scale or length (one pair
+alone, or pairs that touch one camera of a side, with no floor to measure them) is not.
 Pure bookkeeping: no file access.
 """
 
