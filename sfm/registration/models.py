@@ -154,11 +154,16 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
         # grow before the next model starts, so images a model can hold never start tiny models of their own
         _grow(state, m, links, bearings, options, descriptors)
     merge_points = options.min_merge_points if options.merge_models else None
-    while (merge_points is not None and _merge_once(state, links, bearings, options, merge_points, descriptors)) or \
-            _join_along_verified_pairs(state, links, bearings, options, descriptors, gravity=gravity):
-        pass
-    # a camera only verified pairs tie to a model (a leaf past a doorway): joined where its floor measures the length
-    _join_single_images(state, links, bearings, options, descriptors, gravity=gravity)
+
+    def by_evidence() -> None:
+        """Merges by shared points and joins along verified pairs, until none is left; then the single images
+        verified pairs tie to a model (a leaf past a doorway), joined where the floor measures the length."""
+        while (merge_points is not None and _merge_once(state, links, bearings, options, merge_points, descriptors)) \
+                or _join_along_verified_pairs(state, links, bearings, options, descriptors, gravity=gravity):
+            pass
+        _join_single_images(state, links, bearings, options, descriptors, gravity=gravity)
+
+    by_evidence()
     if options.resection and descriptors is not None:
         while _absorb_a_model_by_matching(state, links, bearings, options, descriptors):
             pass
@@ -170,7 +175,7 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
                        options, descriptors, guided, rematch, wall_axes if one_pair else None, one_pair, several,
                        options.join_check)
         while weak():
-            pass
+            by_evidence()  # a weak join may bring verified pairs or shared points between two models
     else:
         weak = None
     if options.unconfirmed_joins == "approximate":
