@@ -294,7 +294,8 @@ def _write(ctx: StageContext, obs, model_id, R, t, tracks: Tracks, points, error
                         colors=colors, point_errors_rad=point_error, track_point3d=tracks.track_ids,
                         track_image=tracks.image_ids, track_point2d=tracks.feature_ids,
                         pixels=[o["pixels"] for o in obs])
-    for k, model in enumerate(split_models(whole, model_id)):
+    # approximate cameras (placed by a join nothing confirms, docs/trust.md) stay out of the COLMAP models
+    for k, model in enumerate(split_models(whole, np.where(ctx.ws.verified_mask(), model_id, -1))):
         write_colmap_model(model, ctx.out.path("sparse_model", model=k), binary=False)
     return summary
 
