@@ -97,3 +97,77 @@ def test_a_camera_carried_by_an_unconfirmed_join_is_approximate_and_a_confirmed_
     assert verdict_line({"verdicts": counts}) == "registration: 2 verified, 1 approximate, 0 in own models, 1 in no model"
     links = weakest_links(guessed, {})
     assert links[0]["link"] == "c – b" and "hand points on c / b" in links[0]["confirm"]
+
+
+def _two_rooms_and_a_doorway_pair(floor_at_door: bool):
+    """Rooms A (cameras 0-2) and B (3-5), a tripod tour 1.5 above the floor (world y down, floor at y = 1.5); each
+    room's cameras see its own walls and floor, and only doorway pair 2-3 sees the doorway's points (two-view
+    tracks: they fix the pair's direction, not its length). With `floor_at_door`, those are floor points below both
+    of its cameras; else all of them lie above the cameras (the door frame)."""
+    from scipy.spatial.transform import Rotation
+
+    from fullview.sfm.camera import normalize
+    from fullview.sfm.registration.models import PairLinks
+    from fullview.sfm.tracks import build_tracks
+    rng = np.random.default_rng(3)
+    centres = np.array([[-5.0, 0, -1.0], [-3.5, 0, 1.5], [-1.2, 0, 0.2], [1.4, 0, -0.3], [3.5, 0, 1.2],
+                        [5.5, 0, -1.4]])
+    R = Rotation.from_euler("y", rng.uniform(-np.pi, np.pi, (6, 1))).as_matrix()
+    n = 1500
+    walls = np.column_stack([rng.uniform(-8, 8, n), rng.uniform(-1.5, 1.4, n), rng.choice([-4.0, 4.0], n)])
+    floor = np.column_stack([rng.uniform(-8, 8, n), np.full(n, 1.5), rng.uniform(-3.5, 3.5, n)])
+    door = np.column_stack([rng.uniform(-0.5, 0.5, 60), np.full(60, 1.5) if floor_at_door else
+                            rng.uniform(-1.5, -0.2, 60), rng.uniform(-0.8, 0.8, 60)])  # else: the frame, the lintel
+    X = np.concatenate([walls, floor, door])
+    room = np.r_[np.sign(walls[:, 0]), np.sign(floor[:, 0]), np.zeros(60)]
+    keep = (np.abs(X[:, 0]) > 0.6) | (room == 0)
+    X, room = X[keep], room[keep]
+    side = np.array([-1, -1, -1, 1, 1, 1])
+    seen = [(room == side[k]) | ((room == 0) & (k in (2, 3))) for k in range(6)]
+    feature_of = [np.flatnonzero(s) for s in seen]
+    bearings = [normalize((X[f] - c) @ r.T) for f, c, r in zip(feature_of, centres, R)]
+    matches = {}
+    for i in range(6):
+        for j in range(i + 1, 6):
+            if side[i] == side[j] or (i, j) == (2, 3):
+                _, a, b = np.intersect1d(feature_of[i], feature_of[j], return_indices=True)
+                matches[(i, j)] = np.column_stack([a, b])
+    pairs = np.array(list(matches))
+    t = -np.einsum("nab,nb->na", R, centres)
+    R_rel = R[pairs[:, 1]] @ np.swapaxes(R[pairs[:, 0]], 1, 2)
+    t_rel = normalize(t[pairs[:, 1]] - np.einsum("pab,pb->pa", R_rel, t[pairs[:, 0]]))
+    links = PairLinks(pairs=pairs, R_j_from_i=R_rel, t_j_from_i=t_rel,
+                      weights=np.array([len(matches[tuple(p)]) for p in pairs], float))
+    tracks, _ = build_tracks(matches, [len(b) for b in bearings])
+    gravity = R @ np.array([0.0, 1.0, 0.0])  # each camera's down, in its frame
+    return centres, links, tracks, bearings, gravity
+
+
+def _similarity_residual(estimated: np.ndarray, truth: np.ndarray) -> float:
+    from fullview.sfm.metrics import umeyama
+    return float(np.abs(umeyama(estimated, truth).apply(estimated) - truth).max())
+
+
+@pytest.mark.parametrize("floor_at_door", [True, False])
+def test_one_doorway_pair_joins_two_rooms_as_fact_only_where_the_camera_height_measures_it(floor_at_door):
+    """A doorway pair fixes the rotation and direction between the rooms, not its length nor room B's scale. The
+    camera height does (a tripod keeps it: each room's floor below its cameras, and the doorway's floor below the
+    pair's two cameras): then the rooms are one model at the true similarity, the join confirmed by it. Without the
+    floor at the door nothing measures the pair's length: two models, never a guessed placement."""
+    from fullview.sfm.options import RegistrationOptions
+    from fullview.sfm.registration.models import build_models
+    centres, links, tracks, bearings, gravity = _two_rooms_and_a_doorway_pair(floor_at_door)
+    models = build_models(links=links, tracks=tracks, bearings=bearings, options=RegistrationOptions(),
+                          gravity=gravity)
+    assert not models.approximate.any() and all(j["confirmed"] for j in models.join_records)
+    if floor_at_door:
+        assert models.sizes() == [6]
+        assert [j["kind"] for j in models.join_records] == ["verified pairs, scale by camera height"]
+        assert _similarity_residual(models.centers, centres) < 1e-3
+    else:
+        assert models.sizes() == [3, 3] and not models.join_records
+        for m in (0, 1):
+            k = np.flatnonzero(models.model_id == m)
+            assert _similarity_residual(models.centers[k], centres[k]) < 1e-6
+    without_gravity = build_models(links=links, tracks=tracks, bearings=bearings, options=RegistrationOptions())
+    assert without_gravity.sizes() == [3, 3]
