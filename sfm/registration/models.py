@@ -816,10 +816,11 @@ def _join_along_verified_pairs(state: ModelSet, links: PairLinks, bearings, opti
                                ) -> bool:
     """Two models that verified pairs join (never pairs averaging rejected): the smaller moves into the larger by
     the rotation of the strongest pair between them and the placement its cross pairs' baseline rays give
-    (`weak_joins._place`, every pair within its 2 degrees). Rays from two or more cameras of each model fix the scale:
-    the join is confirmed, the model is adjusted and grows again. Rays from one camera of either fix the shape, not
+    (`weak_joins._place`, every pair within its 2 degrees). Rays from two or more cameras of each model fix the scale,
+    and MIN_AGREEING_PAIRS of them or more check it (two rays are exactly the 4 unknowns): the join is confirmed, the
+    model is adjusted and grows again. Rays from one camera of either fix the shape, not
     the size: with ``gravity`` ((N, 3) per image, zero rows unknown) the camera height measures it where both models'
-    cameras agree on their height above the floor (a tripod keeps it: `_scale_by_camera_height`), and the floor
+    cameras agree on their height above the floor (a tripod keeps it: `_placement_by_camera_height`), and the floor
     below one pair's two cameras measures that pair's length (`_length_by_floor`); the join is then confirmed.
     Otherwise model a's median baseline sets b's scale (`weak_joins.guessed_scale`), a guess, taken only when
     ``unconfirmed`` (`unconfirmed_joins: approximate`), its cameras marked approximate and nothing grown from them.
@@ -854,6 +855,8 @@ def _join_along_verified_pairs(state: ModelSet, links: PairLinks, bearings, opti
             step_b = float(steps[b]) if np.isfinite(steps[b]) else step_a
             one_ray = len({f[0].k for f in agree}) < 2 and len({f[0].l for f in agree}) < 2
             placed = None if one_ray else _place(M, agree, frames["C_a"], frames["C_b"], step_a, step_b)
+            if placed is not None and len(agree) < MIN_AGREEING_PAIRS:
+                placed = placed[0], placed[1], True  # determined, not checked: no better than a guess
             if placed is None:  # one ray fixes no length along it either: model a's median baseline
                 agree = fits[:1]
                 pair, _, u, _ = agree[0]
