@@ -61,6 +61,11 @@ def confirmed_by(join: dict) -> str:
     e = join["evidence"]
     if not join["confirmed"]:
         return "nothing: its scale and length are guesses"
+    if "camera_height" in e:
+        h = e["camera_height"]
+        joined = "one camera" if h["joined"] is None else f"{h['joined']} in its own model"
+        return (f"the camera height above the floor ({h['model']} in the model's units, {joined}) sets its scale"
+                + (" and the floor below the pair's cameras its length" if len(e.get("pairs", [])) == 1 else ""))
     if "points" in e:
         return f"{e['points']} shared points fit both sides"
     if "tracks" in e:
