@@ -89,7 +89,10 @@ def run(ctx: StageContext) -> dict:
                "resected": [names[k] for k in models.resected],
                "merged": [{"images": [names[k] for k in m["images"]], "points": m["points"]} for m in models.merges],
                "joined_parts": [{"images": [names[k] for k in j["images"]], "tracks": j["tracks"],
-                                 "scale": j["scale"], "confirmed": j.get("confirmed", False)} for j in models.joins],
+                                 # every part joins by tracks agreeing on its scale (confirmed); kept_averaging: they
+                                 # agree with averaging's own placement, which stays
+                                 "scale": j["scale"], "confirmed": True, "kept_averaging": j.get("confirmed", False)}
+                                for j in models.joins],
                "matched_2d3d": [names[k] for k in models.matched],
                "pairs_toward_model_0": {str(m): text for m, text in toward_main.items()},
                "model": options.model, "inlier_pairs": int(pair_ok.sum()), "epipole_cost": float(models.epipole_cost),
