@@ -94,7 +94,8 @@ def test_a_camera_carried_by_an_unconfirmed_join_is_approximate_and_a_confirmed_
     assert guessed["c"]["how"] == "resection" and guessed["c"]["evidence"]["inliers_2d3d"] == 40
     counts = verdict_counts(guessed, 4)
     assert counts == {"verified": 2, "approximate": 1, "own_model": 0, "unregistered": 1}
-    assert verdict_line({"verdicts": counts}) == "registration: 2 verified, 1 approximate, 0 in own models, 1 in no model"
+    line = "registration: 2 verified, 1 approximate, 0 in own models, 1 in no model"
+    assert verdict_line({"verdicts": counts}) == line
     links = weakest_links(guessed, {})
     assert links[0]["link"] == "c – b" and "hand points on c / b" in links[0]["confirm"]
 

@@ -255,7 +255,8 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
 def _weak_pair_matches(state: ModelSet, links: PairLinks, pair_matches: dict[tuple[int, int], np.ndarray], bearings,
                        options: RegistrationOptions) -> list[tuple[int, int, int, int]]:
     """Inlier matches (image, feature, image, feature) of the pairs too weak to use (unverified, or below
-    `min_inliers`) that touch an approximate part (its scale guessed: `unconfirmed_joins: approximate`), where their raw matches, under the model's rotations, give a baseline on `min_weak_pair_inliers` inliers
+    `min_inliers`) that touch an approximate part (its scale guessed: `unconfirmed_joins: approximate`), where their
+    raw matches, under the model's rotations, give a baseline on `min_weak_pair_inliers` inliers
     within `WEAK_PAIR_MAX_OFF_DEG` of the model's and whose far camera that direction moves sideways by at most
     `WEAK_PAIR_MAX_SHIFT` of the model's median used-pair baseline (on a long pair a few degrees are a shift no
     guessed scale explains, and its tracks alone may then set a room's scale in the bundle adjustment).

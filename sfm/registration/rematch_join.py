@@ -40,8 +40,8 @@ it only beats every quarter turn (`SEVERAL_MARGINS`), with `MIN_SEVERAL_CONFIRME
 its cameras that do the same under its rotation and place b consistently. The guard is the join check
 (`accept`, `placement_check`), which every join found here passes before it is taken.
 
-A guess (`guess`, only with `registration.unconfirmed_joins: approximate`, the very last): a doorway pair that the rematch confirms by
-homejoin's margins, with no companion and none of either model's points among its matches (1024 home seed 92: 016-002,
+A guess (`guess`, only with `registration.unconfirmed_joins: approximate`, the very last): a doorway pair that the
+rematch confirms by homejoin's margins, with no companion and none of either model's points among its matches (1024 home seed 92: 016-002,
 51 rematched, 1 point of each model), fixes b's rotation and the direction from l to k, not the length nor b's
 scale: k is put on the ray at model a's median baseline, b's scale is the median baselines' ratio, and the
 triangulation stage's height prior and bridge floor measure both. Where no upright fit of the doorway exists (seed
