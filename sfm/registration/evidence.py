@@ -95,8 +95,8 @@ def weakest_links(records: dict[str, dict], toward_main: dict[int, list[tuple[st
                   count: int = 5) -> list[dict]:
     """The links a user can strengthen, weakest first, each {"link", "evidence", "confirm"}: approximate joins (the
     pair they rest on), separate models (their best pairs toward model 0: `toward_main`, model -> [(image of the
-    model, image of model 0, raw matches, inliers)]), then the verified cameras with the least evidence (one
-    verified pair)."""
+    model, image of model 0, raw matches, inliers)]), the joins only the camera height confirms, then the verified
+    cameras with the least evidence (one verified pair)."""
     out, seen = [], set()
     for name, r in records.items():
         for j in r["joins"]:
@@ -116,6 +116,15 @@ def weakest_links(records: dict[str, dict], toward_main: dict[int, list[tuple[st
         out.append({"link": f"model {m} – model 0 at {a} – {b}",
                     "evidence": f"{raw} raw matches, {inliers} inliers: too few to verify alone",
                     "confirm": f"8 hand points on {a} / {b}"})
+    for name, r in records.items():  # confirmed by the camera height alone: the tripod's word, no shared point
+        for j in r["joins"]:
+            pair = (j["evidence"].get("pairs") or [[name, "?", 0]])[0]
+            key = (j["kind"], pair[0], pair[1])
+            if not j["confirmed"] or "camera_height" not in j["evidence"] or key in seen:
+                continue
+            seen.add(key)
+            out.append({"link": f"{pair[0]} – {pair[1]}", "evidence": f"{j['kind']} ({pair[2]} inliers)",
+                        "confirm": f"8 hand points on {pair[0]} / {pair[1]}, or a panorama between them"})
     thin = sorted((len(r["evidence"]["verified_pairs"]), name) for name, r in records.items()
                   if r["verdict"] != "approximate" and len(r["evidence"]["verified_pairs"]) <= 1
                   and r["how"] == "averaging")
