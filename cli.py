@@ -135,6 +135,7 @@ def _command(name: str, args) -> str:
 
 
 def cmd_status(args) -> int:
+    from fullview.sfm.registration.evidence import verdict_line
     pipeline, settings = _pipeline_and_settings(args)
     pipeline.ws.check_root()
     with pipeline.ws.reading():
@@ -143,8 +144,11 @@ def cmd_status(args) -> int:
             why = f" ({'; '.join(st.reasons)})" if st.state != "fresh" else ""
             print(f"{stage:<14}{st.state}{why}")
         line = _models_line(pipeline)
-    if line:
-        print(line)
+        verdicts = verdict_line((pipeline.ws.read_manifest("registration") or {}).get("summary", {})) \
+            if pipeline.status("registration").state == "fresh" else None  # docs/trust.md
+    for text in (line, verdicts):
+        if text:
+            print(text)
     print(f"workspace: {pipeline.ws.root}")
     for line in _settings_lines(settings):
         print(line)

@@ -33,7 +33,8 @@ def report(pipeline: Pipeline) -> str:
     ws = pipeline.ws
     with ws.locked(command="fullview report"), ws.transaction(folder_of("report_page")) as out:
         with ws.reading():
-            sections = [_stages(pipeline), _pairs(pipeline, out), _cameras(pipeline, out), _errors(pipeline, out),
+            sections = [_stages(pipeline), _pairs(pipeline, out), _cameras(pipeline, out), _placements(pipeline),
+                        _errors(pipeline, out),
                         _depth(pipeline, out), _metrics(pipeline), _viewer(pipeline)]
         page = _PAGE.format(title=html.escape(pipeline.dataset.name), body="\n".join(s for s in sections if s))
         out.save_text("report_page", page)
@@ -134,6 +135,36 @@ def _cameras(pipeline: Pipeline, out: StageWriter) -> str:
         f"<li>{html.escape(n)}: {html.escape(why.get(n, 'no reason recorded'))}</li>" for n in missing) + "</ul>"
         if missing else "")
     return f"<h2>Cameras</h2>{note}<img src='cameras.png' alt='cameras from above'>"
+
+
+def _placements(pipeline: Pipeline) -> str:
+    """Each camera's verdict and how it was placed, and the weakest links with what would confirm them
+    (registration.json; docs/trust.md)."""
+    summary = (pipeline.ws.read_manifest("registration") or {}).get("summary") or {}
+    records = summary.get("placements")
+    if not records:
+        return ""
+    rows = []
+    for name, r in records.items():
+        pairs = r["evidence"].get("verified_pairs", [])
+        evidence = f"{len(pairs)} verified pairs" + (f" (best {pairs[0][1]} inliers)" if pairs else "")
+        if "inliers_2d3d" in r["evidence"]:
+            evidence += f", {r['evidence']['inliers_2d3d']} 2D-3D inliers"
+        joins = "; ".join(f"{j['kind']}: {j['confirmed_by']}" for j in r["joins"]) or "—"
+        rows.append(f"<tr class='{html.escape(r['verdict'])}'><td>{html.escape(name)}</td>"
+                    f"<td>{html.escape(r['verdict'])}</td><td>{html.escape(r['how'])}</td>"
+                    f"<td>{html.escape(evidence)}</td><td>{html.escape(joins)}</td>"
+                    f"<td>{html.escape(r['scale'])}</td></tr>")
+    counts = summary.get("verdicts", {})
+    head = ", ".join(f"{counts.get(k, 0)} {k.replace('_', ' ')}" for k in ("verified", "approximate", "own_model"))
+    weak = summary.get("weakest_links") or []
+    links = ("<h3>Weakest links</h3><table><tr><th>link</th><th>evidence</th><th>would confirm it</th></tr>" + "".join(
+        f"<tr><td>{html.escape(w['link'])}</td><td>{html.escape(w['evidence'])}</td>"
+        f"<td>{html.escape(w['confirm'])}</td></tr>" for w in weak) + "</table>") if weak else ""
+    return ("<h2>Placements</h2>"
+            f"<p>{html.escape(head)}. Approximate cameras (placed by a join nothing confirms) are left out of "
+            "densify and the exports.</p><table><tr><th>image</th><th>verdict</th><th>placed by</th><th>evidence</th>"
+            f"<th>joins that carried it</th><th>scale</th></tr>{''.join(rows)}</table>{links}")
 
 
 def _errors(pipeline: Pipeline, out: StageWriter) -> str:
@@ -242,7 +273,7 @@ table {{ border-collapse: collapse; margin: 0.5em 0; }} td, th {{ border: 1px so
 td.fresh {{ color: #1a7f37; }} td.stale, td.missing {{ color: #b35900; }} p.missing {{ color: #b35900; }}
 table.matrix td {{ text-align: center; min-width: 2.5em; }} th.rot {{ writing-mode: vertical-rl; }}
 img {{ max-width: 100%; }} .grid {{ display: grid; grid-template-columns: repeat(3, 1fr); gap: 8px; }}
-figure {{ margin: 0; }}
+figure {{ margin: 0; }} tr.approximate {{ background: #fde8d0; }} tr.own_model {{ background: #eef; }}
 </style></head>
 <body><h1>fullview report · {title}</h1>
 {body}

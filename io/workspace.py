@@ -252,6 +252,13 @@ class Workspace:
     def load_registration(self) -> dict[str, np.ndarray]:
         return load_npz(self.path("registration"), REGISTRATION_VERSION, POSE_KEYS + ("pair_inlier_mask",))
 
+    def verified_mask(self) -> np.ndarray:
+        """(N,) images registration placed on evidence (verdict verified or own_model): approximate cameras, placed
+        by a join nothing confirms, are False (densify and the exports leave them out; docs/trust.md). A
+        registration written before verdicts existed: every placed image."""
+        reg = load_npz(self.path("registration"), REGISTRATION_VERSION, ("model_id",))
+        return reg["verified"].astype(bool) if "verified" in reg else reg["model_id"] >= 0
+
     def load_sparse(self) -> dict[str, np.ndarray]:
         return load_npz(self.path("sparse"), SPARSE_VERSION,
                         POSE_KEYS + ("points", "colors", "point_model", "track_ids", "image_ids", "feature_ids",

@@ -177,19 +177,14 @@ class RegistrationOptions:
                                       "matches than under each of its quarter turns, and one more such pair sharing "
                                       "one of its cameras, that place the models consistently join them (a doorway "
                                       "in a box room, whose quarter turns rematch nearly as well)")
-    weak_join_guess: bool = setting(True, "last: a rematched pair confirmed alone (homejoin's margins; seeds from "
-                                    "the upright fits, then from every rotation the walls allow, most rematched "
-                                    "first) puts model b on its baseline ray at model a's median baseline, b's "
-                                    "scale the baselines' ratio (the triangulation's height prior measures them); "
-                                    "the join check guards it")
     join_check: bool = setting(True, "a weak join is undone when it puts 10+ and over 5% of the points one model "
                                "has on the other's observed rays in front of what those cameras saw (10%+ "
                                "closer): a chance pair places a model inside the other's rooms")
-    unjoined_parts: str = setting("keep", "a part whose scale neither the pair directions nor shared points fix: "
-                                  "separate: placed again by points or left a model of its own; keep: a guess "
-                                  "(scaled to main's median baseline; a camera tied by one pair at the median "
-                                  "baseline)",
-                                  choices=("separate", "keep"))
+    unconfirmed_joins: str = setting("separate", "a join that nothing confirms (a guessed scale or length, one "
+                                     "rematched pair alone): separate: never made, the part stays a model of its "
+                                     "own; approximate: made last, its cameras marked approximate (kept out of "
+                                     "densify and the exports, nothing grows from them)",
+                                     choices=("separate", "approximate"))
     seed: int = setting(0, "random seed of resection and merging (RANSAC)", ge=0, le=2**31)
     RULES: ClassVar[list[Rule]] = []
 

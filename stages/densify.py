@@ -107,7 +107,7 @@ def _run(ctx: StageContext) -> dict:
     sparse = ctx.ws.load_sparse_model(0)
     names = ctx.dataset.image_names
     R, t, centers = sparse["R_cam_from_world"], sparse["t_cam_from_world"], sparse["centers"]
-    registered = sparse["registered"].astype(bool)
+    registered = sparse["registered"].astype(bool) & ctx.ws.verified_mask()  # approximate cameras: no depth
     near, median_depth = camera_depths(centers, sparse, config.min_depth_percentile)
     pairs = _stereo_pairs(ctx.ws.load_epipoles(), centers, registered, median_depth, config)
     if not len(pairs):

@@ -12,6 +12,7 @@ from fullview.sfm.options import RegistrationOptions
 from fullview.sfm.registration import relative_from_absolute
 from fullview.sfm.registration.models import ModelSet, PairLinks, build_models
 from fullview.sfm.registration.diagnosis import pairs_toward_main, unregistered_reasons
+from fullview.sfm.registration.evidence import placements, verdict_counts, verified_mask, weakest_links
 from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
 from fullview.sfm.tracks import build_tracks
 from fullview.stages.protocol import StageContext
@@ -54,7 +55,9 @@ def run(ctx: StageContext) -> dict:
     placed = model_id >= 0
     reasons = _reasons(ctx, obs, verified, epi, usable, placed)
     sizes = models.sizes()
-    toward_main = _pairs_toward_main(verified, epi, model_id, names)
+    links_toward_main = _pairs_toward_main(verified, epi, model_id, names)
+    toward_main = {m: ", ".join(f"{a} – {b} ({raw} raw matches, {n} inliers)" for a, b, raw, n in found)
+                   for m, found in links_toward_main.items()}
     for k in np.flatnonzero(model_id > 0):  # outside the main model, but placed: say where
         reasons[names[k]] = (f"in model {model_id[k]} ({sizes[model_id[k]]} images), not joined to model 0 by "
                              "verified pairs or shared points")
@@ -71,7 +74,14 @@ def run(ctx: StageContext) -> dict:
         for m, text in toward_main.items():
             log.warning("model %d meets model 0 best at %s: too few to verify alone; 8 hand points across one of "
                         "them (hand_points.yaml) join the models", m, text)
+    records = placements(names=names, model_id=model_id, own=models.own, join_records=models.join_records,
+                         approximate=models.approximate, pairs=epi["pairs"], weights=weights, pair_ok=pair_ok)
+    verdicts = verdict_counts(records, len(names))
+    if verdicts["approximate"]:
+        log.warning("%d camera(s) placed by joins nothing confirms (approximate: out of densify and the exports): %s",
+                    verdicts["approximate"], [n for n, r in records.items() if r["verdict"] == "approximate"])
     summary = {"registered": int((model_id == 0).sum()), "images": len(names), "models": sizes,
+               "verdicts": verdicts,
                "weak_pairs": len({(i, j) for i, _, j, _ in models.weak_pair_matches}),
                "in_models": int(placed.sum()), "unregistered": [n for n, ok in zip(names, placed) if not ok],
                "unregistered_reasons": reasons, "model_of_image": {n: int(k) for n, k in zip(names, model_id)},
@@ -79,13 +89,18 @@ def run(ctx: StageContext) -> dict:
                "resected": [names[k] for k in models.resected],
                "merged": [{"images": [names[k] for k in m["images"]], "points": m["points"]} for m in models.merges],
                "joined_parts": [{"images": [names[k] for k in j["images"]], "tracks": j["tracks"],
-                                 "scale": j["scale"], "confirmed": j.get("confirmed", False)} for j in models.joins],
+                                 # every part joins by tracks agreeing on its scale (confirmed); kept_averaging: they
+                                 # agree with averaging's own placement, which stays
+                                 "scale": j["scale"], "confirmed": True, "kept_averaging": j.get("confirmed", False)}
+                                for j in models.joins],
                "matched_2d3d": [names[k] for k in models.matched],
                "pairs_toward_model_0": {str(m): text for m, text in toward_main.items()},
-               "model": options.model, "inlier_pairs": int(pair_ok.sum()), "epipole_cost": float(models.epipole_cost)}
+               "model": options.model, "inlier_pairs": int(pair_ok.sum()), "epipole_cost": float(models.epipole_cost),
+               "weakest_links": weakest_links(records, links_toward_main), "placements": records}
     ctx.out.save_registration(report=summary, image_names=names, registered=model_id == 0, model_id=model_id,
                               R_cam_from_world=R, t_cam_from_world=t, pair_inlier_mask=pair_ok,
                               rotation_residual_deg=rot_res, direction_residual_deg=dir_res,
+                              verified=verified_mask(names, records),
                               matches_2d3d=np.array(models.matches_2d3d, np.int64).reshape(-1, 4),
                               weak_pair_matches=np.array(models.weak_pair_matches, np.int64).reshape(-1, 4))
     return summary
@@ -123,9 +138,9 @@ def _filter_threshold(ctx: StageContext) -> float | None:
     return None if value is None else float(np.radians(value))
 
 
-def _pairs_toward_main(verified, epi, model_id: np.ndarray, names: list[str]) -> dict[int, str]:
-    """Per model beyond model 0: the pairs into model 0 with the most raw matches, as text ("pano_003.png –
-    pano_004.png (39 raw matches, 0 inliers), ..."), where hand points would join the two."""
+def _pairs_toward_main(verified, epi, model_id: np.ndarray, names: list[str]) -> dict[int, list]:
+    """Per model beyond model 0: the pairs into model 0 with the most raw matches, (image of the model, image of
+    model 0, raw matches, inliers) each, most first: where hand points would join the two."""
     num_raw = np.asarray(verified.extra.get("num_raw", np.zeros(len(verified.pairs))), np.int64)
     pairs = np.asarray(verified.pairs, np.int64).reshape(-1, 2)
     inliers = {(int(i), int(j)): int(n) for (i, j), n in zip(epi["pairs"], epi["num_inliers"])}
@@ -133,8 +148,7 @@ def _pairs_toward_main(verified, epi, model_id: np.ndarray, names: list[str]) ->
     for m in range(1, int(model_id.max(initial=0)) + 1):
         found = pairs_toward_main(pairs=pairs, num_raw=num_raw, model_id=model_id, model=m)
         if found:
-            out[m] = ", ".join(f"{names[a]} – {names[b]} ({raw} raw matches, "
-                               f"{inliers.get((min(a, b), max(a, b)), 0)} inliers)" for a, b, raw in found)
+            out[m] = [(names[a], names[b], raw, inliers.get((min(a, b), max(a, b)), 0)) for a, b, raw in found]
     return out
 
 

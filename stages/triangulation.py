@@ -53,7 +53,10 @@ def run(ctx: StageContext) -> dict:
     config: TriangulationOptions = ctx.options
     obs = ctx.ws.load_observations(ctx.dataset)
     reg = ctx.ws.load_registration()
-    model_id = reg["model_id"]
+    placed_in = reg["model_id"]
+    # Approximate cameras (placed by a join nothing confirms, docs/trust.md) are adjusted as a group of their own:
+    # no track ties them to their model's verified cameras, so nothing they hold moves those.
+    model_id = np.where(ctx.ws.verified_mask() | (placed_in < 0), placed_in, placed_in.max(initial=0) + 1 + placed_in)
     verified = ctx.ws.load_inliers()
     # 2D-3D matches and the weak pairs' inliers join the verified pairs' (workspaces older than either lack them)
     extra_rows = [rows for rows in (reg.get("matches_2d3d"), reg.get("weak_pair_matches")) if rows is not None]
@@ -103,7 +106,7 @@ def run(ctx: StageContext) -> dict:
             R, t, points = _rescale_free_blocks(final, R, t, points, pairs, config.free_block_min_pairs, down)
     else:  # the errors of the points just triangulated (with an adjustment, its own errors replace them)
         errors = triangulate_multiview(final, bearings, R, t).obs_error_rad
-    return _write(ctx, obs, model_id, R, t, final, points, errors, geometry_pairs=len(extra))
+    return _write(ctx, obs, placed_in, R, t, final, points, errors, geometry_pairs=len(extra))
 
 
 def _manhattan_axes(filtered: dict, gravity, model_id):
@@ -294,8 +297,9 @@ def _write(ctx: StageContext, obs, model_id, R, t, tracks: Tracks, points, error
                         colors=colors, point_errors_rad=point_error, track_point3d=tracks.track_ids,
                         track_image=tracks.image_ids, track_point2d=tracks.feature_ids,
                         pixels=[o["pixels"] for o in obs])
-    for k, model in enumerate(split_models(whole, model_id)):
-        # text, COLMAP's readable form, unless a name would not read back from it (then binary: the exact names)
+    # approximate cameras (placed by a join nothing confirms, docs/trust.md) stay out of the COLMAP models; text,
+    # COLMAP's readable form, unless a name would not read back from it (then binary: the exact names)
+    for k, model in enumerate(split_models(whole, np.where(ctx.ws.verified_mask(), model_id, -1))):
         write_colmap_model(model, ctx.out.path("sparse_model", model=k), binary=not colmap_text_safe(model))
     return summary
 

@@ -108,7 +108,7 @@ def test_a_seed_fit_and_a_companion_through_one_doorway_join_two_models_at_the_t
     join = join_by_rematching(fits, cross, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b, gravity=gravity, bearings=bearings,
                               descriptors=descriptors, threshold_rad=THRESHOLD, step_a=1.6, step_b=1.6)
     assert join is not None
-    M, chosen, (scale, shift, guessed), rows = join
+    M, chosen, (scale, shift, guessed), rows, _ = join
     assert rotation_angle_deg(M, M0) < 0.05
     assert {(f[0].k, f[0].l) for f in chosen} == {(2, 0), (2, 1)} and guessed
     assert np.linalg.norm(scale * M @ C_b[2] + shift - C[2]) < 0.02
@@ -163,7 +163,7 @@ def test_one_pair_whose_points_agree_joins_two_models_at_the_true_similarity():
     for seeds, axes in ((fits, None), ([], walls)):  # the seed fit, or no fit but the walls' rotations
         join = join_by_rematching(seeds, cross, points=points, wall_axes=axes, **kwargs)
         assert join is not None
-        M, chosen, (scale, shift, guessed), rows = join
+        M, chosen, (scale, shift, guessed), rows, _ = join
         assert rotation_angle_deg(M, M0) < 0.05 and not guessed and len(chosen) == 1
         assert abs(scale / s0 - 1.0) < 0.01
         for k in (2, 3):  # b's cameras land on their true centres
@@ -224,7 +224,7 @@ def test_two_panoramas_of_b_seeing_one_of_a_place_b_by_its_shape_and_the_guessed
     for several in (False, True):
         join = join_by_rematching(fits, cross, several=several, **kwargs)
         assert join is not None
-        M, chosen, (scale, shift, guessed), rows = join
+        M, chosen, (scale, shift, guessed), rows, _ = join
         assert {(f[0].k, f[0].l) for f in chosen} == {(2, 0), (3, 0)} and guessed
         assert rotation_angle_deg(M, M0) < 0.05
         for k in (2, 3):  # the rays from camera 0 give b's shape: with its true scale guessed, its true centres
@@ -259,7 +259,7 @@ def test_a_box_rooms_quarter_turn_defeats_the_margins_but_two_pairs_above_it_joi
     strict = join_by_rematching(fits, cross, **kwargs)
     several = join_by_rematching(fits, cross, several=True, **kwargs)
     assert several is not None
-    M, chosen, (scale, shift, guessed), rows = several
+    M, chosen, (scale, shift, guessed), rows, kind = several
     assert rotation_angle_deg(M, M0) < 0.05
     for k in (2, 3):
         assert np.linalg.norm(scale * M @ kwargs["C_b"][k] + shift - C[k]) < 0.03
@@ -274,7 +274,7 @@ def test_one_pair_confirmed_alone_places_b_on_its_true_ray_at_a_guessed_length()
     assert join_by_rematching(fits, cross, several=True, **kwargs) is None
     join = join_by_rematching(fits, cross, several=True, guess=True, **kwargs)
     assert join is not None
-    M, chosen, (scale, shift, guessed), rows = join
+    M, chosen, (scale, shift, guessed), rows, _ = join
     assert rotation_angle_deg(M, M0) < 0.05 and guessed and [(f[0].k, f[0].l) for f in chosen] == [(2, 0)]
     assert scale == kwargs["step_a"] / kwargs["step_b"]
     placed = scale * M @ kwargs["C_b"][2] + shift - C[0]  # camera 2 from camera 0: the true direction, a's step
@@ -303,7 +303,7 @@ def test_without_a_seed_fit_the_walls_rotations_rematched_find_the_doorway_for_a
     assert join_by_rematching([], cross, wall_axes=walls, several=True, **kwargs) is None
     join = join_by_rematching([], cross, wall_axes=walls, guess=True, **kwargs)
     assert join is not None
-    M, chosen, (scale, shift, guessed), rows = join
+    M, chosen, (scale, shift, guessed), rows, _ = join
     assert rotation_angle_deg(M, M0) < 0.05 and guessed
     placed = scale * M @ kwargs["C_b"][2] + shift - C[0]
     assert np.degrees(np.arccos(normalize(placed) @ normalize(C[2] - C[0]))) < 0.3

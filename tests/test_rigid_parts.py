@@ -91,7 +91,7 @@ def test_rooms_joined_at_one_camera_get_their_true_scale_from_shared_points():
 def test_rooms_no_point_joins_become_two_models_never_a_wrong_scale():
     centres, R, links, tracks, bearings = _scene(1, door_points_seen_by_rooms=False)
     models = build_models(links=links, tracks=tracks, bearings=bearings,
-                          options=RegistrationOptions(unjoined_parts="separate"))
+                          options=RegistrationOptions())
     assert models.sizes() == [len(ROOM_A) + 1, len(ROOM_B)] or models.sizes() == [len(ROOM_B) + 1, len(ROOM_A)]
     assert not models.joins and sorted(models.scale_free)
     for m in range(models.num_models):
@@ -99,12 +99,16 @@ def test_rooms_no_point_joins_become_two_models_never_a_wrong_scale():
         assert _similarity_residual(models.centers[k], centres[k]) < 1e-6
 
 
-def test_by_default_a_part_no_point_joins_keeps_averagings_guess_and_says_so():
+def test_asked_to_keep_it_a_part_no_point_joins_is_attached_approximate_and_says_so():
+    """unconfirmed_joins: approximate: room B is attached along its verified pairs into the door camera at a guessed
+    scale, every camera of it marked approximate; each room stays exact (only their relative scale is a guess)."""
     centres, R, links, tracks, bearings = _scene(1, door_points_seen_by_rooms=False)
-    models = build_models(links=links, tracks=tracks, bearings=bearings, options=RegistrationOptions())
+    models = build_models(links=links, tracks=tracks, bearings=bearings,
+                          options=RegistrationOptions(unconfirmed_joins="approximate"))
     assert models.sizes() == [len(centres)]
-    assert [j["tracks"] for j in models.joins] == [0] and not models.scale_free
-    door_and_a = np.arange(1 + len(ROOM_A))
-    door_and_b = np.concatenate([[0], 1 + len(ROOM_A) + np.arange(len(ROOM_B))])
-    for room in (door_and_a, door_and_b):  # each room is exact; only their relative scale is a guess
+    guessed = [j for j in models.join_records if not j["confirmed"]]
+    room_b = 1 + len(ROOM_A) + np.arange(len(ROOM_B))
+    assert len(guessed) == 1 and sorted(guessed[0]["images"]) == room_b.tolist() and guessed[0]["scale"] == "guessed"
+    assert models.approximate.tolist() == [k in room_b for k in range(len(centres))]
+    for room in (np.arange(1 + len(ROOM_A)), room_b):
         assert _similarity_residual(models.centers[room], centres[room]) < 1e-6

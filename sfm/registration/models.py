@@ -14,6 +14,12 @@
    reprojects within the threshold in every camera of that model that observes it), then the merged model grows
    again.
 
+4. **Evidence.** Every placement is recorded (`ModelSet.own`: how each camera was placed in its model;
+   `ModelSet.join_records`: each join that carried cameras into another model and what confirmed it; see
+   `evidence`). A join nothing confirms (a guessed scale or length) is never made while cameras can still be placed
+   by evidence; with `registration.unconfirmed_joins: approximate` such joins are made last, their cameras marked
+   approximate (`ModelSet.approximate`), and nothing grows from them.
+
 Models are numbered by size, largest first (ties: lowest image id). Pure geometry: no file access.
 """
 
@@ -26,8 +32,10 @@ from typing import Sequence
 
 import numpy as np
 
-from fullview.sfm.attach import (attach_cameras, distance_by_few_points, model_points, points_seen_by,
-                                 pose_along_pair)
+from fullview.sfm.attach import attach_cameras, model_points
+from fullview.sfm.heights import (BRIDGE_FLOOR_AGREEMENT, BRIDGE_MIN_FLOOR_POINTS, MAX_NEIGHBOUR_DEVIATION,
+                                  MIN_SHARE)
+from fullview.sfm.registration.free_blocks import camera_heights, floor_clusters
 from fullview.sfm.bundle import bundle_adjust
 from fullview.sfm.metrics import umeyama
 from fullview.sfm.options import MatchesOptions, RegistrationOptions
@@ -36,8 +44,8 @@ from fullview.sfm.registration.placement_check import contradicted, join_conflic
 from fullview.sfm.registration.rematch_join import ModelPoints, join_by_rematching
 from fullview.sfm.registration.rigid_parts import estimate_join, rigid_parts
 from fullview.sfm.registration.view_graph import bridges, component_labels, largest_component
-from fullview.sfm.registration.weak_joins import (MIN_AGREEING_PAIRS, MIN_PAIR_INLIERS, CrossPair,
-                                                  join_by_weak_pairs)
+from fullview.sfm.registration.weak_joins import (MAX_ROTATION_DISAGREEMENT_DEG, MIN_AGREEING_PAIRS, MIN_PAIR_INLIERS,
+                                                  CrossPair, _place, guessed_scale, join_by_weak_pairs)
 from fullview.sfm.resection import ResectionOptions, resect
 from fullview.sfm.matching import match_descriptors
 from fullview.sfm.rotations import angle_between_deg, rotation_angle_deg
@@ -58,8 +66,6 @@ WEAK_PAIR_MAX_SHIFT = 0.25  # ... and its far camera within this many of the mod
 # that direction: a guessed scale misplaces a camera by a share of its part's extent, whatever the pair's length, so
 # a long pair's few degrees are a shift no guess explains (11 bare homes: the true ones within 0.15, 2.88-4.33
 # baselines long; a chance fit between rooms 11.7 baselines apart, 2.43° off, shifted 0.50 and shrank a room 14x)
-MIN_LEAF_POINTS = 2  # model points that must agree on the distance of a camera attached along one pair (fewer: a
-# guess); two points that agree within the resection threshold along a ray are rarely chance
 GROWTH_BA_ITERATIONS = 30  # function evaluations of the bundle adjustment after each growth round
 
 
@@ -81,7 +87,6 @@ class JoinRules:
     """How the rigid parts of an averaged layout are joined (from `RegistrationOptions`)."""
 
     min_tracks: int  # tracks that must agree on a part's scale
-    keep_unjoined: bool  # a part no points join keeps averaging's scale guess instead of being placed again
 
 
 @dataclass(kw_only=True)
@@ -105,6 +110,12 @@ class ModelSet:
     weak_pair_matches: list[tuple[int, int, int, int]] = field(default_factory=list)  # (image, feature, image,
     # feature): the inlier matches of the weak pairs that fit their model (for the final tracks)
     tracks: Tracks | None = None  # the tracks, with the observations 2D-3D matching added
+    own: dict[int, dict] = field(default_factory=dict)  # image -> how it was placed in its model ({"how": ..., the
+    # evidence}); joins that carried it into another model are in join_records
+    join_records: list[dict] = field(default_factory=list)  # {"kind", "images", "confirmed", "scale": "measured" |
+    # "guessed", "evidence": {...}}: every join of cameras into a model, in order
+    approximate: np.ndarray | None = None  # (N,) cameras placed by an unconfirmed join (unconfirmed_joins:
+    # approximate), or grown from one
 
     @property
     def num_models(self) -> int:
@@ -112,6 +123,10 @@ class ModelSet:
 
     def sizes(self) -> list[int]:
         return np.bincount(self.model_id[self.model_id >= 0], minlength=self.num_models).tolist()
+
+    def sizes_of(self, images: np.ndarray) -> np.ndarray:
+        """(len(images),) the size of each image's model."""
+        return np.array(self.sizes(), int)[self.model_id[images]] if len(images) else np.zeros(0, int)
 
 
 def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndarray], options: RegistrationOptions,
@@ -131,7 +146,7 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
     state = _empty_state(len(bearings), len(links.pairs))
     state.tracks = tracks
     open_pairs = links.weights > 0
-    rules = JoinRules(min_tracks=options.min_join_points, keep_unjoined=options.unjoined_parts == "keep")
+    rules = JoinRules(min_tracks=options.min_join_points)
     while (m := _next_global_model(state, open_pairs, links, state.tracks, bearings, options, rules,
                                    descriptors)) is not None:
         if any(j["model"] == m for j in state.joins):
@@ -139,8 +154,16 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
         # grow before the next model starts, so images a model can hold never start tiny models of their own
         _grow(state, m, links, bearings, options, descriptors)
     merge_points = options.min_merge_points if options.merge_models else None
-    while merge_points is not None and _merge_once(state, links, bearings, options, merge_points, descriptors):
-        pass
+
+    def by_evidence() -> None:
+        """Merges by shared points and joins along verified pairs, until none is left; then the single images
+        verified pairs tie to a model (a leaf past a doorway), joined where the floor measures the length."""
+        while (merge_points is not None and _merge_once(state, links, bearings, options, merge_points, descriptors)) \
+                or _join_along_verified_pairs(state, links, bearings, options, descriptors, gravity=gravity):
+            pass
+        _join_single_images(state, links, bearings, options, descriptors, gravity=gravity)
+
+    by_evidence()
     if options.resection and descriptors is not None:
         while _absorb_a_model_by_matching(state, links, bearings, options, descriptors):
             pass
@@ -148,11 +171,19 @@ def build_models(*, links: PairLinks, tracks: Tracks, bearings: Sequence[np.ndar
             and weak_join_threshold_rad is not None):
         guided, rematch = options.weak_join_guided, options.weak_join_rematch
         one_pair, several = options.weak_join_one_pair and rematch, options.weak_join_several and rematch
-        guess = options.weak_join_guess and rematch
-        while _join_once_by_weak_pairs(state, links, pair_matches, bearings, gravity, weak_join_threshold_rad,
-                                       options, descriptors, guided, rematch, wall_axes if one_pair else None,
-                                       one_pair, several, options.join_check, guess):
-            pass
+        weak = partial(_join_once_by_weak_pairs, state, links, pair_matches, bearings, gravity, weak_join_threshold_rad,
+                       options, descriptors, guided, rematch, wall_axes if one_pair else None, one_pair, several,
+                       options.join_check)
+        while weak():
+            by_evidence()  # a weak join may bring verified pairs or shared points between two models
+    else:
+        weak = None
+    if options.unconfirmed_joins == "approximate":
+        # last, and nothing grows from them: along verified pairs between two models (an image in none is a model
+        # of one here), else by a weak join whose scale is a guess (one rematched pair alone, or pairs touching one
+        # camera of a model)
+        _join_single_images(state, links, bearings, options, descriptors, gravity=gravity, unconfirmed=True,
+                            weak=partial(weak, unconfirmed=True, guess=rematch) if weak is not None else None)
     _renumber(state)
     if pair_matches is not None and options.min_weak_pair_inliers:
         joined = set(state.weak_pair_matches)  # the weak joins' matches, if any: not added twice
@@ -168,7 +199,7 @@ def _empty_state(num_images: int, num_pairs: int) -> ModelSet:
     return ModelSet(model_id=np.full(num_images, -1), R_cam_from_world=np.tile(np.eye(3), (num_images, 1, 1)),
                     centers=np.zeros((num_images, 3)), averaged_in=np.full(num_images, -1),
                     averaging_verdict=np.zeros(num_pairs, bool), rejected_pairs=np.zeros(num_pairs, bool),
-                    epipole_cost=0.0)
+                    epipole_cost=0.0, approximate=np.zeros(num_images, bool))
 
 
 def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks, tracks: Tracks, bearings,
@@ -212,6 +243,8 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
         open_pairs |= in_group & (inside & ~placed)[pairs].all(axis=1)
         state.model_id[placed] = m
         state.averaged_in[averaged] = m  # joined parts: their pairs to the rest are judged by residuals
+        for k in np.flatnonzero(placed):
+            state.own[int(k)] = {"how": "averaging"}
         state.R_cam_from_world[placed] = reg.R_cam_from_world[placed]
         state.centers[placed] = centers[placed]
         state.averaging_verdict |= reg.pair_inlier_mask
@@ -222,8 +255,8 @@ def _next_global_model(state: ModelSet, open_pairs: np.ndarray, links: PairLinks
 def _weak_pair_matches(state: ModelSet, links: PairLinks, pair_matches: dict[tuple[int, int], np.ndarray], bearings,
                        options: RegistrationOptions) -> list[tuple[int, int, int, int]]:
     """Inlier matches (image, feature, image, feature) of the pairs too weak to use (unverified, or below
-    `min_inliers`) that touch a rigid part whose scale averaging guessed (`unjoined_parts: keep`, no points fixed
-    it), where their raw matches, under the model's rotations, give a baseline on `min_weak_pair_inliers` inliers
+    `min_inliers`) that touch an approximate part (its scale guessed: `unconfirmed_joins: approximate`), where their
+    raw matches, under the model's rotations, give a baseline on `min_weak_pair_inliers` inliers
     within `WEAK_PAIR_MAX_OFF_DEG` of the model's and whose far camera that direction moves sideways by at most
     `WEAK_PAIR_MAX_SHIFT` of the model's median used-pair baseline (on a long pair a few degrees are a shift no
     guessed scale explains, and its tracks alone may then set a room's scale in the bundle adjustment).
@@ -236,9 +269,7 @@ def _weak_pair_matches(state: ModelSet, links: PairLinks, pair_matches: dict[tup
     loses 1 point of AUC@5 with them)."""
     R, C, model_id = state.R_cam_from_world, state.centers, state.model_id
     threshold = np.radians(options.resection_threshold_deg)
-    guessed = np.zeros(len(model_id), bool)
-    for join in state.joins:
-        guessed[join["images"]] = guessed[join["images"]] | (join["tracks"] == 0)
+    guessed = state.approximate
     i_all, j_all = links.pairs[:, 0], links.pairs[:, 1]
     candidates = ((links.weights <= 0) & (guessed[i_all] | guessed[j_all]) & (model_id[i_all] == model_id[j_all])
                   & (model_id[i_all] >= 0))
@@ -309,8 +340,8 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
     the largest one by the points they share (`rigid_parts`). Returns (N,) the largest part, (N,) every camera kept
     (the largest part and the parts joined to it) and (N, 3) the centres with the joined parts re-scaled; cameras of
     parts no points join are left out, to be placed again (growth, a model of their own, merging). Cameras in
-    `needs_points` (behind a contradicted bridge) are kept only through a join by points, never by
-    `unjoined_parts: keep`, until one such join confirms the side."""
+    `needs_points` (behind a contradicted bridge) are kept only through a join by points, until one such join
+    confirms the side."""
     needs_points = np.zeros(len(placed), bool) if needs_points is None else needs_points.copy()
     used = reg.pair_used_mask & placed[pairs].all(axis=1)
     C, R = reg.centers.copy(), reg.R_cam_from_world
@@ -350,12 +381,11 @@ def _join_rigid_parts(state: ModelSet, m: int, reg, placed: np.ndarray, pairs: n
             C[new] = join.scale * C[new] + join.shift
             state.joins.append({"model": m, "images": np.flatnonzero(new).tolist(), "tracks": join.num_tracks,
                                 "scale": join.scale, "confirmed": join.confirmed})
+            _record_join(state, "rigid part by shared points", np.flatnonzero(new), confirmed=True,
+                         tracks=join.num_tracks, observations=join.num_observations)
             log.info("joined a rigid part of %d image(s) to model %d: scale %.3f, %d tracks agree (%d cross "
                      "observations)", new.sum(), m, join.scale, join.num_tracks, join.num_observations)
             break
-        if new is None and rules.keep_unjoined:
-            new = _keep_a_guessed_part(state, m, [parts[k] for k in pending if not (parts[k] & ~main & needs_points)
-                                                  .any()], main, C, reg.centers, pairs[used])
         if new is None:
             break
         main |= new
@@ -403,39 +433,6 @@ def _main_cameras_touched(part: np.ndarray, main: np.ndarray, used_pairs: np.nda
     return touching
 
 
-def _keep_a_guessed_part(state: ModelSet, m: int, candidates: list[np.ndarray], main: np.ndarray, C: np.ndarray,
-                         averaged: np.ndarray, used_pairs: np.ndarray) -> np.ndarray | None:
-    """registration.unjoined_parts = keep: the first candidate part that touches main (a shared camera or a pair) is
-    scaled about the main camera it touches so that its median baseline is main's (rooms of one capture are walked
-    with similar steps). Averaging's own scale for it is no better a guess: λ ≥ 1 puts each part's *shortest*
-    baseline at one length, so two panoramas taken close together blow their part up (parts 4-10 times too large on
-    bare 2048 px seed 3), and within a factor 2 it was still worse on the measured homes (README, issue 10).
-
-    Parts sharing a camera with main go first: a part that touches main only across a used pair is placed once that
-    pair's own part (its length is that part's free scale, not this one's) is in main, then about the pair's camera.
-    Scaling it about main's end of the pair instead scaled the pair's length by the part's guess (bare 2048 px seed
-    3: the doorway pair 26-27 and the room behind it 2.3 times too long, AUC@5 90.8; 98.1 in this order). Returns
-    its new cameras (N,) bool, or None when no candidate touches main."""
-    for part in sorted(candidates, key=lambda p: not (p & main).any()):
-        touching = np.flatnonzero(_main_cameras_touched(part, main, used_pairs))
-        if not len(touching):
-            continue
-        new = part & ~main
-        scale = _median_baseline(C, main, used_pairs) / _median_baseline(averaged, part, used_pairs)
-        C[new] = C[touching[0]] + scale * (averaged[new] - averaged[touching[0]])
-        state.joins.append({"model": m, "images": np.flatnonzero(new).tolist(), "tracks": 0, "scale": scale})
-        log.warning("a rigid part of %d image(s) keeps a guessed scale in model %d (main's median baseline, %.3f): "
-                    "no points fix it", new.sum(), m, scale)
-        return new
-    return None
-
-
-def _median_baseline(C: np.ndarray, cameras: np.ndarray, used_pairs: np.ndarray) -> float:
-    """Median length of the used pairs among `cameras` (N,) bool."""
-    inner = used_pairs[cameras[used_pairs].all(axis=1)]
-    return float(np.median(np.linalg.norm(C[inner[:, 1]] - C[inner[:, 0]], axis=1)))
-
-
 def _matched_cross_observations(tracks: Tracks, bearings, descriptors, R, C, main, part, main_points, part_points):
     """Cross observations of a join found by 2D-3D matching (tracks only hold the matches of verified pairs): the
     part's own cameras' descriptors against main's points and main's own cameras' against the part's points. Rows
@@ -471,6 +468,8 @@ def _seed_from_pair(state: ModelSet, m: int, k: int, links: PairLinks) -> None:
     i, j = links.pairs[k]
     R, t = links.R_j_from_i[k], links.t_j_from_i[k] / np.linalg.norm(links.t_j_from_i[k])
     state.model_id[[i, j]] = m
+    for a, b in ((i, j), (j, i)):
+        state.own[int(a)] = {"how": "seed pair", "pair": [int(b), int(links.weights[k])]}
     state.R_cam_from_world[i], state.centers[i] = np.eye(3), np.zeros(3)
     state.R_cam_from_world[j], state.centers[j] = R, -R.T @ t
 
@@ -493,67 +492,8 @@ def _renumber(state: ModelSet) -> None:
 # --------------------------------------------------------------------------------------------- growth
 def _grow(state: ModelSet, m: int, links: PairLinks, bearings, options: RegistrationOptions, descriptors=None) -> None:
     """Attach, then resect, the free images model m can hold (by their tracks, then by 2D-3D matching);
-    bundle-adjust after each round of resection. With `unjoined_parts: keep`, a camera a verified pair still ties
-    to the model is then attached at a guessed distance, and growth goes on from it."""
-    while True:
-        _grow_by_points(state, m, links, bearings, options, descriptors)
-        if not _attach_by_a_guess(state, m, links, bearings, options):
-            return
-
-
-def _attach_by_a_guess(state: ModelSet, m: int, links: PairLinks, bearings, options: RegistrationOptions) -> bool:
-    """`unjoined_parts: keep`: the free camera with the strongest verified pair into model m, placed along that
-    pair's baseline at the distance the few model points it sees agree on (`MIN_LEAF_POINTS`; recorded as a join
-    with that many tracks), or else at the model's median verified-pair baseline length, as averaging guesses the
-    scale of a part no points fix (a chain of rooms past a doorway whose end cameras see too few of the model's
-    points; recorded as a join with 0 tracks, so that weak pairs into it may fix it: `_weak_pair_matches`). Never
-    along a pair averaging rejected or into the side of a contradicted bridge, nor a camera that sees
-    `min_join_points` of the model's points (they did not attach it: they contradict the pair). True if one was
-    placed."""
-    if options.unjoined_parts != "keep":
-        return False
-    pairs, inside, tracks = links.pairs, state.model_id == m, state.tracks
-    X, point_of_track = _points_of(state, m, tracks, bearings)
-    sees = np.bincount(tracks.image_ids[point_of_track[tracks.track_ids] >= 0], minlength=len(inside))
-    unchecked = (state.model_id < 0) & (sees < options.min_join_points)
-    into = ((links.weights > 0) & ~state.rejected_pairs & (inside[pairs[:, 0]] != inside[pairs[:, 1]])
-            & unchecked[pairs].any(axis=1))
-    within = (links.weights > 0) & inside[pairs].all(axis=1)
-    if not into.any() or not within.any():
-        return False
-    k = int(np.flatnonzero(into)[np.argmax(links.weights[into])])
-    a, b = (int(v) for v in (pairs[k] if inside[pairs[k, 0]] else pairs[k, ::-1]))
-    R_b, direction = pose_along_pair(a, b, pairs[k], links.R_j_from_i[k], links.t_j_from_i[k],
-                                     state.R_cam_from_world[a])
-    by_points = _distance_by_the_points_seen(state, b, a, R_b, direction, X, point_of_track, bearings, options)
-    if by_points is not None:
-        length, agreeing = by_points
-        log.warning("image %d attached to model %d along its pair with image %d at the distance %d of the model's "
-                    "points it sees agree on (%.3f)", b, m, a, agreeing, length)
-    else:
-        length = float(np.median(np.linalg.norm(np.diff(state.centers[pairs[within]], axis=1)[:, 0], axis=1)))
-        agreeing = 0
-        log.warning("image %d attached to model %d along its pair with image %d at a guessed distance (%.3f, the "
-                    "median baseline): no points fix it", b, m, a, length)
-    state.model_id[b] = m
-    state.R_cam_from_world[b], state.centers[b] = R_b, state.centers[a] + length * direction
-    state.joins.append({"model": m, "images": [b], "tracks": agreeing, "scale": 1.0})
-    return True
-
-
-def _distance_by_the_points_seen(state: ModelSet, b: int, a: int, R_b: np.ndarray, direction: np.ndarray,
-                                 X: np.ndarray, point_of_track: np.ndarray, bearings, options: RegistrationOptions
-                                 ) -> tuple[float, int] | None:
-    """(distance from a along `direction`, agreeing points) where `MIN_LEAF_POINTS` or more of the model's points
-    camera b sees (fewer than attachment needs) agree on one distance; None otherwise. The median verified-pair
-    baseline is a poor guess where long pairs verify (hand points join cameras rooms apart): on a 10-view home
-    (seed 7) it put a leaf 1.9 times too far, and the hand points it sees through three views, which would have
-    placed it, were then dropped by triangulation as outliers."""
-    u, seen = points_seen_by(b, R_b, state.tracks, bearings, X, point_of_track)
-    if len(u) < MIN_LEAF_POINTS:
-        return None
-    return distance_by_few_points(direction, u, seen - state.centers[a], np.radians(options.resection_threshold_deg),
-                                  MIN_LEAF_POINTS)
+    bundle-adjust after each round of resection."""
+    _grow_by_points(state, m, links, bearings, options, descriptors)
 
 
 def _grow_by_points(state: ModelSet, m: int, links: PairLinks, bearings, options: RegistrationOptions,
@@ -567,6 +507,8 @@ def _grow_by_points(state: ModelSet, m: int, links: PairLinks, bearings, options
     state.R_cam_from_world, state.centers = att.R_cam_from_world, att.centers
     state.model_id[att.attached] = m
     state.attached += att.attached
+    for k in att.attached:
+        state.own[int(k)] = {"how": "attached along a verified pair, its distance by points"}
     if not options.resection:
         return
     while True:
@@ -600,6 +542,7 @@ def _resect_round(state: ModelSet, m: int, tracks: Tracks, bearings, options: Re
         state.model_id[b] = m
         state.R_cam_from_world[b] = result.R_cam_from_world
         state.centers[b] = -result.R_cam_from_world.T @ result.t_cam_from_world
+        state.own[int(b)] = {"how": "resection", "inliers_2d3d": int(result.num_inliers), "points": int(sel.sum())}
         added.append(int(b))
         log.debug("resected image %d into model %d: %d/%d inliers", b, m, result.num_inliers, int(sel.sum()))
     return added
@@ -664,6 +607,8 @@ def _match_round(state: ModelSet, m: int, candidates: np.ndarray, bearings, desc
                  len(matches))
         if commit:
             state.model_id[b] = m
+            state.own[int(b)] = {"how": "2D-3D matching", "inliers_2d3d": int(result.num_inliers),
+                                 "matches": int(len(matches))}
             _add_matches(state, m, b, matches[result.inliers, 0], track_of_point[matches[result.inliers, 1]])
     if commit:
         state.matched += added
@@ -736,6 +681,7 @@ def _absorb_a_model_by_matching(state: ModelSet, links: PairLinks, bearings, opt
             state.model_id[images] = a
             _match_round(state, a, np.array(placed), bearings, descriptors, options)
             state.merges.append({"images": images.tolist(), "points": 0})
+            _record_join(state, "2D-3D matching of its images", images, confirmed=True, resected=len(placed))
             log.info("model %d (%d images) moved into model %d by 2D-3D matching of %d of its images", b,
                      len(images), a, len(placed))
             _adjust_model(state, a, state.tracks, bearings, options)
@@ -770,12 +716,17 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                              bearings, gravity: np.ndarray, threshold_rad: float, options: RegistrationOptions,
                              descriptors=None, guided: bool = False, rematch: bool = False,
                              wall_axes: np.ndarray | None = None, one_pair: bool = False,
-                             several: bool = False, check: bool = False, guess: bool = False) -> bool:
+                             several: bool = False, check: bool = False, *, unconfirmed: bool = False,
+                             guess: bool = False) -> bool:
     """Join the first pair of models (largest first) that several weak pairs between them agree on
     (`weak_joins.join_by_weak_pairs`; with ``guided``, single fits' rotations guide the other pairs; with
     ``rematch``, pairs rematched along their epipolar circles, `rematch_join`): the smaller
     one moves into the larger by the join's similarity, the agreeing pairs' inlier matches join the final tracks (as
-    weak pairs' do), and the model grows again. True if joined."""
+    weak pairs' do), and the model grows again. True if joined.
+
+    A join whose scale is a guess (its pairs touch one camera of a model, or one rematched pair alone: ``guess``) is
+    unconfirmed: refused unless ``unconfirmed`` (`unconfirmed_joins: approximate`, after every confirmed join),
+    where the moved cameras are marked approximate, their matches stay out of the tracks and nothing grows."""
     order = _by_size(state)
     steps = _model_steps(state.centers, state.model_id, links.pairs[links.weights > 0])
     for a_rank, a in enumerate(order):
@@ -791,12 +742,18 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
                           C_b={int(k): state.centers[k] for k in cams_b}, gravity=gravity,
                           threshold_rad=threshold_rad, step_a=float(step_a), step_b=float(step_b), seed=options.seed)
             points = _model_points_pair(state, (a, b), bearings) if one_pair or check else None
-            accept = (partial(_placement_agrees, points=points, bearings=bearings, tolerance_rad=2 * threshold_rad,
-                              **{key: frames[key] for key in ("R_a", "C_a", "R_b", "C_b")})
-                      if check else None)
+            check_placement = (partial(_placement_agrees, points=points, bearings=bearings,
+                                       tolerance_rad=2 * threshold_rad,
+                                       **{key: frames[key] for key in ("R_a", "C_a", "R_b", "C_b")})
+                               if check else (lambda M, placed: True))
+
+            def accept(M, placed, check_placement=check_placement):  # placed: (scale, shift, scale guessed)
+                return (unconfirmed or not placed[2]) and check_placement(M, placed)
+
             rematching = (partial(join_by_rematching, cross=cross, bearings=bearings, descriptors=descriptors,
                                   points=points if one_pair else None, wall_axes=wall_axes if one_pair else None,
-                                  several=several, guess=guess, accept=accept, **frames)
+                                  several=several, guess=guess, accept=accept,
+                                  min_points=options.min_merge_points, **frames)
                           if rematch and descriptors is not None else None)
             join = join_by_weak_pairs(cross=cross, guided=guided, rematch=rematching, accept=accept, **frames)
             if join is None:
@@ -805,14 +762,238 @@ def _join_once_by_weak_pairs(state: ModelSet, links: PairLinks, pair_matches: di
             state.centers[cams_b] = join.scale * state.centers[cams_b] @ join.M.T + join.shift
             state.model_id[cams_b] = a
             state.merges.append({"images": cams_b.tolist(), "points": 0})
+            _record_join(state, join.kind, cams_b, confirmed=not join.scale_guessed,
+                         pairs=[list(map(int, f)) for f in join.pairs])
+            log.info("model %d (%d images) joined to model %d by %d weak pairs (%s; k, l, inliers): %s%s", b,
+                     len(cams_b), a, len(join.pairs), join.kind, join.pairs,
+                     "; its scale is a guess: approximate" if join.scale_guessed else "")
+            if join.scale_guessed:
+                state.approximate[cams_b] = True
+                return True
             state.weak_pair_matches += join.inlier_matches
-            log.info("model %d (%d images) joined to model %d by %d weak pairs agreeing on one rotation (k, l, "
-                     "inliers): %s%s", b, len(cams_b), a, len(join.pairs), join.pairs,
-                     "; its scale is a guess (the pairs touch one of its cameras)" if join.scale_guessed else "")
             _adjust_model(state, a, state.tracks, bearings, options)
             _grow(state, a, links, bearings, options, descriptors)
             return True
     return False
+
+
+def _record_join(state: ModelSet, kind: str, images, *, confirmed: bool, **evidence) -> None:
+    """A join of `images` into a model: its kind, whether something confirmed it, and its evidence."""
+    state.join_records.append({"kind": kind, "images": [int(k) for k in images], "confirmed": bool(confirmed),
+                               "scale": "measured" if confirmed else "guessed", "evidence": evidence})
+
+
+def _join_single_images(state: ModelSet, links: PairLinks, bearings, options: RegistrationOptions, descriptors=None,
+                        *, gravity=None, unconfirmed: bool = False, weak=None) -> None:
+    """Images in no model that verified pairs tie to one, each a model of one image while
+    `_join_along_verified_pairs` (then `weak`, when given) joins what it can (every model, with ``unconfirmed``);
+    those still alone are in no model again."""
+    alone = _free_images_as_models(state, links)
+    if not len(alone) and weak is None and not unconfirmed:
+        return
+    while _join_along_verified_pairs(state, links, bearings, options, descriptors, unconfirmed=unconfirmed,
+                                     gravity=gravity) or (weak is not None and weak()):
+        pass
+    for k in alone[state.sizes_of(alone) == 1]:  # nothing joined it: in no model again
+        state.model_id[k] = -1
+        state.own.pop(int(k), None)
+
+
+def _free_images_as_models(state: ModelSet, links: PairLinks) -> np.ndarray:
+    """Each image in no model that a verified pair ties to one becomes a model of one image (identity pose), so
+    that `_join_along_verified_pairs` may attach it; their ids."""
+    pairs, free = links.pairs, state.model_id < 0
+    tied = (links.weights > 0) & ~state.rejected_pairs & (free[pairs[:, 0]] != free[pairs[:, 1]])
+    alone = np.unique(pairs[tied][free[pairs[tied]]]).astype(int)
+    for k in alone:
+        state.model_id[k] = state.num_models
+        state.R_cam_from_world[k], state.centers[k] = np.eye(3), np.zeros(3)
+        state.own[int(k)] = {"how": "one verified pair"}
+    return alone
+
+
+def _join_along_verified_pairs(state: ModelSet, links: PairLinks, bearings, options: RegistrationOptions,
+                               descriptors=None, *, unconfirmed: bool = False, gravity: np.ndarray | None = None
+                               ) -> bool:
+    """Two models that verified pairs join (never pairs averaging rejected): the smaller moves into the larger by
+    the rotation of the strongest pair between them and the placement its cross pairs' baseline rays give
+    (`weak_joins._place`, every pair within its 2 degrees). Rays from two or more cameras of each model fix the scale,
+    and MIN_AGREEING_PAIRS of them or more check it (two rays are exactly the 4 unknowns): the join is confirmed, the
+    model is adjusted and grows again. Rays from one camera of either fix the shape, not
+    the size: with ``gravity`` ((N, 3) per image, zero rows unknown) the camera height measures it where both models'
+    cameras agree on their height above the floor (a tripod keeps it: `_placement_by_camera_height`), and the floor
+    below one pair's two cameras measures that pair's length (`_length_by_floor`); the join is then confirmed.
+    Otherwise model a's median baseline sets b's scale (`weak_joins.guessed_scale`), a guess, taken only when
+    ``unconfirmed`` (`unconfirmed_joins: approximate`), its cameras marked approximate and nothing grown from them.
+    True if a model was moved."""
+    pairs, model_id = links.pairs, state.model_id
+    i, j = pairs[:, 0], pairs[:, 1]
+    across = (links.weights > 0) & ~state.rejected_pairs & (model_id[i] >= 0) & (model_id[j] >= 0) & (
+        model_id[i] != model_id[j])
+    if not across.any():
+        return False
+    steps = _model_steps(state.centers, model_id, pairs[links.weights > 0])
+    order = _by_size(state)
+    R, C = state.R_cam_from_world, state.centers
+    for a_rank, a in enumerate(order):
+        for b in order[a_rank + 1:]:
+            between = np.flatnonzero(across & (np.isin(model_id[i], (a, b)) & np.isin(model_id[j], (a, b))))
+            if not len(between):
+                continue
+            fits = []
+            for k in between[np.argsort(-links.weights[between], kind="stable")]:
+                Rk, t = links.R_j_from_i[k], links.t_j_from_i[k] / np.linalg.norm(links.t_j_from_i[k])
+                b_first = model_id[i[k]] == b  # x_l = R_lk x_kb + s t_lk: t_lk points from C_l to C_kb
+                kb, l = (int(i[k]), int(j[k])) if b_first else (int(j[k]), int(i[k]))
+                R_lk, t_lk = (Rk, t) if b_first else (Rk.T, -Rk.T @ t)
+                pair = CrossPair(k=kb, l=l, b_k=np.zeros((0, 3)), b_l=np.zeros((0, 3)), matches=np.zeros((0, 2), int))
+                fits.append((pair, R[l].T @ R_lk @ R[kb], R[l].T @ t_lk, int(links.weights[k])))
+            M = fits[0][1]
+            agree = [f for f in fits if rotation_angle_deg(f[1], M) <= MAX_ROTATION_DISAGREEMENT_DEG]
+            frames = dict(C_a={int(k): C[k] for k in np.flatnonzero(model_id == a)},
+                          C_b={int(k): C[k] for k in np.flatnonzero(model_id == b)})
+            step_a = float(steps[a])
+            step_b = float(steps[b]) if np.isfinite(steps[b]) else step_a
+            one_ray = len({f[0].k for f in agree}) < 2 and len({f[0].l for f in agree}) < 2
+            placed = None if one_ray else _place(M, agree, frames["C_a"], frames["C_b"], step_a, step_b)
+            if placed is not None and len(agree) < MIN_AGREEING_PAIRS:
+                placed = placed[0], placed[1], True  # determined, not checked: no better than a guess
+            if placed is None:  # one ray fixes no length along it either: model a's median baseline
+                agree = fits[:1]
+                pair, _, u, _ = agree[0]
+                scale = guessed_scale(step_a, step_b)
+                placed = scale, C[pair.l] + step_a * u - scale * M @ C[pair.k], True
+            heights = None
+            if placed[2] and gravity is not None:
+                heights = _placement_by_camera_height(state, a, b, agree, M, bearings, gravity)
+                if heights is not None:
+                    placed, heights = heights
+            if placed[2] and not unconfirmed:
+                continue
+            scale, shift, guessed = placed
+            cams_b = np.flatnonzero(model_id == b)
+            state.R_cam_from_world[cams_b] = R[cams_b] @ M.T
+            state.centers[cams_b] = scale * C[cams_b] @ M.T + shift
+            state.model_id[cams_b] = a
+            evidence = [[f[0].k, f[0].l, f[3]] for f in agree]
+            kind = ("verified pairs, guessed scale" if guessed else "verified pairs, scale by camera height"
+                    if heights is not None else "verified pairs")
+            _record_join(state, kind, cams_b, confirmed=not guessed, pairs=evidence,
+                         **({"camera_height": heights} if heights is not None else {}))
+            if guessed:
+                state.approximate[cams_b] = True
+                log.warning("model %d (%d images) attached to model %d along verified pairs %s at a guessed scale: "
+                            "approximate", b, len(cams_b), a, evidence)
+                return True
+            log.info("model %d (%d images) joined to model %d by verified pairs %s placing both", b, len(cams_b), a,
+                     evidence)
+            _adjust_model(state, a, state.tracks, bearings, options)
+            _grow(state, a, links, bearings, options, descriptors)
+            return True
+    return False
+
+
+def _placement_by_camera_height(state: ModelSet, a: int, b: int, agree: list, M: np.ndarray, bearings,
+                                gravity: np.ndarray):
+    """((scale, shift, False), heights) placing model b by verified pairs' rays (`agree`: (pair, M, u, inliers) with
+    the rotation M of b into a) whose scale the camera height measures: a tripod tour keeps one height, and each
+    model's cameras see the floor below them in its own units (`free_blocks.camera_heights`), so b's scale is the
+    ratio of the models' common heights (`_common_height`). A model of one camera has no size; the pair's length
+    along one ray is measured by the floor below its two cameras (`_length_by_floor`). None where a height is not
+    measured."""
+    H_a = _common_height(state, a, bearings, gravity)
+    cams_b = np.flatnonzero(state.model_id == b)
+    H_b = _common_height(state, b, bearings, gravity) if len(cams_b) > 1 else None
+    if H_a is None or (len(cams_b) > 1 and H_b is None):
+        return None
+    scale = H_a / H_b if H_b is not None else 1.0
+    C = state.centers
+    C_a = {int(k): C[k] for k in np.flatnonzero(state.model_id == a)}
+    C_b = {int(k): C[k] for k in cams_b}
+    if len({f[0].k for f in agree}) > 1 or len({f[0].l for f in agree}) > 1:
+        placed = _place(M, agree, C_a, C_b, scale, 1.0)  # the rays fix the shift under the measured scale
+        if placed is None:
+            return None
+        shift = placed[1]
+    else:
+        pair, _, u, _ = agree[0]
+        length = _length_by_floor(state, pair.l, pair.k, M, u, H_a, bearings, _model_down(state, a, gravity))
+        if length is None:
+            return None
+        shift = C[pair.l] + length * u - scale * M @ C[pair.k]
+    heights = {"model": round(float(H_a), 4), "joined": None if H_b is None else round(float(H_b), 4)}
+    log.info("model %d joined to model %d at the scale its camera height measures (%.4f against %s)", b, a, H_a,
+             "one camera" if H_b is None else f"{H_b:.4f}")
+    return (float(scale), shift, False), heights
+
+
+def _model_down(state: ModelSet, m: int, gravity: np.ndarray) -> np.ndarray | None:
+    """Model m's down direction (world), the mean of its cameras' measured gravity carried to the world."""
+    cams = np.flatnonzero((state.model_id == m) & (np.linalg.norm(gravity, axis=1) > 0))
+    if not len(cams):
+        return None
+    mean = np.einsum("nji,nj->i", state.R_cam_from_world[cams], gravity[cams])
+    return mean / np.linalg.norm(mean)
+
+
+def _common_height(state: ModelSet, m: int, bearings, gravity: np.ndarray) -> float | None:
+    """Model m's cameras' common height above their floor points (its units): the median of the cameras that
+    measure one and agree with it within `heights.MAX_NEIGHBOUR_DEVIATION` (furniture tops sit 20-50% higher),
+    two cameras or more and `heights.MIN_SHARE` of those that measure; None otherwise."""
+    down = _model_down(state, m, gravity)
+    if down is None:
+        return None
+    X, point_of_track = _points_of(state, m, state.tracks, bearings)
+    tracks = state.tracks
+    sel = (state.model_id[tracks.image_ids] == m) & (point_of_track[tracks.track_ids] >= 0)
+    if not sel.any():
+        return None
+    h = camera_heights(state.centers, np.broadcast_to(down, state.centers.shape), X,
+                       point_of_track[tracks.track_ids[sel]], tracks.image_ids[sel])
+    h = h[(state.model_id == m) & np.isfinite(h) & (h > 0)]
+    if len(h) < 2:
+        return None
+    level = float(np.median(h))
+    agreeing = np.abs(np.log(h / level)) <= MAX_NEIGHBOUR_DEVIATION
+    if agreeing.sum() < max(2, MIN_SHARE * len(h)):
+        return None
+    return float(np.median(h[agreeing]))
+
+
+def _length_by_floor(state: ModelSet, l: int, k: int, M: np.ndarray, u: np.ndarray, level: float, bearings,
+                     down: np.ndarray | None) -> float | None:
+    """The length of the verified pair from camera l (model a) to camera k (model b, rotated by M) along u that puts
+    the floor its own tracks show below both cameras at model a's camera height `level` (the triangulation's bridge
+    rule, `heights.bridge_floor_scale`): the pair's tracks triangulated at unit length, their farthest-down cluster
+    below each camera (BRIDGE_MIN_FLOOR_POINTS), both depths agreeing within BRIDGE_FLOOR_AGREEMENT. None without."""
+    if down is None:
+        return None
+    tracks = state.tracks
+    on_l, on_k = tracks.image_ids == l, tracks.image_ids == k
+    common, at_l, at_k = np.intersect1d(tracks.track_ids[on_l], tracks.track_ids[on_k], return_indices=True)
+    if len(common) < BRIDGE_MIN_FLOOR_POINTS:
+        return None
+    z_l = bearings[l][tracks.feature_ids[on_l][at_l]] @ state.R_cam_from_world[l]  # world rays
+    z_k = bearings[k][tracks.feature_ids[on_k][at_k]] @ (state.R_cam_from_world[k] @ M.T)
+    C_l, C_k = state.centers[l], state.centers[l] + u
+    # closest points of the two rays: C_l + s z_l = C_k + t z_k (least squares in s, t)
+    w = C_k - C_l
+    A11, A12, A22 = (z_l * z_l).sum(1), -(z_l * z_k).sum(1), (z_k * z_k).sum(1)
+    r1, r2 = z_l @ w, -(z_k @ w)
+    det = A11 * A22 - A12 * A12
+    ok = np.abs(det) > 1e-9
+    s_l = np.where(ok, (r1 * A22 - A12 * r2) / np.where(ok, det, 1.0), -1.0)
+    t_k = np.where(ok, (A11 * r2 - A12 * r1) / np.where(ok, det, 1.0), -1.0)
+    front = (s_l > 0) & (t_k > 0)
+    if front.sum() < BRIDGE_MIN_FLOOR_POINTS:
+        return None
+    X = 0.5 * (C_l + s_l[front, None] * z_l[front] + C_k + t_k[front, None] * z_k[front])
+    n = len(X)
+    _, _, h = floor_clusters(np.stack([C_l, C_k]), np.stack([down, down]), X, np.r_[np.arange(n), np.arange(n)],
+                             np.repeat([0, 1], n), min_points=BRIDGE_MIN_FLOOR_POINTS)
+    if not (np.isfinite(h).all() and (h > 0).all() and abs(np.log(h[0] / h[1])) <= BRIDGE_FLOOR_AGREEMENT):
+        return None
+    return float(level / np.mean(h))
 
 
 def _placement_agrees(M: np.ndarray, placed: tuple, *, points: tuple[ModelPoints, ModelPoints], bearings,
@@ -889,6 +1070,7 @@ def _merge_once(state: ModelSet, links: PairLinks, bearings, options: Registrati
                          a, b, len(common), joined)
                 continue
             state.merges.append({"images": moved.tolist(), "points": joined})
+            _record_join(state, "merge by shared points", moved, confirmed=True, points=joined)
             log.info("merged model %d (%d images) into model %d: %d/%d common points fit both", b, len(moved), a,
                      joined, len(common))
             _grow(state, a, links, bearings, options, descriptors)

@@ -25,7 +25,8 @@ pair, and no second one can confirm it. A confirmed pair alone places camera k o
 model a; the rematched matches that are points of model a (seen by l) then fix k's distance along that ray (each
 point's ray from k meets the ray at one distance: true matches agree on it, chance ones scatter), and those that are
 points of model b (seen by k) fix l's distance from k in b's units: their ratio is b's scale. The pair joins the
-models only when `MIN_POINT_SUPPORT` points of each model agree. A chance pair that the rematch confirms (2048 home
+models only when `min_points` points of each model agree (registration.min_merge_points: as many as a merge by
+shared points needs). A chance pair that the rematch confirms (2048 home
 seed 44: 027-008, 28.7 m apart, objects of one texture in two rooms, 80 rematched matches) has points that agree on
 no one distance. Seeds then come also from the images' walls: each image's Manhattan axis fixes the two models'
 relative yaw modulo 90°, so each cross pair is fitted (2-unknown baseline) under the four rotations the walls allow,
@@ -39,8 +40,8 @@ it only beats every quarter turn (`SEVERAL_MARGINS`), with `MIN_SEVERAL_CONFIRME
 its cameras that do the same under its rotation and place b consistently. The guard is the join check
 (`accept`, `placement_check`), which every join found here passes before it is taken.
 
-A guess (`guess`, `registration.weak_join_guess`, the very last): a doorway pair that the rematch confirms by
-homejoin's margins, with no companion and none of either model's points among its matches (1024 home seed 92: 016-002,
+A guess (`guess`, only with `registration.unconfirmed_joins: approximate`, the very last): a doorway pair that the
+rematch confirms by homejoin's margins, with no companion and none of either model's points among its matches (1024 home seed 92: 016-002,
 51 rematched, 1 point of each model), fixes b's rotation and the direction from l to k, not the length nor b's
 scale: k is put on the ray at model a's median baseline, b's scale is the median baselines' ratio, and the
 triangulation stage's height prior and bridge floor measure both. Where no upright fit of the doorway exists (seed
@@ -54,13 +55,14 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from fullview.sfm import two_view, upright
 from fullview.sfm.camera import normalize
 from fullview.sfm.matching import epipolar_candidates, match_descriptors
-from fullview.sfm.options import MatchesOptions
+from fullview.sfm.options import MatchesOptions, RegistrationOptions
 from fullview.sfm.registration.weak_joins import MIN_PAIR_INLIERS, _place, guessed_scale
 from fullview.sfm.wall_check import f_of_pose, turn, wall_residual_deg
 
@@ -76,7 +78,6 @@ REFIT_BANDS = (4.0, 2.0)  # rematch-and-refit rounds before the final rematch, t
 # hypothesis 0.3° off in yaw and 2° in its baseline keeps only 16 of 39 true matches within one threshold (with 7
 # chance ones, which the refit then follows); a wider band keeps them, and the refit at one threshold finds them
 RATIO = 0.8  # the ratio test among a feature's epipolar candidates
-MIN_POINT_SUPPORT = 5  # points of each model that must agree on the placement of a pair confirmed alone
 MIN_POINT_SHARE = 0.75  # ... and this share of the rematched matches that are its points (2048 home seed 44: the
 # chance pair 027-008 9 of 17 and 7 of 20, 028-008 7 of 8 and 2 of 14)
 MAX_SCALE_FACTOR = 2.0  # b's scale from the points within this factor of the models' median baselines' ratio (one
@@ -90,6 +91,21 @@ MAX_SCANNED = 1000  # ... at most this many rematched (most raw inliers first)
 MIN_SEVERAL_CONFIRMED = 2  # pairs (seed included) that place b when each only beats its quarter turns
 SEVERAL_MARGINS = (1.0, 1)  # ... by (factor, excess): more matches than under any quarter turn (doorway 007-009 of
 # 1024 home seed 61: 37 rematched from its seed fit, 34 under its 90-degree turn; 008-009 34 against 13-32)
+
+
+class Rematched(NamedTuple):
+    """A join found by rematching: b's rotation into a, the chosen fits, the placement (scale, shift, guessed), the
+    inlier rows (k, feature, l, feature), and which rule found it (`KINDS`)."""
+
+    M: np.ndarray
+    chosen: list
+    placed: tuple
+    rows: list
+    kind: str
+
+
+KINDS = {"companions": "rematched pairs", "one_pair": "one rematched pair and points of both models",
+         "several": "rematched pairs each above its quarter turns", "guess": "one rematched pair, guessed length"}
 
 
 @dataclass(kw_only=True)
@@ -161,7 +177,8 @@ def _refit(x_k: np.ndarray, x_l: np.ndarray, R_lk: np.ndarray, threshold_rad: fl
 def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: dict, C_b: dict, gravity: np.ndarray,
                        bearings, descriptors, threshold_rad: float, step_a: float, step_b: float, seed: int = 0,
                        points: tuple[ModelPoints, ModelPoints] | None = None, wall_axes: np.ndarray | None = None,
-                       several: bool = False, guess: bool = False, accept=None):
+                       several: bool = False, guess: bool = False, accept=None,
+                       min_points: int = RegistrationOptions.min_merge_points) -> Rematched | None:
     """(M, chosen, placement, inlier rows) of the first seed fit (most inliers first) that the rematch confirms with
     companions placing model b consistently (see the module doc), or None.
 
@@ -170,7 +187,8 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
     (model a's, model b's) to join on one confirmed pair placed by both (None: two pairs needed); wall_axes: (N, 3)
     each image's Manhattan axis in its camera frame (zero rows: none), for the seeds the walls allow; several: last,
     MIN_SEVERAL_CONFIRMED pairs each above its quarter turns by SEVERAL_MARGINS (see the module doc); accept:
-    `accept(M, (scale, shift, guessed))` -> False rejects a join (the placement check), the next seed is tried."""
+    `accept(M, (scale, shift, guessed))` -> False rejects a join (the placement check), the next seed is tried;
+    min_points: points of each model that must agree on a one-pair join."""
     def confirm(pair, R_lk, t_lk, free_rotation: bool, n: int, margins=(NULL_FACTOR, MIN_EXCESS)):
         d_k, d_l = descriptors[pair.k], descriptors[pair.l]
         return confirmed_pose(bearings[pair.k][:len(d_k)], bearings[pair.l][:len(d_l)], d_k, d_l, R_lk, t_lk,
@@ -198,7 +216,8 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
         if placed is None or not accept(M, placed):
             return None
         rows = [(f[0].k, int(a), f[0].l, int(b)) for f in chosen for a, b in f[3]]
-        return M, chosen, placed, rows
+        return Rematched(M, chosen, placed, rows, KINDS["several" if min_confirmed == MIN_SEVERAL_CONFIRMED
+                                                        and margins == SEVERAL_MARGINS else "companions"])
 
     accept = accept or (lambda M, placed: True)
     seeds = sorted(fits, key=lambda f: -f[3].sum())[:MAX_SEEDS]
@@ -215,9 +234,9 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
         joined = _join_by_one_pair(alone, confirm, cross, gravity, bearings, points, wall_axes, threshold_rad, seed,
                                    accept, R_a=R_a, C_a=C_a, R_b=R_b, C_b=C_b,
                                    tolerance_rad=POINT_TOLERANCE * threshold_rad,
-                                   step_ratio=guessed_scale(step_a, step_b))
+                                   step_ratio=guessed_scale(step_a, step_b), min_points=min_points)
         if joined is not None:
-            return joined
+            return Rematched(*joined, KINDS["one_pair"])
     if several:
         for pair, M, u, _ in seeds:
             found = confirm(pair, R_a[pair.l] @ M @ R_b[pair.k].T, R_a[pair.l] @ u, True, 0, SEVERAL_MARGINS)
@@ -235,7 +254,7 @@ def join_by_rematching(fits: list, cross: list, *, R_a: dict, C_a: dict, R_b: di
                                            seed)
             joined = _first_guess_accepted(scanned, accept, " under the walls' rotation", **placed)
         if joined is not None:
-            return joined
+            return Rematched(*joined, KINDS["guess"])
     return None
 
 
@@ -290,11 +309,11 @@ def _placed_by_a_guess(pair, R_lk, t_lk, m, *, R_a, C_a, R_b, C_b, step_a: float
 
 
 def _join_by_one_pair(alone: list, confirm, cross: list, gravity, bearings, points, wall_axes, threshold_rad: float,
-                      seed: int, accept, **frames):
+                      seed: int, accept, min_points: int, **frames):
     """The one-pair join (see the module doc) of a confirmed seed, else of a wall seed that the rematch confirms;
     None if none is joined (or accepted)."""
     for pair, (R_lk, t_lk, m) in alone:
-        found = _joined_by_points(pair, R_lk, t_lk, m, bearings, points, **frames)
+        found = _joined_by_points(pair, R_lk, t_lk, m, bearings, points, min_points=min_points, **frames)
         if found is not None and accept(found[0], found[2]):
             return found
     if wall_axes is None:
@@ -304,7 +323,7 @@ def _join_by_one_pair(alone: list, confirm, cross: list, gravity, bearings, poin
             continue
         found = confirm(pair, R_lk, t_lk, False, 100 + n)
         if found is not None:
-            found = _joined_by_points(pair, *found, bearings, points, **frames)
+            found = _joined_by_points(pair, *found, bearings, points, min_points=min_points, **frames)
             if found is not None and accept(found[0], found[2]):
                 return found
     return None
@@ -331,7 +350,7 @@ def wall_hypotheses(cross: list, gravity: np.ndarray, wall_axes: np.ndarray, thr
 
 
 def _joined_by_points(pair, R_lk, t_lk, m, bearings, points, *, R_a, C_a, R_b, C_b, tolerance_rad: float,
-                      step_ratio: float):
+                      step_ratio: float, min_points: int):
     """(M, chosen, placement, inlier rows) of the join by one confirmed pair (k of b, l of a) when points of both
     models agree on its length (see the module doc), or None."""
     k, l = pair.k, pair.l
@@ -342,7 +361,7 @@ def _joined_by_points(pair, R_lk, t_lk, m, bearings, points, *, R_a, C_a, R_b, C
         return None
     on_a, on_b = pa.point_of_feature[l][m[:, 1]], pb.point_of_feature[k][m[:, 0]]
     seen_a, seen_b = on_a >= 0, on_b >= 0
-    if min(seen_a.sum(), seen_b.sum()) < MIN_POINT_SUPPORT:
+    if min(seen_a.sum(), seen_b.sum()) < min_points:
         return None
     rays_a = bearings[k][m[seen_a, 0]] @ (R_a[l].T @ R_lk).T  # k's rays in a's frame
     lam, n_a = distance_along(C_a[l], u, pa.X[on_a[seen_a]], rays_a, tolerance_rad)
@@ -351,7 +370,7 @@ def _joined_by_points(pair, R_lk, t_lk, m, bearings, points, *, R_a, C_a, R_b, C
     scale = lam / mu if mu > 0 else 0.0
     log.info("one pair %d-%d: %d of %d points of model a agree on its length, %d of %d of model b; scale %.3f "
              "(median baselines' ratio %.3f)", k, l, n_a, seen_a.sum(), n_b, seen_b.sum(), scale, step_ratio)
-    if (min(n_a, n_b) < MIN_POINT_SUPPORT or n_a < MIN_POINT_SHARE * seen_a.sum()
+    if (min(n_a, n_b) < min_points or n_a < MIN_POINT_SHARE * seen_a.sum()
             or n_b < MIN_POINT_SHARE * seen_b.sum()
             or not 1.0 / MAX_SCALE_FACTOR <= scale / step_ratio <= MAX_SCALE_FACTOR):
         return None

@@ -59,6 +59,7 @@ class WeakJoin:
     pairs: list[tuple[int, int, int]]  # (k, l, inliers) of the agreeing cross pairs
     inlier_matches: list[tuple[int, int, int, int]]  # (k, feature, l, feature) of the agreeing pairs
     scale_guessed: bool  # the agreeing pairs touch one camera of b: its scale is model a's median baseline's
+    kind: str  # the rule that found it: "agreeing weak pairs", "guided weak pairs", or a `rematch_join.KINDS` value
 
 
 def join_by_weak_pairs(*, R_a: dict[int, np.ndarray], C_a: dict[int, np.ndarray], R_b: dict[int, np.ndarray],
@@ -81,6 +82,7 @@ def join_by_weak_pairs(*, R_a: dict[int, np.ndarray], C_a: dict[int, np.ndarray]
             M = R_a[pair.l].T @ R_lk @ R_b[pair.k]
             u = normalize(R_a[pair.l].T @ t_lk)  # from C_l towards C_k, in a's frame
             fits.append((pair, M, u, inliers))
+    kind = "agreeing weak pairs"
     for candidate in _agreeing_sets(fits):
         chosen = [fits[n] for n in candidate]
         M = _mean_rotation(np.array([f[1] for f in chosen]))
@@ -95,14 +97,15 @@ def join_by_weak_pairs(*, R_a: dict[int, np.ndarray], C_a: dict[int, np.ndarray]
             found = rematch(fits) if rematch is not None else None
             if found is None:
                 return None
-            M, chosen, placed, rows = found
+            M, chosen, placed, rows, kind = found
             return WeakJoin(M=M, scale=placed[0], shift=placed[1], pairs=[(f[0].k, f[0].l, len(f[3])) for f in chosen],
-                            inlier_matches=rows, scale_guessed=placed[2])
+                            inlier_matches=rows, scale_guessed=placed[2], kind=kind)
         M, chosen, placed = found
+        kind = "guided weak pairs"
     scale, shift, guessed = placed
     rows = [(f[0].k, int(a), f[0].l, int(b)) for f in chosen for a, b in f[0].matches[f[3]]]
     return WeakJoin(M=M, scale=scale, shift=shift, pairs=[(f[0].k, f[0].l, int(f[3].sum())) for f in chosen],
-                    inlier_matches=rows, scale_guessed=guessed)
+                    inlier_matches=rows, scale_guessed=guessed, kind=kind)
 
 
 def _upright_pair(pair: CrossPair, gravity: np.ndarray, threshold_rad: float, seed: int):
