@@ -352,10 +352,12 @@ def sparse_models(pipeline: Pipeline) -> list[SparseModel]:
     with ws.reading():
         sparse = ws.load_sparse()
         obs = ws.load_observations(dataset)
+        # approximate cameras (placed by a join nothing confirms, docs/trust.md) are not exported as fact
+        model_id = np.where(ws.verified_mask(), sparse["model_id"], -1)
     whole = SparseModel(
         image_names=list(dataset.image_names), image_sizes=[tuple(int(v) for v in o["image_size"]) for o in obs],
-        registered=sparse["model_id"] >= 0, R_cam_from_world=sparse["R_cam_from_world"],
+        registered=model_id >= 0, R_cam_from_world=sparse["R_cam_from_world"],
         t_cam_from_world=sparse["t_cam_from_world"], points=sparse["points"], colors=sparse["colors"],
         point_errors_rad=sparse["point_error_rad"], track_point3d=sparse["track_ids"],
         track_image=sparse["image_ids"], track_point2d=sparse["feature_ids"], pixels=[o["pixels"] for o in obs])
-    return split_models(whole, sparse["model_id"])
+    return split_models(whole, model_id)

@@ -110,3 +110,20 @@ def test_export_to_a_chosen_folder_and_refusals(reconstructed, tmp_path, capsys)
 def test_export_of_a_stale_model_is_refused(reconstructed, capsys):
     assert _export(reconstructed, "colmap", "--set", "filter.min_inliers=20") == 2
     assert "run the pipeline first" in capsys.readouterr().err
+
+
+def test_an_approximate_camera_is_left_out_of_every_export(reconstructed, monkeypatch, tmp_path):
+    """A camera placed by a join nothing confirms (docs/trust.md) is not exported as fact: marked approximate, it is
+    missing from the COLMAP model and the nerfstudio frames, and the others are unchanged."""
+    from fullview.io.workspace import Workspace
+    dataset, ws, settings = reconstructed
+    names = sorted(p.name for p in (dataset / "images").iterdir())
+    monkeypatch.setattr(Workspace, "verified_mask", lambda self: np.array([n != names[2] for n in names]))
+    out = tmp_path / "colmap"
+    assert main(["export", str(dataset), "-w", str(ws), "--format", "colmap", "--out", str(out), *settings]) == 0
+    rec = pycolmap.Reconstruction(str(out / "0"))
+    assert sorted(img.name for img in rec.images.values()) == names[:2]
+    nerf = tmp_path / "nerf"
+    assert main(["export", str(dataset), "-w", str(ws), "--format", "nerfstudio", "--out", str(nerf), *settings]) == 0
+    frames = json.loads((nerf / "0" / "transforms.json").read_text())["frames"]
+    assert sorted(f["file_path"].rsplit("/", 1)[-1] for f in frames) == names[:2]
