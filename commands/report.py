@@ -34,7 +34,7 @@ def report(pipeline: Pipeline) -> str:
     with ws.locked(command="fullview report"), ws.transaction(folder_of("report_page")) as out:
         with ws.reading():
             sections = [_stages(pipeline), _pairs(pipeline, out), _cameras(pipeline, out), _placements(pipeline),
-                        _errors(pipeline, out),
+                        _pose_check(pipeline), _errors(pipeline, out), _dense(pipeline, out),
                         _depth(pipeline, out), _metrics(pipeline), _viewer(pipeline)]
         page = _PAGE.format(title=html.escape(pipeline.dataset.name), body="\n".join(s for s in sections if s))
         out.save_text("report_page", page)
@@ -189,26 +189,112 @@ def _errors(pipeline: Pipeline, out: StageWriter) -> str:
     return "<h2>Sparse model</h2><img src='errors.png' alt='reprojection errors and track lengths'>"
 
 
+def _pose_check(pipeline: Pipeline) -> str:
+    """The leave-one-out pose check of the last `fullview eval` (docs/pose-check.md): each camera re-estimated from
+    the other cameras' points alone, disagreeing and unverifiable cameras first."""
+    metrics = pipeline.ws.load_json("eval_metrics") or {}
+    check = metrics.get("pose_check")
+    if not check or not check.get("per_image"):
+        return ""
+    order = {"disagrees": 0, "unverifiable": 1}
+    rows = sorted(check["per_image"].items(), key=lambda item: (order.get(item[1]["status"], 2), item[0]))
+    body = "".join(
+        f"<tr class='{html.escape(str(r['status']))}'><td>{html.escape(name)}</td><td>{r.get('model', '—')}</td>"
+        f"<td>{html.escape(str(r['status']))}</td><td>{_num(r.get('rotation_deg'))}</td>"
+        f"<td>{_num(r.get('centre_rel'))}</td><td>{_num(r.get('shift_deg'))}</td>"
+        f"<td>{html.escape(str(r.get('reason') or ''))}</td></tr>" for name, r in rows)
+    flagged = ", ".join(check.get("flagged") or []) or "none"
+    return ("<h2>Pose check</h2><p>Each camera's pose estimated again from the other cameras' points alone and "
+            f"compared with the model's (bound: a median shift of {_num(check.get('threshold_deg'))}°, the "
+            f"triangulation's inlier threshold). Flagged: {html.escape(flagged)}.</p><table><tr><th>image</th>"
+            "<th>model</th><th>check</th><th>rotation (°)</th><th>centre / model size</th><th>median shift (°)</th>"
+            f"<th>why</th></tr>{body}</table>")
+
+
+def _dense(pipeline: Pipeline, out: StageWriter) -> str:
+    """The dense cloud's and the mesh's previews that densify renders, and whether it judged the scene indoors."""
+    ws = pipeline.ws
+    manifest = ws.read_manifest("densify")
+    if manifest is None:
+        return ""
+    summary = manifest.get("summary") or {}
+    parts = []
+    scene = summary.get("scene") or {}
+    if scene.get("kind"):
+        parts.append(f"<p>Scene: {html.escape(str(scene['kind']))} — {html.escape(str(scene.get('reason', '')))}</p>")
+    for artifact, caption in (("dense_preview", f"dense cloud, {summary.get('points', 0):,} points"),
+                              ("dense_mesh_preview", "mesh")):
+        path = ws.path(artifact)
+        if path.is_file():
+            out.save_bytes("report_asset", path.read_bytes(), file=path.name)
+            parts.append(f"<figure><img src='{html.escape(path.name)}' alt='{html.escape(caption)}'><figcaption>"
+                         f"{html.escape(caption)}</figcaption></figure>")
+    return "<h2>Dense model</h2>" + "".join(parts) if parts else ""
+
+
 def _depth(pipeline: Pipeline, out: StageWriter) -> str:
+    """Every panorama's depth map on one colour scale (inverse range, so near detail shows), with a colour bar in
+    metres when a scale is stated (`fullview export --camera-height`), else in model units."""
     manifest = pipeline.ws.read_manifest("densify")
     if manifest is None:
         return "<h2>Depth maps</h2><p class='missing'>densify has not run</p>"
     shares = manifest.get("summary", {}).get("valid_share", {})
+    maps = {name: pipeline.ws.load_depth(name) for name in pipeline.dataset.image_names}
+    inverse = [1.0 / d["range"][d["valid"] & (d["range"] > 0)] for d in maps.values() if d is not None]
+    inverse = np.concatenate(inverse) if inverse else np.zeros(0)
+    if not len(inverse):
+        return "<h2>Depth maps</h2><p class='missing'>no panorama has a depth</p>"
+    lo, hi = np.percentile(inverse, [2, 98])
+    hi = max(hi, lo * 1.001 + 1e-12)
+    unit, factor = _length_unit(pipeline)
     cells = []
-    for name in pipeline.dataset.image_names:
-        path = pipeline.ws.path("depth_image", stem=image_stem(name))
-        if not path.exists():
+    for name, depth in maps.items():
+        if depth is None:
             cells.append(f"<figure><figcaption>{html.escape(name)}: no depth map</figcaption></figure>")
             continue
-        picture = cv2.imread(str(path))
+        picture = _colour_depth(depth["range"], depth["valid"], lo, hi)
         if picture.shape[1] > THUMB_WIDTH:
-            picture = cv2.resize(picture, (THUMB_WIDTH, THUMB_WIDTH // 2), interpolation=cv2.INTER_AREA)
+            picture = cv2.resize(picture, (THUMB_WIDTH, THUMB_WIDTH // 2), interpolation=cv2.INTER_NEAREST)
         file = f"depth_{image_stem(name)}.png"
         _save_png(out, file, picture)
         cells.append(f"<figure><img src='{html.escape(file)}' alt='depth of {html.escape(name)}'><figcaption>"
                      f"{html.escape(name)}: {100 * shares.get(name, 0):.0f}% of pixels have a depth</figcaption>"
                      "</figure>")
-    return "<h2>Depth maps</h2><div class='grid'>" + "".join(cells) + "</div>"
+    _save_figure(out, "depth_scale.png", _colour_bar(lo, hi, unit, factor))
+    return ("<h2>Depth maps</h2><p>Black: no depth. Colour: distance from the camera.</p>"
+            f"<img src='depth_scale.png' alt='depth colour scale in {html.escape(unit)}'>"
+            "<div class='grid'>" + "".join(cells) + "</div>")
+
+
+def _length_unit(pipeline: Pipeline) -> tuple[str, float]:
+    """("m", metres per model unit) when a metric scale is stated and measurable, else ("model units", 1)."""
+    from fullview.commands.export import metric_scale
+    scale = metric_scale(pipeline)
+    return ("m", scale.metres_per_unit) if scale is not None else ("model units", 1.0)
+
+
+def _colour_depth(rng: np.ndarray, valid: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """BGR picture of a range map on the report's shared scale: inverse range lo..hi -> TURBO, invalid black."""
+    ok = valid & (rng > 0)
+    inv = np.divide(1.0, rng, out=np.zeros(rng.shape, np.float64), where=ok)
+    grey = np.clip((inv - lo) / (hi - lo) * 255, 0, 255).astype(np.uint8)
+    return cv2.applyColorMap(grey, cv2.COLORMAP_TURBO) * ok[..., None].astype(np.uint8)
+
+
+def _colour_bar(lo: float, hi: float, unit: str, factor: float):
+    """A horizontal colour bar of `_colour_depth`'s scale, ticks labelled as distances."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(8, 0.9))
+    bar = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[None, :], cv2.COLORMAP_TURBO)[..., ::-1]
+    ax.imshow(np.repeat(bar, 12, axis=0), aspect="auto", extent=(0, 255, 0, 1))
+    ticks = np.linspace(0, 255, 6)
+    ax.set_xticks(ticks, [f"{factor / (lo + t / 255 * (hi - lo)):.3g}" for t in ticks])
+    ax.set_yticks([])
+    ax.set_xlabel(f"distance ({unit}); far on the left, near on the right")
+    fig.tight_layout()
+    return fig
 
 
 def _metrics(pipeline: Pipeline) -> str:
