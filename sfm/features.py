@@ -34,8 +34,8 @@ FACE_NAMES = tuple(_FACE_AXES)
 
 # OpenCV pixel centres sit at integer coordinates, so continuous = pt + 0.5; but OpenCV SIFT also reports points
 # found on its 2x-upsampled base image as (upsampled index) / 2, ignoring that resize puts upsampled pixel c at
-# source position c/2 - 0.25. Measured on synthetic blobs: +0.23/+0.25 px. Left uncorrected, this bias rotates
-# differently with each cube face and costs ~0.03° of relative rotation accuracy.
+# source position c/2 - 0.25 (cv2.resize's pixel-centre convention; a blob of known centre confirms it: +0.23/+0.25
+# px). Left uncorrected, this bias rotates differently with each cube face and costs ~0.03° of relative rotation.
 OPENCV_SIFT_TO_CONTINUOUS = 0.5 - 0.25
 
 

@@ -242,7 +242,7 @@ def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, 
     the candidates near each circle, mutual check), kept when their symmetric epipolar error is within the threshold
     and they lie in front of both cameras under the pair's relative pose (the epipolar constraint alone cannot reject
     a match on the wrong side of the baseline). Only verified pairs are extended: a weak pair's F is too uncertain
-    to guide (measured: promoting weak pairs broke registration on the synthetic home). Returns (inliers, added)."""
+    to guide: matches found along a wrong F's circles agree with it by construction. Returns (inliers, added)."""
     num_i, num_j = len(desc_i), len(desc_j)
     allowed = epipolar_candidates(bear_i[:num_i], bear_j[:num_j], F, threshold)
     guided = match_descriptors(desc_i, desc_j, guided_options, block_rows=1024, allowed=allowed)
@@ -265,11 +265,10 @@ def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, 
 def _fit_upright(b_i, b_j, gravity, opts: two_view.RansacOptions) -> two_view.FResult:
     """The upright model: 3-point yaw solver on levelled bearings, yaw-only refinement, never released.
 
-    Why: on the plain-walled home most inliers of a pair lie on one textured furniture face. 8-point samples from one
-    plane fit a wrong F that still gathers most of them (154 inliers, 49° off), and an unconstrained refinement
-    started at the right upright F slides along that near-degenerate valley: over the home's pairs the median
-    rotation error is 0.014° upright and 0.128° after a free refinement, with some pairs tens of degrees off. The
-    price on well-textured real panoramas, whose estimated gravity is a tenth of a degree off: 360_Flat agrees
+    Why: in a plain-walled room most inliers of a pair can lie on one textured furniture face. 8-point samples from
+    one plane fit a wrong F that still gathers most of them (a plane's matches fix a homography, not F), and an
+    unconstrained refinement started at the right upright F slides along that near-degenerate valley; the upright
+    model has 3 unknowns, which a plane's matches do fix. The price on well-textured real panoramas, whose estimated gravity is a tenth of a degree off: 360_Flat agrees
     with COLMAP to 0.061° at most instead of 0.027°."""
     L_i, L_j = upright.leveling_rotation(gravity[0]), upright.leveling_rotation(gravity[1])
     res = upright.ransac_f_upright(b_i @ L_i.T, b_j @ L_j.T, opts)
@@ -344,7 +343,7 @@ def _better_of_seeded_and_free(seeded: two_view.FResult, h_i, h_j, b_i, b_j, gra
     Cheapest first: the local optimisation started at the clicks' F usually finds the matches' fit. A sampled search
     (upright when both gravities are known, as its yaw-only model is the more precise on plain rooms; else LO-MSAC)
     then runs only as long as it needs to find a fit with more inliers than the best so far: with a wrong gravity
-    estimate it used to run to the hypothesis cap on every seeded pair (synthetic 24-view room: filter 4 s -> 20 s)."""
+    estimate it used to run to the hypothesis cap on every seeded pair (5x the filter's time on a 24-view room)."""
     tolerance = HAND_CHECK_THRESHOLDS * opts.threshold_rad
     wins = lambda fit, other: (fit.inliers.sum() > other.inliers.sum()  # noqa: E731
                                and _explains(fit.F, h_i, h_j, tolerance))
