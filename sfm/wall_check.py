@@ -88,8 +88,9 @@ MAX_WALL_TILT_DEG = 5.0  # a plane whose normal is this close to horizontal is a
 PLANE_TOLERANCE_DEG = 2.0
 # ... and the planar inliers spread along both of the plane's directions by at least this fraction of its distance
 # (standard deviation s): points scattered across the PLANE_OFFSET band (std PLANE_OFFSET/√3) tilt the normal fitted
-# to the 8 points a fit needs by (PLANE_OFFSET/√3) / (s √8) rad, which must stay within PLANE_TOLERANCE_DEG (s = 0.117).
-PLANE_MIN_EXTENT = PLANE_OFFSET / np.sqrt(3.0) / (np.sqrt(8.0) * np.radians(PLANE_TOLERANCE_DEG))
+# to the 8 points a fit needs by (PLANE_OFFSET/√3) / (s √(8 − 3)) rad (rms; 3 unknowns of the plane), which must stay
+# within PLANE_TOLERANCE_DEG: s = 0.148.
+PLANE_MIN_EXTENT = PLANE_OFFSET / np.sqrt(3.0) / (np.sqrt(8.0 - 3.0) * np.radians(PLANE_TOLERANCE_DEG))
 
 
 def inlier_plane(b_i: np.ndarray, b_j: np.ndarray, R_j_from_i: np.ndarray, t_j_from_i: np.ndarray

@@ -189,3 +189,32 @@ def test_the_filter_fixes_a_wall_pair_when_only_one_image_has_a_wall_axis_whiche
         assert how == "fitted" and kept.all()
         pose = two_view.relative_pose_from_f(F, b_i, b_j)
         assert rotation_angle_deg(pose.R_j_from_i, R_ji) < 1e-6
+
+
+def test_a_planar_patch_counts_from_the_extent_that_fixes_its_normal_within_the_wall_tolerance():
+    """PLANE_MIN_EXTENT's derivation: 8 points spread by it across a wall, scattered through the plane band, give a
+    normal whose tilt (rms) is PLANE_TOLERANCE_DEG; and `inlier_plane` takes a patch wider than that, not a
+    narrower one."""
+    from fullview.sfm.wall_check import PLANE_MIN_EXTENT, PLANE_OFFSET, PLANE_TOLERANCE_DEG
+    rng, d = np.random.default_rng(5), 1.5
+
+    def patch(n, extent):
+        a = extent * d * np.sqrt(3.0)  # uniform half-width of that standard deviation
+        return np.column_stack([rng.uniform(-a, a, n), rng.uniform(-a, a, n),
+                                d + rng.uniform(-0.95, 0.95, n) * PLANE_OFFSET * d])
+
+    tilts = []
+    for _ in range(2000):
+        X = patch(8, PLANE_MIN_EXTENT)
+        normal = np.linalg.svd(X - X.mean(axis=0))[2][2]
+        tilts.append(np.degrees(np.arcsin(abs(normal[0]) / np.linalg.norm(normal))))
+    rms = np.sqrt(np.mean(np.square(tilts)))
+    assert 0.8 * PLANE_TOLERANCE_DEG < rms < 1.25 * PLANE_TOLERANCE_DEG, rms
+    C_j = np.array([1.0, 0.0, 0.0])  # camera i at the origin, both unrotated; the baseline is the unit
+    t_ji = -C_j
+    for extent, found in ((1.5 * PLANE_MIN_EXTENT, True), (0.6 * PLANE_MIN_EXTENT, False)):
+        X = patch(40, extent)
+        plane = inlier_plane(normalize(X), normalize(X - C_j), np.eye(3), t_ji)
+        assert (plane is not None) == found, extent
+        if found:
+            assert np.degrees(np.arccos(abs(plane[0][2]))) < PLANE_TOLERANCE_DEG and abs(plane[1] - d) < 0.02 * d
