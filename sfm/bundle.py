@@ -847,11 +847,13 @@ def bundle_adjust(
     return _result(x, objective.evaluations, converged, problem, initial_cost, loss, loss_scale_rad)
 
 
-# Gravity priors: a standard error below this is not believed (segments of one edge are not independent, and
-# the vertical-line estimates of the synthetic home are 0.05-0.5° off with standard errors of 0.06-0.19°).
-MIN_GRAVITY_SIGMA_RAD = np.radians(0.02)
-# A measured gravity farther than this many standard errors (and than MAX_GRAVITY_OUTLIER_RAD) from its model's up
-# direction is an outlier (a wrong vanishing point) and gets no prior.
+# Gravity priors: a standard error below this is not believed: a tenth of a pixel at the width lines are found
+# (0.1 × 360° / 2048, `filter.GRAVITY_WIDTH`), what a sub-pixel edge fit reaches; segments of one edge are not
+# independent. The real captures state 0.043-0.068° per image (360_Flat, 360_school): it binds only on clean renders.
+MIN_GRAVITY_SIGMA_RAD = np.radians(0.1 * 360.0 / 2048)
+# A measured gravity farther than this many standard errors (a 6-sigma test: the real ones lie 1.85 stated
+# errors away, root mean square, 360_Flat) and than MIN_GRAVITY_OUTLIER_RAD (four times the largest real error, 0.24° on 360_Flat)
+# from its model's up direction is an outlier (a wrong vanishing point) and gets no prior.
 GRAVITY_OUTLIER_SIGMAS = 6.0
 MIN_GRAVITY_OUTLIER_RAD = np.radians(1.0)
 
@@ -891,8 +893,8 @@ def gravity_prior_for_models(R_cam_from_world: np.ndarray, gravity_cam: np.ndarr
 def gravity_error_factor(R_cam_from_world: np.ndarray, prior: GravityPrior) -> float:
     """How many times its stated standard error each measured gravity lies from the model's up direction, per
     tangent component: √(Σ (θ_i / σ_i)² / (2M − 2G)) over the prior's M cameras in G groups (each group's up, the
-    precision-weighted mean of its gravities, takes 2 degrees of freedom). About 1 when the standard errors are right
-    (the synthetic homes against their true poses: 0.7-1.0), 1.3-1.8 on 360_school and 360_Flat, whose vertical
+    precision-weighted mean of its gravities, takes 2 degrees of freedom). About 1 when the standard errors are right,
+    1.3-1.85 on 360_school and 360_Flat, whose vertical
     lines are not independent segments. 1 when there is no redundancy."""
     R = np.asarray(R_cam_from_world, dtype=np.float64)[prior.camera]
     group = np.asarray(prior.group)

@@ -34,8 +34,8 @@ FACE_NAMES = tuple(_FACE_AXES)
 
 # OpenCV pixel centres sit at integer coordinates, so continuous = pt + 0.5; but OpenCV SIFT also reports points
 # found on its 2x-upsampled base image as (upsampled index) / 2, ignoring that resize puts upsampled pixel c at
-# source position c/2 - 0.25. Measured on synthetic blobs: +0.23/+0.25 px. Left uncorrected, this bias rotates
-# differently with each cube face and costs ~0.03° of relative rotation accuracy.
+# source position c/2 - 0.25 (cv2.resize's pixel-centre convention; a blob of known centre confirms it: +0.23/+0.25
+# px). Left uncorrected, this bias rotates differently with each cube face and costs ~0.03° of relative rotation.
 OPENCV_SIFT_TO_CONTINUOUS = 0.5 - 0.25
 
 
@@ -138,9 +138,10 @@ def denoised(grey: np.ndarray, options: FeaturesOptions, noise: float | None = N
     """The grey panorama SIFT sees. With more sensor noise than `denoise_min_noise`, non-local means of strength
     1.5 sigma (5 px patches, 11 px search): a room's faint texture repeats over many pixels, the noise does not, so
     the texture survives while the noise's own DoG blobs go, which would otherwise fill the plain faces (detected at
-    lowered thresholds) with keypoints and drown their real ones. Clean renders measure ~0.1 and real Theta S
-    panoramas at 2048 px ~0.55. Off by default: on noisy homes it removes the noise keypoints but brings back none
-    of the true matches the noise costs (README, "Sensor noise in the features stage")."""
+    lowered thresholds) with keypoints and drown their real ones. Clean renders measure ~0.1, the real Theta
+    panoramas at 2048 px 0.59-0.73 (360_school, 360_Flat). Off by default: nothing shows it helps (on rendered noisy
+    homes it removed the noise keypoints but brought back none of the true matches the noise costs: README, "Sensor
+    noise in the features stage"; not measured on the real captures)."""
     if not options.denoise_min_noise:
         return grey
     noise = noise_sigma(grey) if noise is None else noise

@@ -3,8 +3,8 @@
 Why. A chain of rooms joined through doorways is held together by the tracks that cross each doorway; where only
 two-view tracks cross (they fix the direction between the two cameras, not its length), the scale of the rooms
 beyond rests on the one or two longer tracks that happen to cross, and the bundle adjustment keeps whatever scale
-registration guessed (new 32-view home seed 41: cameras 000-014 at 1.16 of the true scale, 015-024 at 0.81, one
-six-view track across the step). A tripod keeps its height, and each camera sees the floor below it in its own
+registration guessed (a scale error of tens of per cent between the rooms on either side of such a doorway: one
+long track pins it only to its own triangulation error). A tripod keeps its height, and each camera sees the floor below it in its own
 room's scale: its height above its floor points is a measurement of the local scale. Holding every camera's height
 to its model's common height inside the adjustment carries one scale through every doorway.
 
@@ -32,7 +32,9 @@ from scipy.sparse import csr_matrix
 from fullview.sfm.registration.free_blocks import MIN_FLOOR_POINTS, biconnected_blocks, camera_links, floor_clusters
 
 # A camera whose floor height differs by more than this (relative, log scale) from the median of the cameras it
-# shares NEIGHBOUR_TRACKS tracks with took something else for the floor (furniture tops sit 20-50% higher).
+# shares NEIGHBOUR_TRACKS tracks with took something else for the floor: 3.6 times a camera's own spread (5 cm at
+# 1.5 m, 0.033: `triangulation.height_prior_sigma`), while the lowest furniture top taken for the floor (a sofa
+# seat, 0.45 m, under a 1.5 m camera) is log(1.5 / 1.05) = 0.36 off.
 MAX_NEIGHBOUR_DEVIATION = 0.12
 NEIGHBOUR_TRACKS = 20
 # A model gets the prior only when at least this many of its cameras, and this share of them, measure a floor.
@@ -68,7 +70,8 @@ def rigid_tracks(track_ids: np.ndarray, image_ids: np.ndarray, n: int) -> np.nda
     """(T,) tracks inside a block of three or more cameras (`free_blocks.biconnected_blocks` of the cameras that
     share a track). The others lie in a block of two cameras that only two-view tracks join (a doorway): the
     bearings leave that pair's baseline length free, and floor rows on its points (seen by both, each camera at its
-    own height) would set the length from the two heights' difference (new home s46: a doorway ×0.73 → ×0.17)."""
+    own height) would set the length from the two heights' difference, a few cm of height noise over a baseline
+    that nothing else measures: the length then follows the noise."""
     order = np.lexsort((image_ids, track_ids))
     tracks, cams = track_ids[order], image_ids[order]
     first = np.r_[True, tracks[1:] != tracks[:-1]]
@@ -186,11 +189,12 @@ def restore_bridges(centers_before: np.ndarray, centers: np.ndarray, points: np.
     """Cameras and points with every bridge's baseline back at its length in `centers_before`: a bridge is two
     cameras that only two-view tracks join (a block of two, `free_blocks.biconnected_blocks`), so the bearings leave
     its length free. Levenberg-Marquardt's diagonal damping lets the large steps of the height prior leak into that
-    free direction (new home s41: a doorway's 0.20 shrank to 0.0001 in the final adjustment); the length is not
+    free direction (a free length costs nothing, so the damping does not hold it: it can shrink to nothing); the
+    length is not
     measured by the bearings, so it goes back to where registration put it, unless its own points show the floor
     below both cameras: with `level` and `down` ((N,) and (N, 3), `model_levels`) the length is then the one that
-    puts that floor at the model's camera height (`bridge_floor_scale`; new home seed 46: 027-028 from 1.38 of the
-    truth to 1.006). The side away from `roots` (each model's fixed camera) moves along the bridge, its tracks with
+    puts that floor at the model's camera height (`bridge_floor_scale`: the camera height is a length both sides
+    measure). The side away from `roots` (each model's fixed camera) moves along the bridge, its tracks with
     it, the bridge's own points scale about the near camera: no bearing changes. Returns (centers, points, bridges,
     bridges whose length the floor set)."""
     n = len(centers)

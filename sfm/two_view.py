@@ -336,9 +336,9 @@ def _finish(b_i, b_j, F, threshold, refine, iterations, refine_fn=None, min_poin
     inliers are not those of the refined F, and borderline matches enter or leave). Polished, F is refined with a
     Cauchy loss on the matches within POLISH_SPAN thresholds (a match at the span's edge weighs 3%, so which
     borderline matches are in hardly matters) until its inliers no longer change: models from different samples in
-    one basin end at the same F and inliers (30-view synthetic homes: one refinement left 31 of 46 pairs' poses
-    seed-dependent, up to 0.1° on strong pairs; polished, 3-4, mostly distinct optima of weak pairs). The soft-l1
-    refinement on the settled inliers follows (the Cauchy fit alone failed the closed-door test home's merge). The
+    one basin end at the same F and inliers (a result that depends on the RANSAC seed is not a measurement). The
+    soft-l1 refinement on the settled inliers follows: the Cauchy fit down-weights the matches near the threshold,
+    which are real, and is less precise alone. The
     upright search polishes; the 8-point one does not (its refinement on a thousand matches per pair made the filter
     on the bench's 24-view room 40% slower). `refine_fn` (default `refine_f`) replaces the refinement."""
     refine_fn = refine_f if refine_fn is None else refine_fn
@@ -360,8 +360,7 @@ def _finish(b_i, b_j, F, threshold, refine, iterations, refine_fn=None, min_poin
     if best is not None:  # the lowest-cost refinement: where the inlier sets cycle, whichever the cycle began at
         _, F, errors = best
         # Then the usual soft-l1 refinement on those inliers: the same set and start whatever the seed, and the
-        # accuracy of the unpolished fit (the Cauchy fit alone split the closed-door test home's two sides: 3 of 8
-        # common points fitted after merging, against 7).
+        # accuracy of the unpolished fit (the Cauchy loss alone under-weights the real matches near the threshold).
         F = refine_fn(F, b_i[errors < threshold], b_j[errors < threshold], threshold)
         errors = epipolar_angular_errors(F, b_i, b_j)
     return FResult(F=F, inliers=errors < threshold, errors=errors, iterations=iterations)

@@ -376,8 +376,8 @@ def vertical_direction_from_normals(normals: np.ndarray, weights: np.ndarray | N
     scores = (np.abs(v @ n.T) < sin_inlier) @ w
     best = v[np.argmax(scores)]
     # Least squares on the inliers, then re-select them around the refined direction, until they no longer change:
-    # a fixed number of rounds left the direction depending on which sampled pair won (filter.seed moved one
-    # image's gravity of a 30-view synthetic home by 0.03-0.1°).
+    # a fixed number of rounds leaves the direction depending on which sampled pair won (the RANSAC seed would move
+    # the result by a fraction of the inlier band).
     inliers = np.abs(n @ best) < sin_inlier
     for _ in range(GRAVITY_REFIT_ROUNDS):
         if inliers.sum() < 2:

@@ -30,8 +30,10 @@ FORK_MIN_PAIRS = 64  # fewer pairs are verified on threads: two forked workers c
 # 6-view room's 15 pairs: filter 0.51 -> 0.57 CPU s), a quarter of what those pairs' verification costs
 DESCRIPTOR_CACHE = 16  # images whose descriptors guided matching keeps in memory
 GRAVITY_WIDTH = 2048  # images are read at most this wide to find their vertical lines
-GRAVITY_MIN_LINES = 12  # fewer supporting vertical segments: gravity unknown (measured on the textured synthetic room:
-# 6-9 segments gave 2-20° errors; real Theta panoramas and the plain home give 16-130 segments within 0.2°)
+# Fewer supporting vertical segments: gravity unknown. Measured on the real captures: the true vertical gathers 75-140
+# segments; once the segments within 5° of it are set aside, the best other direction gathers 3-11 (360_school 11,
+# 360_Flat 9): a vertical needs more than a wrong direction collects.
+GRAVITY_MIN_LINES = 12
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -45,7 +47,6 @@ class _PairResult:
     early_rejected: bool  # too few matches to try
     guided_added: int | None  # matches guided matching added (None: not run)
     wall_fitted: bool = False  # its fit contradicted the images' walls and the pose they allow explained as much
-    wall_dropped: bool = False  # its fit contradicted the images' walls: not verified (filter.wall_check_drop)
 
 
 def run(ctx: StageContext) -> dict:
@@ -64,8 +65,7 @@ def run(ctx: StageContext) -> dict:
     guided = MatchesOptions(ratio=options.guided_ratio, mutual=True)
     verify = partial(_filter_pair, ctx, options, obs, num_sift, raw, gravity, descriptors, guided,
                      options.min_inliers_upright, num_strict=num_strict,
-                     frames=frames if options.wall_check else None,
-                     wall_drop=options.wall_check_drop)
+                     frames=frames if options.wall_check else None)
     # Pairs are independent and their random seeds fixed per pair: forked workers keep both cores busy and the results
     # are the same as in one thread. Not threads: between its numpy calls a pair's estimation holds the GIL, and two
     # threads of it used the two cores only 1.4 times, spending a quarter more CPU time on the handovers.
@@ -100,16 +100,13 @@ def run(ctx: StageContext) -> dict:
             "guided_matches_added": int(sum(r.guided_added or 0 for r in results)),
             "early_rejected_pairs": int(sum(r.early_rejected for r in results)),
             "wall_fitted_pairs": [[names[i], names[j]] for (i, j), r in zip(raw.pairs, results) if r.wall_fitted],
-            "wall_dropped_pairs": [[names[i], names[j]] for (i, j), r in zip(raw.pairs, results) if r.wall_dropped],
             "upright_images": int(np.isfinite(gravity).all(axis=1).sum())}
 
 
 def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, gravity, descriptors,
-                 guided: MatchesOptions, min_upright: int, k: int, *, num_strict=None, frames=None,
-                 wall_drop: bool = False) -> _PairResult:
+                 guided: MatchesOptions, min_upright: int, k: int, *, num_strict=None, frames=None) -> _PairResult:
     """Verify pair k of the raw matches: fit, guided additions, the no-baseline and enough-inliers checks (frames:
-    the images' Manhattan frames from `_gravity`, for the wall check; None: no check; wall_drop: a pair the check
-    would refit is dropped; num_strict: per pair, the leading matches hypotheses are drawn from, None: all)."""
+    the images' Manhattan frames from `_gravity`, for the wall check; None: no check; num_strict: per pair, the leading matches hypotheses are drawn from, None: all)."""
     i, j = raw.pairs[k]
     hand = (ctx.dataset.hand_pair_matches(num_sift, i, j) if options.use_hand_points
             else np.zeros((0, 2), int))
@@ -132,7 +129,7 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
     if upright_pair and frames is not None and keep.sum() >= min(minimum, options.min_inliers):
         F, keep, walled = _checked_against_walls(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], F, keep,
                                                  frames, i, j, threshold, options.seed + k, options.min_inliers,
-                                                 drop=wall_drop, gravity=gravity)
+                                                 gravity=gravity)
     good = np.concatenate([raw.matches[k][keep], hand]) if len(hand) else raw.matches[k][keep]
     added = None
     if descriptors is not None and len(good) >= options.min_inliers:
@@ -148,23 +145,16 @@ def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, 
         good = good[:0]
     return _PairResult(F=F, inliers=good, seeded=use_seed, num_hand=len(hand), no_baseline=flat,
                        weak=0 < len(good) < options.min_inliers, early_rejected=early, guided_added=added,
-                       wall_fitted=walled == "fitted", wall_dropped=walled == "dropped")
+                       wall_fitted=walled == "fitted")
 
 
 def _checked_against_walls(bear_i, bear_j, matches, F, keep, frames, i: int, j: int, threshold: float, seed: int,
-                           strong: int, *, drop: bool = False, gravity=None):
-    """(F, inlier mask, what the walls did: "", "fitted" or "dropped"): where the upright fit's yaw contradicts the
-    two images' walls (modulo 90°, beyond `wall_check.tolerance_deg`), the pose the walls allow replaces the fit when
-    it explains nearly as many matches (`wall_check.AMBIGUOUS_SHARE`) or the fit has fewer than `strong` inliers (the
-    pair then verifies only if the walls' pose has enough); with `drop` such a pair is not verified instead. A strong
-    fit the walls' pose explains far worse stays either way (walls not at right angles, a wrong axis).
-
-    Why `drop` (filter.wall_check_drop, off): the walls' pose of such a pair was right to 0.05-0.23° in rotation and
-    0.01-0.15° in baseline, yet verified it cost the whole 2048 px homes' models (bare seed 0 98.74 → 98.47 AUC@5,
-    93.71 → 92.34 @1 against no check; seed 72 98.61 → 98.00, 93.06 → 89.98), and dropped they gain
-    (98.98 / 94.91, 98.75 / 93.76). On the split 2048 px home seed 47 (held out) dropping its 8 such pairs cost
-    58.74 → 50.80 AUC@5 (25.54 → 28.13 @1), so it stays off. Refining the walls' pose on its inliers did not
-    help: from that start the yaw slides along the ambiguity the walls resolved (seed 0's 005-009: 0.08° → 0.98°)."""
+                           strong: int, *, gravity=None):
+    """(F, inlier mask, what the walls did: "" or "fitted"): where the upright fit's yaw contradicts the two images'
+    walls (modulo 90°, beyond `wall_check.tolerance_deg`), the pose the walls allow replaces the fit when it explains
+    nearly as many matches (`wall_check.AMBIGUOUS_SHARE`) or the fit has fewer than `strong` inliers (the pair then
+    verifies only if the walls' pose has enough). A strong fit the walls' pose explains far worse stays (walls not at
+    right angles, a wrong axis)."""
     axis, axis_std, wall_gravity = frames[0], frames[1], frames[2]
     known = np.isfinite(axis[i]).all(), np.isfinite(axis[j]).all()
     if not any(known) or (not all(known) and gravity is None):
@@ -183,8 +173,6 @@ def _checked_against_walls(bear_i, bear_j, matches, F, keep, frames, i: int, j: 
                                                     threshold, seed)
     if inliers.sum() < wall_check.AMBIGUOUS_SHARE * keep.sum() and keep.sum() >= strong:
         return F, keep, ""
-    if drop:
-        return F, np.zeros_like(keep), "dropped"
     return wall_check.f_of_pose(R, t), inliers, "fitted"
 
 
@@ -254,7 +242,7 @@ def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, 
     the candidates near each circle, mutual check), kept when their symmetric epipolar error is within the threshold
     and they lie in front of both cameras under the pair's relative pose (the epipolar constraint alone cannot reject
     a match on the wrong side of the baseline). Only verified pairs are extended: a weak pair's F is too uncertain
-    to guide (measured: promoting weak pairs broke registration on the synthetic home). Returns (inliers, added)."""
+    to guide: matches found along a wrong F's circles agree with it by construction. Returns (inliers, added)."""
     num_i, num_j = len(desc_i), len(desc_j)
     allowed = epipolar_candidates(bear_i[:num_i], bear_j[:num_j], F, threshold)
     guided = match_descriptors(desc_i, desc_j, guided_options, block_rows=1024, allowed=allowed)
@@ -277,11 +265,10 @@ def _add_guided(good: np.ndarray, desc_i, desc_j, bear_i, bear_j, F, threshold, 
 def _fit_upright(b_i, b_j, gravity, opts: two_view.RansacOptions) -> two_view.FResult:
     """The upright model: 3-point yaw solver on levelled bearings, yaw-only refinement, never released.
 
-    Why: on the plain-walled home most inliers of a pair lie on one textured furniture face. 8-point samples from one
-    plane fit a wrong F that still gathers most of them (154 inliers, 49° off), and an unconstrained refinement
-    started at the right upright F slides along that near-degenerate valley: over the home's pairs the median
-    rotation error is 0.014° upright and 0.128° after a free refinement, with some pairs tens of degrees off. The
-    price on well-textured real panoramas, whose estimated gravity is a tenth of a degree off: 360_Flat agrees
+    Why: in a plain-walled room most inliers of a pair can lie on one textured furniture face. 8-point samples from
+    one plane fit a wrong F that still gathers most of them (a plane's matches fix a homography, not F), and an
+    unconstrained refinement started at the right upright F slides along that near-degenerate valley; the upright
+    model has 3 unknowns, which a plane's matches do fix. The price on well-textured real panoramas, whose estimated gravity is a tenth of a degree off: 360_Flat agrees
     with COLMAP to 0.061° at most instead of 0.027°."""
     L_i, L_j = upright.leveling_rotation(gravity[0]), upright.leveling_rotation(gravity[1])
     res = upright.ransac_f_upright(b_i @ L_i.T, b_j @ L_j.T, opts)
@@ -356,7 +343,7 @@ def _better_of_seeded_and_free(seeded: two_view.FResult, h_i, h_j, b_i, b_j, gra
     Cheapest first: the local optimisation started at the clicks' F usually finds the matches' fit. A sampled search
     (upright when both gravities are known, as its yaw-only model is the more precise on plain rooms; else LO-MSAC)
     then runs only as long as it needs to find a fit with more inliers than the best so far: with a wrong gravity
-    estimate it used to run to the hypothesis cap on every seeded pair (synthetic 24-view room: filter 4 s -> 20 s)."""
+    estimate it used to run to the hypothesis cap on every seeded pair (5x the filter's time on a 24-view room)."""
     tolerance = HAND_CHECK_THRESHOLDS * opts.threshold_rad
     wins = lambda fit, other: (fit.inliers.sum() > other.inliers.sum()  # noqa: E731
                                and _explains(fit.F, h_i, h_j, tolerance))

@@ -199,8 +199,8 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
     """Bundle adjustment over the cameras of every model (reindexed), the first camera of each model fixed; with
     `gravity` ((N, 3) gravity per image in its frame, (N,) its standard error), each image's tilt is held to it.
     With `gravity_error` (R already adjusted once: the pose round), the standard errors are first widened by how far
-    the gravities lie from that model's up (`bundle.gravity_error_factor`): the stated ones are a lower bound, 1.6×
-    too small on 360_Flat, about right on the synthetic homes.
+    the gravities lie from that model's up (`bundle.gravity_error_factor`): the stated ones are a lower bound, 1.85×
+    too small on 360_Flat (segments of one edge are not independent).
 
     Returns refined (R, t) of every camera, the points and the final angular error of every observation."""
     cams = np.flatnonzero(model_id >= 0)
@@ -228,7 +228,8 @@ def _bundle(tracks: Tracks, bearings, R, t, points, model_id, config, gravity=No
     # With a height prior the heights fix each block's scale; the scale gauge is then held on the camera that shares
     # the most tracks with the fixed one. The default, the camera farthest from it, lies blocks away on a walk and
     # ties the gauge to the free length of a doorway that only two-view tracks cross (registration's guess, which
-    # nothing else measures), which then takes up every change of the blocks' scales (new home s46: ×0.73 → ×0.17).
+    # nothing else measures), which then takes up every change of the blocks' scales (the held length is then wrong
+    # by however much the heights moved the blocks).
     scale_camera = (_best_linked(obs_camera, tracks.track_ids, len(cams), int(first[0]))
                     if height is not None and len(first) == 1 else None)
     local_height = None if height is None else _local_height(height, local)

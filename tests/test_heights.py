@@ -217,3 +217,21 @@ def test_a_bridges_floor_points_set_its_length_exactly():
     np.testing.assert_allclose(_bearings(R, C2, X2, cam, pt), _bearings(R, C, X, cam, pt), atol=1e-12)
     C3, _, _, measured = heights.restore_bridges(C1, C1, X1, pt, cam, np.array([0]))
     assert measured == 0 and np.allclose(C3, C1)
+
+
+def test_the_default_spread_limit_keeps_a_walk_within_the_stated_height_error_and_refuses_a_split_level():
+    """triangulation.height_prior_sigma states 5 cm at 1.5 m; height_prior_max_spread is twice that: a tour whose
+    cameras' heights scatter by 5 cm keeps the prior (several walks), one whose second room stands 20 cm higher (a
+    split level: a step between the rooms) does not."""
+    from fullview.sfm.options import TriangulationOptions
+    options = TriangulationOptions()
+    assert abs(options.height_prior_sigma - 0.05 / HEIGHT) < 1e-3
+    R, C, X, cam, pt, _ = _two_rooms(np.random.default_rng(0))
+    prior = _prior(R, C, X, cam, pt, options.height_prior_sigma)
+    for seed in range(10):
+        walk = C.copy()
+        walk[:, 1] += np.random.default_rng(seed).normal(0.0, 0.05, len(C))
+        assert heights.height_spread(walk, X, prior) < options.height_prior_max_spread, seed
+    split = C.copy()
+    split[4:, 1] -= 0.20  # y is down: the second room's cameras 20 cm higher above the same floor level
+    assert heights.height_spread(split, X, prior) > options.height_prior_max_spread

@@ -67,19 +67,16 @@ def _frames(f, n=2):
     return axis, np.full(n, np.radians(0.05)), gravity, np.full(n, np.radians(0.05))
 
 
-def test_a_pair_whose_fit_contradicts_the_walls_is_dropped_a_fit_that_agrees_stays():
-    """With filter.wall_check_drop, a pair fitted at a yaw the walls do not allow is not verified (by default it is
-    verified at the walls' pose: on the whole 2048 px homes that cost the model, `_checked_against_walls`); without
-    the option the same weak pair takes the walls' pose."""
+def test_a_weak_pair_whose_fit_contradicts_the_walls_takes_their_pose_a_fit_that_agrees_stays():
+    """A weak pair fitted at a yaw the walls do not allow takes the walls' pose (its true matches); the true fit, and
+    a fit within the tolerance of the walls, are left alone."""
     rng = np.random.default_rng(2)
     b_i, b_j, R_ji, t_ji, f, _ = _pair(rng, n_true=16, n_junk=30)
     matches = np.column_stack([np.arange(len(b_i))] * 2)
     for error in (3.0, 5.7, 10.0):
         wrong = turn(f["gravity_j"], error) @ R_ji
         t_wrong, keep = two_view.baseline_given_rotation(b_i, b_j, wrong, THRESHOLD)
-        F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(f), 0,
-                                                  1, THRESHOLD, 0, 30, drop=True)
-        assert keep.sum() >= 5 and how == "dropped" and not kept.any()
+        assert keep.sum() >= 5
         F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(f), 0,
                                                   1, THRESHOLD, 0, 30)
         assert how == "fitted" and kept[:16].all()
@@ -88,34 +85,34 @@ def test_a_pair_whose_fit_contradicts_the_walls_is_dropped_a_fit_that_agrees_sta
         R = turn(f["gravity_j"], error) @ R_ji
         t, keep = two_view.baseline_given_rotation(b_i, b_j, R, THRESHOLD)
         F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(R, t), keep, _frames(f), 0, 1,
-                                                  THRESHOLD, 0, 30, drop=True)
+                                                  THRESHOLD, 0, 30)
         assert how == "" and (kept == keep).all() and kept.sum() >= 14
     # an image without a wall axis: no check
     no_axis = dict(f, axis_j=np.full(3, np.nan))
     wrong = turn(f["gravity_j"], 5.7) @ R_ji
     t_wrong, keep = two_view.baseline_given_rotation(b_i, b_j, wrong, THRESHOLD)
     F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(wrong, t_wrong), keep, _frames(no_axis),
-                                              0, 1, THRESHOLD, 0, 30, drop=True)
+                                              0, 1, THRESHOLD, 0, 30)
     assert how == "" and (kept == keep).all()
 
 
 def test_a_strong_fit_the_walls_explain_far_worse_stays():
     """Walls not at right angles (an axis 30° off): the walls' best pose explains few of a strong pair's matches, so
-    its fit stays; where the walls' pose explains as many, the strong fit is dropped."""
+    its fit stays; where the walls' pose explains as many, it replaces the strong fit."""
     rng = np.random.default_rng(4)
     b_i, b_j, R_ji, t_ji, f, _ = _pair(rng, n_true=40, n_junk=20)
     matches = np.column_stack([np.arange(len(b_i))] * 2)
     keep = two_view.consistent_with_pose(b_i, b_j, R_ji, t_ji, THRESHOLD)
     skewed = dict(f, axis_j=turn(f["gravity_j"], 30.0) @ f["axis_j"])
     F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(R_ji, t_ji), keep, _frames(skewed), 0, 1,
-                                           THRESHOLD, 0, 30, drop=True)
+                                           THRESHOLD, 0, 30)
     assert how == "" and (kept == keep).all()
     off = dict(f, axis_j=turn(f["gravity_j"], 5.0) @ f["axis_j"])  # the walls' pose 5° off still explains most
     F_out, kept, how = _checked_against_walls(b_i, b_j, matches, f_of_pose(R_ji, t_ji), keep, _frames(off), 0, 1,
-                                           THRESHOLD, 0, 30, drop=True)
+                                           THRESHOLD, 0, 30)
     walls_pose = turn(f["gravity_j"], -5.0) @ R_ji
     explained = two_view.baseline_given_rotation(b_i, b_j, walls_pose, THRESHOLD)[1].sum()
-    assert (how == "dropped") == (explained >= 0.9 * keep.sum())
+    assert (how == "fitted") == (explained >= 0.9 * keep.sum())
 
 
 def _wall_pair(rng, n: int, yaw_i=-174.7, yaw_j=98.7):
@@ -192,3 +189,32 @@ def test_the_filter_fixes_a_wall_pair_when_only_one_image_has_a_wall_axis_whiche
         assert how == "fitted" and kept.all()
         pose = two_view.relative_pose_from_f(F, b_i, b_j)
         assert rotation_angle_deg(pose.R_j_from_i, R_ji) < 1e-6
+
+
+def test_a_planar_patch_counts_from_the_extent_that_fixes_its_normal_within_the_wall_tolerance():
+    """PLANE_MIN_EXTENT's derivation: 8 points spread by it across a wall, scattered through the plane band, give a
+    normal whose tilt (rms) is PLANE_TOLERANCE_DEG; and `inlier_plane` takes a patch wider than that, not a
+    narrower one."""
+    from fullview.sfm.wall_check import PLANE_MIN_EXTENT, PLANE_OFFSET, PLANE_TOLERANCE_DEG
+    rng, d = np.random.default_rng(5), 1.5
+
+    def patch(n, extent):
+        a = extent * d * np.sqrt(3.0)  # uniform half-width of that standard deviation
+        return np.column_stack([rng.uniform(-a, a, n), rng.uniform(-a, a, n),
+                                d + rng.uniform(-0.95, 0.95, n) * PLANE_OFFSET * d])
+
+    tilts = []
+    for _ in range(2000):
+        X = patch(8, PLANE_MIN_EXTENT)
+        normal = np.linalg.svd(X - X.mean(axis=0))[2][2]
+        tilts.append(np.degrees(np.arcsin(abs(normal[0]) / np.linalg.norm(normal))))
+    rms = np.sqrt(np.mean(np.square(tilts)))
+    assert 0.8 * PLANE_TOLERANCE_DEG < rms < 1.25 * PLANE_TOLERANCE_DEG, rms
+    C_j = np.array([1.0, 0.0, 0.0])  # camera i at the origin, both unrotated; the baseline is the unit
+    t_ji = -C_j
+    for extent, found in ((1.5 * PLANE_MIN_EXTENT, True), (0.6 * PLANE_MIN_EXTENT, False)):
+        X = patch(40, extent)
+        plane = inlier_plane(normalize(X), normalize(X - C_j), np.eye(3), t_ji)
+        assert (plane is not None) == found, extent
+        if found:
+            assert np.degrees(np.arccos(abs(plane[0][2]))) < PLANE_TOLERANCE_DEG and abs(plane[1] - d) < 0.02 * d

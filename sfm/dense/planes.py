@@ -241,8 +241,8 @@ def view_of(R_cam_from_world, t_cam_from_world, range_map, observable, image_bgr
 def exposure_gain(a: View, b: View, tolerance: float = 0.03) -> np.ndarray:
     """Per-channel gain bringing b's colours to a's: the median colour ratio of the surface points both views
     measured (a's stereo points that b's stereo puts at the same range, within ``tolerance``). The median
-    colours of the whole panoramas differ by what each view sees (on the home, by 10-20% with no exposure
-    difference at all), which turned correct plain-surface points into "another colour"; with fewer than
+    colours of the whole panoramas differ by what each view sees (by 10-20% with no exposure difference at all
+    where one view sees more of a bright wall), which turned correct plain-surface points into "another colour"; with fewer than
     ``MIN_GAIN_POINTS`` shared points, that ratio is still the fallback."""
     rows, cols = np.nonzero(np.isfinite(a.range_map))
     step = max(1, len(rows) // GAIN_SAMPLE)  # a median needs no more (this runs for every pair of neighbours)
@@ -298,9 +298,9 @@ def fit_region_planes(points: np.ndarray, bearings: np.ndarray, center: np.ndarr
     (``snap_region_plane``; a ramp keeps its fit).
 
     One plane per region: a region whose edges leak (a wall and the ceiling together) is left empty. Up to three
-    planes per region were measured: the home's ceilings then got a wall's plane (nearest in the image) or a slightly
-    wrong plane from the leftovers (nearest along the ray), and the views confirmed it, since every view made the
-    same choice."""
+    planes per region were tried: a ceiling then got a wall's plane (nearest in the image) or a slightly wrong plane
+    from the leftovers (nearest along the ray), and the views confirmed it, since every view made the same choice
+    (agreement between views is no check of a choice they all make)."""
     found = fit_region_plane(points, bearings, center, ranges, rng, options)
     if found is not None and up is not None and options.snap_deg > 0:
         snapped = snap_region_plane(*found, points, bearings, center, ranges, up, options)
@@ -326,7 +326,7 @@ def snap_region_plane(normal: np.ndarray, offset: float, inliers: np.ndarray, po
     up = up / np.linalg.norm(up)
     cos = float(normal @ up)
     if abs(cos) < np.cos(np.radians(options.snap_deg)):
-        return None  # walls keep their fit: made upright, 360_Flat's R0010215 and home 17 lost agreement
+        return None  # walls keep their fit: a real wall may be off vertical (made upright, 360_Flat's R0010215 lost agreement)
     snapped = up * np.sign(cos)
     offset = float(np.median(points[inliers] @ snapped))
     for shrink in REFINE_SHRINK:

@@ -54,11 +54,16 @@ SCORE_SAMPLE = 8_000  # hypotheses are scored on at most this many unexplained p
 MANHATTAN_WINDOW_DEG = 3.0  # walls within this azimuth of each other count for one dominant direction
 LEVEL_TRIM_PERCENTILE = 1.0  # a level plane's gravity rectangle spans these percentiles of its support (each axis)
 SNAP_SHRINK = (1.0, 0.5)  # bands of the offset refinement of a snapped plane (x distance)
-LEVEL_MERGE_BANDS = 3  # _one_level_plane_per_band: level planes of one side within this many median tolerances
+# _one_level_plane_per_band: level planes of one side within this many median tolerances are one surface: two pieces
+# fitted to one surface's points, each within a tolerance of them, lie up to 2 tolerances apart, plus one for the band
+LEVEL_MERGE_BANDS = 3
 LEVEL_MODE_WINDOWS = (2.0, 1.0, 0.5)  # _merge_level_pieces: half-widths (x median tolerance) of the mode's windows
 LEVEL_MODE_ROUNDS = 10  # ... medians per window at most (until the height stays)
-LEVEL_DROP_TOLERANCES = 2  # a band's level plane is invented where the views see this many view tolerances beyond it
+# A band's level plane is invented where the views see this many view tolerances beyond it: a plain surface's own
+# stereo lies up to one tolerance beyond it (the matching window takes the corner's disparity), a view through it more
+LEVEL_DROP_TOLERANCES = 2
 WALL_MERGE_BANDS = 3  # _one_wall_plane_per_offset: snapped walls facing one way within this many median tolerances
+# (as LEVEL_MERGE_BANDS)
 WALL_AZIMUTH_BANDS = (3.0, 2.0) + (1.0,) * 8  # ... rounds of the common wall direction's fit, inlier band (x
 # tolerance); the rounds in the last band stop when the direction's step moves no point by more than
 WALL_AZIMUTH_STAYS = 0.01  # ... this share of the median tolerance (the step times the points' horizontal span)
@@ -354,7 +359,7 @@ def _walls_floor_to_ceiling(planes: list[WorldPlane], up: np.ndarray, observers:
     the ceiling plane (in place), except where that floor or ceiling goes on behind the wall.
 
     Why: a plain wall's stereo is its floor line, its ceiling line and its corners, and often only one of the two
-    horizontal lines lies within the point tolerance (on the home, a long wall parallel to the walk had its ceiling
+    horizontal lines lies within the point tolerance (a long wall parallel to the walk can have its ceiling
     line in no stereo: matching along a line parallel to the baseline has nothing to lock on): its columns then held
     only that line. Where the floor's own points go on behind the wall (more than ``BEHIND_CELLS`` cells behind its
     face, at least ``BEHIND_POINTS`` of them in a column), the wall is not what bounds the room there: a doorway (the
@@ -480,13 +485,11 @@ def _one_level_plane_per_band(planes: list[WorldPlane], points: np.ndarray, tole
     (from above: a floor, a table top; from below: a ceiling) whose heights follow each other within
     ``LEVEL_MERGE_BANDS`` median tolerances are one surface found in pieces (``_merge_level_pieces``).
 
-    Why: on the home of seed 17 (model units, heights along the up axis; the true floor -0.484, ceiling 0.316) the
-    floor came out as eight pieces between -0.494 and -0.424 and the ceiling as three or four between 0.294 and
-    0.329, each piece's height the median of its own RANSAC inliers, their supports within 1-2% of each other. Which
-    ceiling piece was the best supported flipped with a 1e-5 change of the sparse model (0.3123 or 0.3166), and the
-    free-space check kept the ceiling's whole rectangle only above about 0.315 (see ``_merge_level_pieces``):
-    completeness 0.74-0.75 or 0.88-0.89. The pieces' two signs of the normal counted as two sides, so two floors and
-    two ceilings were kept, and the nearer of each won every ray."""
+    Why: a floor or a ceiling is one level surface, but RANSAC finds it in pieces, each piece's height the median of
+    its own inliers (a band a tolerance wide), their supports nearly equal: which piece is the best supported then
+    flips with the smallest change of the sparse model, and with it the height the free-space check judges. The
+    pieces' two signs of the normal would count as two sides, so two floors and two ceilings would be kept and the
+    nearer of each would win every ray."""
     band = float(np.median(tolerance))
     groups: dict[int, list[tuple[float, int]]] = {}
     for i, plane in enumerate(planes):
@@ -522,10 +525,9 @@ def _merge_level_pieces(best: WorldPlane, low: float, high: float, facing: int, 
     ``LEVEL_DROP_TOLERANCES`` view tolerances beyond it.
 
     Why the wider margin: a plain ceiling's stereo is a few per cent too far (the matching window takes the corner's
-    disparity), and on the home of seed 17 the views saw through the ceiling at its true height on 49-51% of the
-    judged cells by one view tolerance (the drop is above 50%: the ceiling's whole rectangle was kept or not by a
-    millimetre of height), on 33-36% by two; the invented level planes there (furniture tops spanning the flat, a
-    plane at eye height) are seen through on 89-92% of their cells either way.
+    disparity), so at one view tolerance the views see "through" a true plain ceiling on about half of the judged
+    cells (the drop is above 50%: a knife edge), at two on a third; an invented level plane (a furniture top spanning
+    the flat, a plane at eye height) is seen through on nearly all of its cells either way.
 
     Why the mode: the pieces' own heights are medians of differently drawn inlier sets (a point supports a piece
     within 1.5% of its range, so a far floor point supports a piece several cm above the floor, and the bottom
@@ -559,12 +561,11 @@ def _one_wall_plane_per_offset(planes: list[WorldPlane], points: np.ndarray, tol
     points within tolerance of it, seen from its side, judged invented by the views as a band's level plane is
     (``LEVEL_DROP_TOLERANCES``). Walls of their own direction (not snapped) are kept as they are.
 
-    Why: on the home of seed 5 (four rooms in a row, 15 m long) each long outer wall came out as 10-12 pieces
-    whose offsets spread over 1.3 τ (τ = 1% of the scene), and every wall was turned 0.58° from the truth, the
-    dominant direction being the mode of the pieces' fitted normals: a 15 m wall turned 0.58° is 7 cm (half a τ)
-    off at its ends, so each piece fitted its own stretch of the wall, and the nearest piece along a ray, a few cm
-    in front of the wall, took the pixels the wall should have. And the direction moved with the pieces: under
-    1e-5 perturbations of the views it was -22.31°, -21.15° or -23.24° on home 5 (now -21.94° to -21.91°)."""
+    Why: a long wall comes out as many pieces whose offsets spread over about a tolerance, and the dominant direction
+    taken as the mode of the pieces' fitted normals is off by a fraction of a degree: a 15 m wall turned 0.5° is 7 cm
+    off at its ends (half a tolerance of 1% of the scene), so each piece fits its own stretch of the wall, and the
+    nearest piece along a ray, a few cm in front of the wall, takes the pixels the wall should have. The mode of the
+    pieces' normals also moves with the pieces; one direction fitted to all the walls' points does not."""
     upright = [p for p in planes if abs(p.normal @ up) < 1e-9]
     azimuth = dominant_wall_azimuth(np.array([p.normal for p in upright]).reshape(-1, 3),
                                     np.array([p.support for p in upright], np.float64), up)
@@ -634,7 +635,7 @@ class _WallSide:
     slab of them. The wall fit builds a side per direction in each of its rounds, so a side asked for a few slabs
     (at most ``INDEX_AFTER_SLABS``) does not sort its points: each slab is a pass over all of them, and only the
     points it keeps are sorted, giving the same points in the same order (by offset, ties in row order) as a slice
-    of all of them sorted by a stable sort. A side asked for more (the synthetic room's walls, 184 per round), or
+    of all of them sorted by a stable sort. A side asked for more (a textured room's walls: ~180 per round), or
     for the modes of many slabs at once (``offsets``), sorts its points once: a radix sort of 16-bit offset buckets
     (``OFFSET_BUCKETS``, rows ascending within a bucket), then a stable sort of the offsets in that order, which
     is nearly sorted already (timsort: 9 ms for 240,000 points where a stable sort from scratch takes 27 ms); each
@@ -956,7 +957,7 @@ def _snap_to_gravity(planes: list[WorldPlane], points: np.ndarray, tolerance: np
     offset of its points (median, in shrinking bands) and the extent of its new support.
 
     Why: least squares on stereo points tilts a plane by 1-4° (the points along the lines where surfaces meet are
-    biased, a few per cent too far), and on the home one floor came out as seven tilted pieces; a tilted floor is
+    biased, a few per cent too far), and one floor can come out as several tilted pieces; a tilted floor is
     seen through on half of its rectangle and loses its extent, a tilted wall is wrong a metre from its support."""
     up = up / np.linalg.norm(up)
     upright = [p for p in planes if abs(p.normal @ up) < 0.5]
@@ -1006,8 +1007,8 @@ def confirmed_views(views: list[View], neighbours: list[list[int]], tolerance: f
     """The views with only the stereo ranges that another view's stereo confirms: the point lands within
     ``tolerance`` (relative) of a neighbour's own range (``neighbours[a]``: the views checking view a). Stereo
     along the lines where two plain surfaces meet is often a few per cent too far (the matching window takes the
-    corner's disparity); such ranges look through the true floor or ceiling, and on the home they were nearly all
-    of the votes that carved those planes away. The errors of one view seldom land on another view's range."""
+    corner's disparity); such ranges look through the true floor or ceiling, and they can be nearly all of
+    the votes that carve those planes away. The errors of one view seldom land on another view's range."""
     out = []
     for a, view in enumerate(views):
         rows, cols = np.nonzero(np.isfinite(view.range_map))
@@ -1165,7 +1166,7 @@ def region_candidates(ref: View, planes: list[WorldPlane], regions: np.ndarray, 
     allowed = (counts >= options.min_region_support) & (counts >= options.min_region_share * total)
     if options.free_ceiling:
         # nothing but the ceiling is level and above the camera in a room: its plane needs no support from the
-        # region (on the home, the region rule dropped 42% of the ceiling's pixels, 98% of which were right)
+        # region (a plain ceiling's region leaks into the walls, and the region rule drops most of its pixels)
         up = camera_up(ref.R_cam_from_world[None])
         allowed[1:, [k for k, p in enumerate(planes) if p.is_ceiling_of(center, up)
                      and (not options.ceiling_over_camera or p.spans_over(center, options.room_window_cells))]] = True
@@ -1257,7 +1258,7 @@ def _free_walls(planes: list[WorldPlane], free: np.ndarray, bearings: np.ndarray
     """Label (in place) the pixels ``free`` (indices into ``bearings``, ``nearest``, ``taken``) with the first of all
     the planes their ray meets inside its extent where that plane is a wall (upright), only in a room (as
     ``_free_floor``). A plain wall's image region often holds no stereo on the wall at all (its stereo lies on the
-    ceiling and floor lines of a leaking region, or 3-13% off the wall, home 5), so neither the region rule nor the
+    ceiling and floor lines of a leaking region, or a few per cent off the wall), so neither the region rule nor the
     brackets take it; from inside a room the first plane met is the surface seen. A cupboard that is a plane of the
     model is met first and its face is taken; the view checks then judge every filled pixel as the others'."""
     if not len(free) or not _floor_in_room(planes, center, up, options.room_window_cells):
@@ -1276,8 +1277,7 @@ def _free_floor(planes: list[WorldPlane], free: np.ndarray, bearings: np.ndarray
     camera's floor, a level plane below it spanning under it, where the floor is the first of all the planes the ray
     meets inside their extents; only in a room, where a level plane above spans over the camera too (outdoors the
     ground keeps the region rule). The floor's own stereo is often missing or wrong (plain, seen at a grazing angle),
-    and one plain region runs from the floor up the walls, so the region rule refused the floor of whole rooms (home
-    7: 91% of a panorama's floor). A cupboard whose plain face is no plane of its region would be filled with the
+    and one plain region runs from the floor up the walls, so the region rule can refuse most of a room's floor. A cupboard whose plain face is no plane of its region would be filled with the
     floor behind it: where the cupboard is a plane of the model, the ray meets it first and the pixel stays empty."""
     below = _floor_in_room(planes, center, up, options.room_window_cells)
     if not len(free) or not below:
@@ -1394,8 +1394,7 @@ def adopt_world_planes(ref: View, fill: np.ndarray, units: np.ndarray, planes: l
     360_Flat R0010212 filled its ceiling (a quarter of the panorama) level but 1.9% too low, 0.035 below the ceiling
     every other panorama filled from the world planes, and disagreed with them across the room. Level planes only: a
     level world plane is exactly level at the mode of every view's heights, while a wall is turned onto the dominant
-    wall direction, which a real wall may miss by a few degrees (its region's own plane keeps its azimuth); taking the
-    walls too lowered home 3's accuracy (cloud 0.985 -> 0.981, mesh 0.980 -> 0.973)."""
+    wall direction, which a real wall may miss by a few degrees (its region's own plane keeps its azimuth)."""
     out = fill.copy()
     rows, cols = np.nonzero(np.isfinite(fill))
     if not len(rows) or not planes:
@@ -1450,9 +1449,9 @@ def fill_from_world_planes(ref: View, planes: list[WorldPlane], others: list[Vie
     gains = [exposure_gain(ref, o) for o in others]
     colors = ref.color[rows, cols]
     # the occluders for the floor and the ceiling (level planes), and with ``occluders_on_walls`` for the walls: with
-    # walls as pieces they let through the pixels labelled with a wall behind the right one (home 3: wrong wall fills
-    # 5.7% -> 7.2% of the wall pixels); with whole walls and free walls the views' votes against right wall pixels
-    # that the model says are hidden are most of what the check drops (home 13: 2.4x the wrong ones)
+    # walls as pieces they let through the pixels labelled with a wall behind the right one; with whole walls and free
+    # walls the views' votes against right wall pixels that the model says are hidden are most of what the check
+    # drops (the model's occlusion is coarser than a wall's extent)
     occludable = np.array([False] + [p.level or options.occluders_on_walls for p in planes])[label[rows, cols]] \
         if occluders is not None else np.zeros(len(rows), bool)
     keep = np.zeros(len(rows), bool)
