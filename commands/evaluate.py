@@ -170,14 +170,9 @@ def _log_summary(metrics: dict) -> None:
 
 
 def eval_summary(metrics: dict) -> dict:
-    """``metrics`` without its per-image and per-model lists (eval/metrics.json keeps them): what a terminal needs."""
-    out = {}
-    for key, value in metrics.items():
-        if isinstance(value, dict):
-            out[key] = {k: v for k, v in value.items() if k != "per_image"}
-        elif key != "models":
-            out[key] = value
-    return out
+    """``metrics`` without its per-image lists (eval/metrics.json keeps them): what a terminal needs."""
+    return {key: ({k: v for k, v in value.items() if k != "per_image"} if isinstance(value, dict) else value)
+            for key, value in metrics.items()}
 
 
 def _fmt(value) -> str:
