@@ -89,10 +89,8 @@ def _collect(values: dict, where: dict, section: Any, items: Any, source: str) -
 def checked_value(f: dataclasses.Field, value: Any, name: str) -> Any:
     """`value` converted to the field's type and checked against its bounds; ConfigError naming `name` if not."""
     meta = f.metadata
-    if meta["choices"] is not None and isinstance(value, bool):
-        # YAML (and --set) read on/off/yes/no as booleans: name the choices rather than the type.
-        raise ConfigError(f"{name} must be one of {list(meta['choices'])}, got {value!r} "
-                          "(YAML reads on/off/yes/no as true/false)")
+    if meta["choices"] is not None and isinstance(value, bool):  # name the choices rather than the type
+        raise ConfigError(f"{name} must be one of {list(meta['choices'])}, got {value!r}")
     value = _typed(f, value, name)
     if meta["choices"] is not None:
         if value not in meta["choices"]:
@@ -128,14 +126,20 @@ def _build(cls: type, items: dict, section: str, where: dict) -> Any:
     options = cls(**items)
     for rule, holds in cls.RULES:
         if not holds(options):
-            keys = sorted({where.get((section, k), "defaults") for k in items} or {"defaults"})
+            named = _rule_keys(cls, rule)
+            # The sources of the keys the rule names (else of every key given for the section, else the defaults).
+            keys = sorted({where[section, k] for k in named if (section, k) in where}
+                          or {where.get((section, k), "defaults") for k in items} or {"defaults"})
             raise ConfigError(f"{', '.join(keys)}: {section}: {rule} must hold "
-                              f"({', '.join(f'{k}={getattr(options, k)!r}' for k in _rule_keys(rule))})")
+                              f"({', '.join(f'{section}.{k}={getattr(options, k)!r}' for k in named)})")
     return options
 
 
-def _rule_keys(rule: str) -> list[str]:
-    return [word for word in rule.replace("<", " ").replace(">", " ").replace("=", " ").split() if word.isidentifier()]
+def _rule_keys(cls: type, rule: str) -> list[str]:
+    """The settings a rule's text names, in order (its other words, such as 'when' or 'is', are prose)."""
+    known = {f.name for f in option_fields(cls)}
+    words = rule.replace("<", " ").replace(">", " ").replace("=", " ").replace(",", " ").split()
+    return list(dict.fromkeys(word for word in words if word in known))
 
 
 def key_table_markdown() -> str:
