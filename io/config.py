@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from fullview.io import limits
 from fullview.io.errors import FullviewError
 from fullview.io.yamlio import YamlError, load_yaml
 from fullview.sfm.options import OPTIONS_BY_SECTION, option_fields
@@ -49,8 +50,21 @@ def load_config(path: Path | None, overrides: list[str] = ()) -> Config:
         except YamlError as e:
             raise ConfigError(str(e)) from None
         _collect(values, where, section, {name: value}, f"--set {item}")
-    return {section: _build(OPTIONS_BY_SECTION[section], items, section, where)
-            for section, items in values.items()}
+    config = {section: _build(OPTIONS_BY_SECTION[section], items, section, where)
+              for section, items in values.items()}
+    _check_memory(config, where)
+    return config
+
+
+def _check_memory(config: Config, where: dict) -> None:
+    """Settings whose memory does not follow the images' size (which the dataset's pixel budget bounds) checked
+    against this machine's memory: the cube faces' side."""
+    face_size, limit = config["features"].face_size, limits.max_face_size()
+    if face_size > limit:
+        need = limits.FEATURES_IMAGES_AT_ONCE * limits.FACE_BYTES_PER_SIDE2 * face_size**2 / 2**30
+        raise ConfigError(f"{where.get(('features', 'face_size'), 'defaults')}: features.face_size={face_size} "
+                          f"needs about {need:.0f} GiB for its cube faces; at most {limit} fits "
+                          f"({limits.memory_text()})")
 
 
 def _read_file(path: Path) -> dict:

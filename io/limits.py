@@ -49,10 +49,14 @@ def max_face_size() -> int:
     return int(math.sqrt(MEMORY_SHARE * machine_memory() / (FACE_BYTES_PER_SIDE2 * FEATURES_IMAGES_AT_ONCE)))
 
 
+def memory_text() -> str:
+    """Where the memory bounds come from, for messages."""
+    return (f"{MEMORY_SHARE:g} of this machine's {machine_memory() / 2**30:.1f} GiB for the features of "
+            f"{FEATURES_IMAGES_AT_ONCE} images at once")
+
+
 def budget_text() -> str:
-    """Where the budgets come from, for messages."""
-    memory = (f"{MEMORY_SHARE:g} of this machine's {machine_memory() / 2**30:.1f} GiB for the features of "
-              f"{FEATURES_IMAGES_AT_ONCE} images at once")
+    """Where the pixel budget comes from, for messages."""
     if pixel_budget() < _memory_pixels():
-        return f"PIL's decompression-bomb limit; {memory} would allow {_memory_pixels() / 1e6:.0f} Mpx"
-    return memory
+        return f"PIL's decompression-bomb limit; {memory_text()} would allow {_memory_pixels() / 1e6:.0f} Mpx"
+    return memory_text()

@@ -28,9 +28,12 @@ Rule = tuple[str, Callable[[Any], bool]]
 
 @dataclass(frozen=True, kw_only=True)
 class FeaturesOptions:
+    # le: never above the native width, whose memory the dataset's pixel budget bounds (io/limits.py)
     working_width: int = setting(2048, "panoramas are resized to this width before detection (never upsampled)",
                                  ge=128, le=65536, zero_means="native width")
-    face_size: int = setting(0, "cube face side in pixels", ge=32, le=16384,
+    # le: the native face of the widest panorama PIL's pixel limit admits (13,377 px: 3,716 at margin 5); 4096² x 290
+    # bytes (measured) x 2 images at once = 9 GiB; a machine with less memory refuses less (io/limits.max_face_size)
+    face_size: int = setting(0, "cube face side in pixels", ge=32, le=4096,
                              zero_means="as many pixels per degree as the working panorama")
     margin_deg: float = setting(5.0, "extra field of view on each side of a face's 90°, keeps features at seams",
                                 ge=0.0, le=30.0)
@@ -247,6 +250,7 @@ class DensifyOptions:
     min_pair_inliers: int = setting(50, "epipolar inliers a stereo pair needs", ge=8, le=1_000_000)
     working_width: int = setting(2048, "panoramas are resized to this width; range maps have this size "
                                  "(never upsampled)", ge=128, le=65536, zero_means="native width")
+    # le: never above the panoramas' height at the working width (stages/densify.py), which the pixel budget bounds
     rect_height: int = setting(1024, "rectified grid height (angle from the epipole); width = 2x", ge=16, le=16384)
     min_depth_percentile: float = setting(1.0, "nearest plausible depth: this percentile of a camera's sparse-point "
                                           "distances", ge=0.0, le=100.0)

@@ -190,7 +190,7 @@ def test_duplicate_key_in_poses_is_an_error(ds_root):
 
 
 def test_load_yaml_messages_are_one_line_and_name_where(tmp_path):
-    for text in ["a: 1\na: 2\n", "a: [\n", "a: !!bool maybe\n", "a: 2024-13-45\n", "[" * 3000, "? [1]\n: 2\n",
+    for text in ["a: 1\na: 2\n", "a: [\n", "a: !!bool maybe\n", "a: !!timestamp 2024-13-45\n", "[" * 3000, "? [1]\n: 2\n",
                  "\x00", "a: 1\n---\nb: 2\n"]:
         with pytest.raises(YamlError) as info:
             load_yaml(text, "where.yaml")
