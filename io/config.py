@@ -45,11 +45,12 @@ def load_config(path: Path | None, overrides: list[str] = ()) -> Config:
         section, dot, name = key.partition(".")
         if not sep or not dot:
             raise ConfigError(f"--set {item!r}: expected stage.key=value")
+        source = f"--set {item}" if item.isprintable() else f"--set {item!r}"  # a newline would split the message
         try:
-            value = load_yaml(raw, f"--set {item}")
+            value = load_yaml(raw, source)
         except YamlError as e:
             raise ConfigError(str(e)) from None
-        _collect(values, where, section, {name: value}, f"--set {item}")
+        _collect(values, where, section, {name: value}, source)
     config = {section: _build(OPTIONS_BY_SECTION[section], items, section, where)
               for section, items in values.items()}
     _check_memory(config, where)

@@ -609,8 +609,8 @@ MIN_IMAGE_HEIGHT = 3  # the features' noise estimate (sfm/features.noise_sigma) 
 def _check_pixel_count(path: Path, w: int, h: int, what: str) -> None:
     budget = limits.pixel_budget()
     if w * h > budget:
-        raise DatasetError(f"{what} {path} is {w}x{h} ({w * h / 1e6:.0f} Mpx), more than this machine's budget of "
-                           f"{budget / 1e6:.0f} Mpx per image ({limits.budget_text()})")
+        raise DatasetError(f"{what} {path} is {w}x{h} ({w * h / 1e6:.1f} Mpx), more than this machine's budget "
+                           f"of {budget / 1e6:.1f} Mpx per image ({limits.budget_text()})")
     if min(w, h) < MIN_IMAGE_HEIGHT:
         raise DatasetError(f"{what} {path} is {w}x{h}; an image must be at least {MIN_IMAGE_HEIGHT} pixels high "
                            f"(the features' noise estimate needs a 3x3 neighbourhood)")
