@@ -50,13 +50,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import PIL.Image
-import yaml
 from scipy.spatial import cKDTree
 
 from fullview.io import limits
 from fullview.io.artifacts import save_text
 from fullview.io.errors import FullviewError
-from fullview.io.yamlio import YamlError, load_yaml
+from fullview.io.yamlio import YamlError, dump_yaml, load_yaml
 
 log = logging.getLogger(__name__)
 
@@ -250,9 +249,9 @@ class Dataset:
         """Validate `points` (the `points:` list of hand_points.yaml) and write the file atomically; the previous
         file, with every point it held, is kept as hand_points.yaml.<UTC time>.bak. Returns the backup's path."""
         tracks = self._parse_hand_points(self.hand_points_path, {"points": points})
-        text = yaml.safe_dump({"points": [{"name": t.name, "observations": {i: [round(x, 3), round(y, 3)]
-                                                                             for i, (x, y) in t.observations.items()}}
-                                          for t in tracks]}, sort_keys=False, default_flow_style=None)
+        text = dump_yaml({"points": [{"name": t.name, "observations": {i: [round(x, 3), round(y, 3)]
+                                                                      for i, (x, y) in t.observations.items()}}
+                                     for t in tracks]}, sort_keys=False, default_flow_style=None)
         backup = None
         if self.hand_points_path.exists():
             stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import yaml
 
-__all__ = ["YamlError", "StrictLoader", "load_yaml"]
+__all__ = ["YamlError", "StrictLoader", "load_yaml", "dump_yaml"]
 
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 
@@ -113,6 +113,21 @@ StrictLoader.add_implicit_resolver(_MERGE_TAG, re.compile(r"^(?:<<)$"), ["<"])  
 for _tag, _constructor in (("null", _construct_null), ("bool", _construct_bool), ("int", _construct_int),
                            ("float", _construct_float)):
     StrictLoader.add_constructor(_CORE + _tag, _constructor)
+
+
+class _QuotingDumper(yaml.SafeDumper):
+    """SafeDumper that quotes a string either YAML 1.1 or 1.2 would read as something else (`1e3` is a float to
+    `StrictLoader`, `yes` a boolean to YAML 1.1 tools), so that what it writes reads back as written."""
+
+
+for _first, _resolvers in StrictLoader.yaml_implicit_resolvers.items():
+    for _tag, _regexp in _resolvers:
+        _QuotingDumper.add_implicit_resolver(_tag, _regexp, [_first])
+
+
+def dump_yaml(obj, **kwargs) -> str:
+    """YAML text of `obj` (plain data) that `load_yaml` reads back equal."""
+    return yaml.dump(obj, Dumper=_QuotingDumper, **kwargs)
 
 
 def load_yaml(text_or_path: str | os.PathLike, where: str):

@@ -306,6 +306,15 @@ def test_hand_points_top_level_key_is_named(dataset_copy, tmp_path, capsys):
     _one_error(code, err, "hand_points.yaml", "unknown top-level key 'version'")
 
 
+def test_saved_hand_point_names_read_back_as_written(dataset_copy):
+    """Names YAML 1.1 or 1.2 would read as numbers, booleans or dates are quoted when the picker saves them."""
+    names = ["1e3", "010", "yes", "1:30", "2024-01-02", "null", "corner"]
+    ds = Dataset(dataset_copy)
+    ds.save_hand_points([{"name": n, "observations": {"pano_000.png": [1 + k, 2], "pano_001.png": [3, 4]}}
+                         for k, n in enumerate(names)])
+    assert [t.name for t in Dataset(dataset_copy).hand_tracks()] == names
+
+
 # ------------------------------------------------------------------------------------ 13 clear messages
 def _write_masks(root: Path, value: int, names=("pano_000.png",)) -> None:
     (root / "masks").mkdir(exist_ok=True)
