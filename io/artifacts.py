@@ -57,7 +57,7 @@ def atomic_path(path: Path) -> Iterator[Path]:
             stage = next((p.name.split(".")[1] for p in path.parents
                           if p.name.startswith(".") and ".running." in p.name), None)
             during = f" (writing the {stage} stage's output)" if stage else ""
-            raise ArtifactError(f"{path}: {os.strerror(e.errno).lower()}{during}; free some space and run "
+            raise ArtifactError(f"{path}: {os.strerror(e.errno)}{during}; free some space and run "
                                 f"again") from None
         raise
 

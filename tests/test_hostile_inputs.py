@@ -381,7 +381,7 @@ def test_disk_full_names_the_file_and_the_stage(dataset_copy, tmp_path, capsys, 
         raise OSError(errno.ENOSPC, "No space left on device")
     monkeypatch.setattr(np, "savez", full)
     code, err = _cli(capsys, "run", dataset_copy, "-w", tmp_path / "ws", "--until", "features", *tiny_set_args)
-    line = _one_error(code, err, "no space left on device", "features stage", alone=False)
+    line = _one_error(code, err, "No space left on device", "features stage", alone=False)
     assert ".npz" in line and ".features." in line
     assert not (tmp_path / "ws" / "tiny" / "features").exists()
 
