@@ -2,7 +2,10 @@
 PYTHON_SYS ?= python3
 VENV       := .venv
 PY         := $(VENV)/bin/python
-CONFIG     ?= pipeline.yaml
+# CONFIG: a pipeline.yaml passed as -c (replaces the workspace's recorded settings); empty: the recorded settings,
+# else the code's defaults (the repo's pipeline.yaml is a copy of them).
+CONFIG     ?=
+CONFIG_ARG := $(if $(CONFIG),-c $(CONFIG))
 WORKSPACE  ?= workspace
 SYNTH      := $(WORKSPACE)/datasets/synth6
 DATASET    ?=
@@ -34,6 +37,7 @@ chromium:
 	fi
 
 setup: $(VENV)/.installed $(VENDOR)/.installed chromium
+	@echo "fullview is installed: $(abspath $(VENV))/bin/fullview (or \`source $(VENV)/bin/activate\` for plain \`fullview\`)"
 
 $(SYNTH)/images: | $(VENV)/.installed
 	$(PY) -m fullview synth $(SYNTH) --views 6 --width 2048 --seed 0
@@ -42,32 +46,32 @@ $(SYNTH)/images: | $(VENV)/.installed
 run: setup
 ifeq ($(DATASET),)
 	@$(MAKE) --no-print-directory $(SYNTH)/images
-	$(PY) -m fullview run $(SYNTH) -c $(CONFIG) -w $(WORKSPACE)
-	$(PY) -m fullview eval $(SYNTH) -c $(CONFIG) -w $(WORKSPACE)
-	@echo "report: $$($(PY) -m fullview report $(SYNTH) -c $(CONFIG) -w $(WORKSPACE))"
+	$(PY) -m fullview run $(SYNTH) $(CONFIG_ARG) -w $(WORKSPACE)
+	$(PY) -m fullview eval $(SYNTH) $(CONFIG_ARG) -w $(WORKSPACE)
+	@echo "report: $$($(PY) -m fullview report $(SYNTH) $(CONFIG_ARG) -w $(WORKSPACE))"
 else
-	$(PY) -m fullview run $(DATASET) -c $(CONFIG) -w $(WORKSPACE)
-	@echo "report: $$($(PY) -m fullview report $(DATASET) -c $(CONFIG) -w $(WORKSPACE))"
+	$(PY) -m fullview run $(DATASET) $(CONFIG_ARG) -w $(WORKSPACE)
+	@echo "report: $$($(PY) -m fullview report $(DATASET) $(CONFIG_ARG) -w $(WORKSPACE))"
 endif
 
 stage: setup
 	@test -n "$(STAGE)" || (echo "usage: make stage STAGE=<name> DATASET=<path>"; exit 2)
-	$(PY) -m fullview run $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE) --only $(STAGE)
+	$(PY) -m fullview run $(or $(DATASET),$(SYNTH)) $(CONFIG_ARG) -w $(WORKSPACE) --only $(STAGE)
 
 status: setup
-	$(PY) -m fullview status $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)
+	$(PY) -m fullview status $(or $(DATASET),$(SYNTH)) $(CONFIG_ARG) -w $(WORKSPACE)
 
 # The viewer on 127.0.0.1 (prints its address): make view [DATASET=…]
 view: setup
-	$(PY) -m fullview view $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)
+	$(PY) -m fullview view $(or $(DATASET),$(SYNTH)) $(CONFIG_ARG) -w $(WORKSPACE)
 
 eval: setup
-	$(PY) -m fullview eval $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)
+	$(PY) -m fullview eval $(or $(DATASET),$(SYNTH)) $(CONFIG_ARG) -w $(WORKSPACE)
 
 # The current model for other tools: make export FORMAT=colmap|colmap-bin|nerfstudio|ply [DATASET=…]
 FORMAT ?= colmap
 export: setup
-	$(PY) -m fullview export $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE) --format $(FORMAT)
+	$(PY) -m fullview export $(or $(DATASET),$(SYNTH)) $(CONFIG_ARG) -w $(WORKSPACE) --format $(FORMAT)
 
 test: setup
 	$(PY) -m pytest tests
@@ -87,7 +91,7 @@ colmap-check: setup
 ifeq ($(DATASET),)
 	@$(MAKE) --no-print-directory $(SYNTH)/images
 endif
-	$(PY) -m fullview colmap-check $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE)
+	$(PY) -m fullview colmap-check $(or $(DATASET),$(SYNTH)) $(CONFIG_ARG) -w $(WORKSPACE)
 
 # Our reconstruction against pycolmap.panorama.reconstruct; exits non-zero when benchmarks/baseline.json's
 # tolerances are exceeded for this dataset. Results: workspace/<dataset>/compare/.
@@ -95,4 +99,4 @@ compare-colmap: setup
 ifeq ($(DATASET),)
 	@$(MAKE) --no-print-directory $(SYNTH)/images
 endif
-	$(PY) -m fullview compare $(or $(DATASET),$(SYNTH)) -c $(CONFIG) -w $(WORKSPACE) --render-type $(RENDER_TYPE)
+	$(PY) -m fullview compare $(or $(DATASET),$(SYNTH)) $(CONFIG_ARG) -w $(WORKSPACE) --render-type $(RENDER_TYPE)

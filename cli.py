@@ -2,6 +2,10 @@
 
 Every fullview error and every OSError becomes one line naming the path and the problem (exit code 2); anything
 else is an internal error (exit code 1). `--debug` shows the traceback.
+
+Where results live: `-w ROOT` puts a dataset's workspace in ROOT/<dataset name>/; without -w it is the dataset's own
+DATASET/.fullview/, so the same command finds the same results from any folder. The settings every command uses are
+the ones recorded in that workspace (io/settings.py): `run -c FILE / --set` change and record them.
 """
 
 from __future__ import annotations
@@ -12,36 +16,126 @@ import json
 import logging
 import os
 import sys
+import time
 import traceback
 from pathlib import Path
+
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from fullview.io.config import ConfigError, load_config
 from fullview.io.dataset import Dataset
 from fullview.io.errors import FullviewError
-from fullview.io.workspace import Workspace
+from fullview.io.settings import Settings, changes, effective_settings, record_settings
+from fullview.io.workspace import DATASET_WORKSPACE, Workspace
 from fullview.stages import PIPELINE
-from fullview.stages.runner import Pipeline
+from fullview.stages.runner import Pipeline, peak_rss_mb, stage_module
 
 log = logging.getLogger("fullview")
-DEFAULT_CONFIG = Path("pipeline.yaml")
+LEGACY_WORKSPACE = Path("workspace")  # the former default root (-w), relative to the current folder
+
+
+def _workspace(args, dataset: Dataset) -> Workspace:
+    """-w ROOT: ROOT/<dataset name>/; without -w: the dataset's own workspace, DATASET/.fullview/."""
+    if args.workspace is not None:
+        return Workspace(args.workspace, dataset.name)
+    ws = Workspace.of_dataset(dataset.root)
+    legacy = LEGACY_WORKSPACE / dataset.name
+    if not ws.root.exists() and (legacy / "features").is_dir():
+        log.warning("no workspace in %s yet; %s holds one of an earlier fullview: pass -w %s to use it", ws.root,
+                    legacy, LEGACY_WORKSPACE)
+    return ws
+
+
+def _pipeline_and_settings(args) -> tuple[Pipeline, Settings]:
+    """The dataset, its workspace and the settings recorded there, updated by this command's -c / --set."""
+    dataset = Dataset(args.dataset)
+    ws = _workspace(args, dataset)
+    settings = effective_settings(ws, args.config, args.set or [])
+    return Pipeline(dataset, ws, settings.config), settings
 
 
 def _pipeline(args) -> Pipeline:
-    config_path = args.config if args.config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None)
-    config = load_config(config_path, args.set or [])
-    dataset = Dataset(args.dataset)
-    return Pipeline(dataset, Workspace(args.workspace, dataset.name), config)
+    return _pipeline_and_settings(args)[0]
 
 
 def cmd_run(args) -> int:
-    pipeline = _pipeline(args)
-    ran = pipeline.run(start=args.from_stage, until=args.until, only=args.only, force=args.force, wait=args.wait)
-    log.info("ran: %s", ", ".join(ran) or "nothing (all fresh)")
+    t0 = time.perf_counter()
+    dataset = Dataset(args.dataset)
+    ws = _workspace(args, dataset)
+    if args.workspace is None and not ws.root.exists() and not os.access(dataset.root, os.W_OK):
+        raise ConfigError(f"{dataset.root}: not writable, so its workspace {ws.root} cannot be made; pass -w FOLDER "
+                          "to keep the results elsewhere (and the same -w to every later command)")
+    # Settings are read and recorded under the run lock: a run waiting for another (--wait) builds on what it recorded.
+    with ws.locked(wait=args.wait, command="fullview run"):
+        settings = effective_settings(ws, args.config, args.set or [], reset=args.reset_settings)
+        _record(ws, settings)
+        pipeline = Pipeline(dataset, ws, settings.config)
+        ran = pipeline.run(start=args.from_stage, until=args.until, only=args.only, force=args.force, wait=args.wait)
+        page = None
+        if args.only is None and args.until in (None, PIPELINE[-1]) and (ran or not ws.path("report_page").exists()):
+            from fullview.commands.report import report
+            page = report(pipeline)
+    for line in _run_summary(args, pipeline, ran, time.perf_counter() - t0, page):
+        print(line)
     return 0
 
 
+def _record(ws: Workspace, settings: Settings) -> None:
+    """Record the run's settings in the workspace; log what changed and which stages that makes stale."""
+    path = record_settings(ws, settings)
+    if settings.recorded is None:
+        own = settings.non_default()
+        log.info("settings recorded in %s: %s", path, "the defaults" if not own else "the defaults except " + ", ".join(
+            f"{k}={v!r} ({source})" for k, v, source in own))
+        return
+    changed = changes(settings.recorded, settings.config)
+    for key, old, new in changed:
+        log.info("setting %s: %r -> %r (%s)", key, old, new, settings.sources[key])
+    if changed:
+        log.info("settings recorded in %s; the change makes stale: %s", path,
+                 ", ".join(_stale_by(k for k, _, _ in changed)))
+
+
+def _stale_by(keys) -> list[str]:
+    """The stages a change of these keys ("section.key") reruns: their sections' stages and everything after them."""
+    stale = {k.split(".", 1)[0] for k in keys}
+    for stage in PIPELINE:
+        if any(u in stale for u in stage_module(stage).UPSTREAM):
+            stale.add(stage)
+    return [s for s in PIPELINE if s in stale]
+
+
+def _run_summary(args, pipeline: Pipeline, ran: list[str], seconds: float, page: str | None) -> list[str]:
+    """The lines `run` ends with: what ran, the models, the dense cloud and mesh, where to look next."""
+    done = f"ran {', '.join(ran)}" if ran else "nothing to run (all fresh)"
+    lines = [f"fullview run {pipeline.dataset.name}: {done} in {seconds:.1f} s, peak memory {peak_rss_mb():.0f} MB"]
+    with pipeline.ws.reading():
+        models = _models_line(pipeline)
+        dense = pipeline.ws.read_manifest("densify") if pipeline.status("densify").state == "fresh" else None
+    if models:
+        lines.append(f"  {models}")
+    if dense is not None:
+        summary = dense.get("summary", {})
+        shares = list((summary.get("valid_share") or {}).values())
+        coverage = f", depth on {100 * sum(shares) / len(shares):.0f}% of the panoramas' pixels" if shares else ""
+        lines.append(f"  dense cloud: {summary.get('points', 0)} points{coverage}")
+        mesh = summary.get("mesh") or {}
+        lines.append(f"  mesh: {mesh['vertices']} vertices, {mesh['triangles']} triangles" if mesh.get("triangles")
+                     else "  mesh: none")
+    lines.append(f"  workspace: {pipeline.ws.root}")
+    if page:
+        lines.append(f"  report: {page}")
+    lines.append(f"  view: {_command('view', args)}")
+    return lines
+
+
+def _command(name: str, args) -> str:
+    """The command line that runs `fullview NAME` on this command's dataset and workspace."""
+    return f"fullview {name} {args.dataset}{f' -w {args.workspace}' if args.workspace is not None else ''}"
+
+
 def cmd_status(args) -> int:
-    pipeline = _pipeline(args)
+    pipeline, settings = _pipeline_and_settings(args)
     pipeline.ws.check_root()
     with pipeline.ws.reading():
         for stage in PIPELINE:
@@ -51,7 +145,28 @@ def cmd_status(args) -> int:
         line = _models_line(pipeline)
     if line:
         print(line)
+    print(f"workspace: {pipeline.ws.root}")
+    for line in _settings_lines(settings):
+        print(line)
     return 0
+
+
+def _settings_lines(settings: Settings) -> list[str]:
+    """`status`'s account of the settings: where they are recorded and every value that is not the default."""
+    if settings.recorded is None:
+        head = f"settings: none recorded yet ({settings.path} is written by `fullview run`)"
+    else:
+        head = f"settings: recorded in {settings.path}"
+    own = settings.non_default()
+    lines = [head + (", the defaults" if not own else ", not the defaults:")]
+    for key, value, source in own:
+        now = f"; the default is now {settings.earlier_defaults[key]!r}" if key in settings.earlier_defaults else ""
+        lines.append(f"  {key} = {value!r}  ({source}{now})")
+    unrecorded = changes(settings.recorded, settings.config) if settings.recorded is not None else []
+    if unrecorded:
+        lines.append(f"  this command's -c / --set change {', '.join(k for k, _, _ in unrecorded)}: "
+                     "not recorded (`fullview run` records them)")
+    return lines
 
 
 def _models_line(pipeline) -> str | None:
@@ -99,8 +214,8 @@ def cmd_synth(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from fullview.commands.evaluate import evaluate
-    json.dump(evaluate(_pipeline(args)), sys.stdout, indent=2)
+    from fullview.commands.evaluate import eval_summary, evaluate
+    json.dump(eval_summary(evaluate(_pipeline(args))), sys.stdout, indent=2)  # per image: eval/metrics.json
     print()
     return 0
 
@@ -133,7 +248,7 @@ def cmd_compare(args) -> int:
 
 def cmd_export(args) -> int:
     from fullview.commands.export import export
-    print(export(_pipeline(args), args.format, args.out))
+    print(export(_pipeline(args), args.format, args.out, sparse_only=args.sparse_only))
     return 0
 
 
@@ -146,15 +261,25 @@ def cmd_report(args) -> int:
 def cmd_view(args) -> int:
     from fullview.commands.view import view
     pipeline = _pipeline(args)
+    log.info("%s", _freshness(args, pipeline))
     view(pipeline, pipeline.config, port=args.port, open_browser=not args.no_browser)
     return 0
+
+
+def _freshness(args, pipeline: Pipeline) -> str:
+    """One line: are the workspace's results those of its settings, and if not what brings them up to date."""
+    with pipeline.ws.reading():
+        behind = [stage for stage in PIPELINE if pipeline.status(stage).state != "fresh"]
+    if not behind:
+        return f"results of {pipeline.ws.root}: every stage fresh"
+    return (f"results of {pipeline.ws.root}: {', '.join(behind)} not fresh for these settings; "
+            f"`{_command('run', args)}` brings them up to date")
 
 
 def cmd_batch(args) -> int:
     from fullview.commands.batch import batch
     from fullview.stages.batch import summary_table
-    config_path = args.config if args.config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None)
-    outcomes = batch(args.datasets, args.glob, load_config(config_path, args.set or []), args.workspace,
+    outcomes = batch(args.datasets, args.glob, load_config(args.config, args.set or []), args.workspace,
                      scheduler=args.scheduler, workers=args.workers, until=args.until, force=args.force)
     print(summary_table(outcomes))
     return 1 if any(o.status != "ok" for o in outcomes) else 0
@@ -162,14 +287,17 @@ def cmd_batch(args) -> int:
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder (images/, optional hand_points.yaml, ground_truth/)")
-    p.add_argument("-w", "--workspace", type=Path, default=Path("workspace"), help="workspace root")
-    p.add_argument("-c", "--config", type=Path, default=None, help="pipeline.yaml (default: ./pipeline.yaml)")
-    p.add_argument("--set", action="append", metavar="STAGE.KEY=VALUE", help="override a config value")
+    p.add_argument("-w", "--workspace", type=Path, default=None,
+                   help=f"workspace root: results in ROOT/<dataset name>/ (default: DATASET/{DATASET_WORKSPACE}/)")
+    p.add_argument("-c", "--config", type=Path, default=None,
+                   help="a pipeline.yaml: the defaults updated by it, instead of the workspace's recorded settings")
+    p.add_argument("--set", action="append", metavar="STAGE.KEY=VALUE",
+                   help="change one setting (run records it in the workspace)")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fullview", description="3-D reconstruction from 360° panoramas")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging (the internals)")
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="run stale stages of the pipeline")
@@ -179,12 +307,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--only", choices=PIPELINE, help="run just this stage (upstream must be fresh)")
     p.add_argument("--force", action="store_true", help="rerun every stage")
     p.add_argument("--wait", action="store_true", help="wait for another run on this workspace instead of failing")
+    p.add_argument("--reset-settings", action="store_true",
+                   help="start from the defaults, not from the workspace's recorded settings")
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("batch", help="run many datasets on a Dask cluster (local processes by default)")
     p.add_argument("datasets", type=Path, nargs="*", help="dataset folders (each gets WORKSPACE/<folder name>)")
     p.add_argument("--glob", metavar="PATTERN", help="also every folder this pattern matches, e.g. 'data/*'")
     p.add_argument("-w", "--workspace", type=Path, default=Path("workspace"), help="workspace root")
-    p.add_argument("-c", "--config", type=Path, default=None, help="pipeline.yaml (default: ./pipeline.yaml)")
+    p.add_argument("-c", "--config", type=Path, default=None, help="pipeline.yaml (default: the code's defaults)")
     p.add_argument("--set", action="append", metavar="STAGE.KEY=VALUE", help="override a config value")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="use this cluster instead of a local one")
     p.add_argument("--workers", type=int, default=None, help="local cluster: worker processes (default: cores)")
@@ -237,7 +367,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="the reconstruction as COLMAP, nerfstudio or PLY files")
     _common(p)
     p.add_argument("--format", required=True, help="colmap | colmap-bin | nerfstudio | ply")
-    p.add_argument("--out", type=Path, default=None, help="output folder (default: WORKSPACE/DATASET/export_FORMAT)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: WORKSPACE/DATASET/export_FORMAT); "
+                   "new, empty or a previous export, of which only the files it wrote are replaced")
+    p.add_argument("--sparse-only", action="store_true",
+                   help="ply: the sparse cloud alone (otherwise a stale or missing densify is an error)")
     p.set_defaults(func=cmd_export)
     p = sub.add_parser("report", help="a static HTML report of the run: workspace/<dataset>/report/index.html")
     _common(p)
@@ -253,10 +386,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     bound_malloc_arenas()
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    _configure_logging(args.verbose)
     try:
-        return args.func(args)
+        with logging_redirect_tqdm():  # log lines above the progress bars, not inside them
+            return args.func(args)
     except FullviewError as e:
         return _fail(args, str(e), 2)
     except BrokenPipeError:
@@ -271,6 +404,28 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except Exception as e:  # noqa: BLE001 — the boundary: anything else is our bug, reported in one line
         return _fail(args, f"internal error: {type(e).__name__}: {e} (rerun with --debug for the traceback)", 1)
+
+
+class _UserFormatter(logging.Formatter):
+    """INFO lines as "time message"; warnings and errors name their level; -v adds the logger of every line."""
+
+    def __init__(self, verbose: bool):
+        super().__init__("%(asctime)s %(levelname)s %(name)s: %(message)s" if verbose else "%(asctime)s %(message)s",
+                         datefmt="%H:%M:%S")
+        self.verbose = verbose
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        text = super().formatMessage(record)
+        if not self.verbose and record.levelno >= logging.WARNING:
+            time_part, _, message = text.partition(" ")
+            return f"{time_part} {record.levelname.lower()}: {message}"
+        return text
+
+
+def _configure_logging(verbose: bool) -> None:
+    handler = logging.StreamHandler()
+    handler.setFormatter(_UserFormatter(verbose))
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, handlers=[handler])
 
 
 M_ARENA_MAX = -8  # glibc's mallopt parameter

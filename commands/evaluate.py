@@ -1,18 +1,24 @@
 """`fullview eval`: the current reconstruction against the dataset's ground_truth/ (poses, and dense results when
-the dataset has ground-truth depth)."""
+the dataset has ground-truth depth), and on any dataset the checks that need none: the leave-one-out pose check
+(``sfm.pose_check``) and the dense leave-one-out agreement."""
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import sys
 
 import numpy as np
 
 from fullview.io.dataset import Dataset, DatasetError
-from fullview.io.workspace import Workspace, WorkspaceBusy, folder_of
+from fullview.io.artifacts import ArtifactError
+from fullview.io.workspace import Workspace, WorkspaceBusy, folder_of, select_model
+from fullview.sfm import pose_check as pose_check_module
+from fullview.sfm.dense import scene_size
 from fullview.sfm.dense_agreement import visible_agreement
 from fullview.sfm.dense_metrics import dense_metrics, leave_one_out_agreement
 from fullview.sfm.metrics import Similarity, pose_metrics, umeyama
-from fullview.stages.runner import Pipeline, RunnerError
+from fullview.stages.runner import Pipeline, RunnerError, code_hashes, record_fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -21,24 +27,61 @@ AGREEMENT_STRIDE = 2  # ... other panoramas' pixels are splatted every this many
 
 
 def evaluate(pipeline: Pipeline) -> dict:
-    """Pose metrics against ground truth (and dense metrics when available), and on any dataset the dense
-    leave-one-out agreement when densify is current; also written to eval/metrics.json when the workspace is not
-    busy (eval is a read-only command: it never waits for a run)."""
+    """Pose metrics against ground truth (and dense metrics when available), and on any dataset the leave-one-out
+    pose check (of the triangulation's models) and the dense leave-one-out agreement when densify is current; also
+    written to eval/metrics.json when the workspace is not busy (eval is a read-only command: it never waits for a
+    run)."""
     dataset, ws = pipeline.dataset, pipeline.ws
     with ws.reading():
         source = _current_model(pipeline)
+        dense_current = source == "triangulation" and pipeline.status("densify", deep=True).state == "fresh"
+        key = _cache_key(pipeline, source, dense_current)
+        cached = _cached(ws, key)
+        if cached is not None:
+            log.info("eval: the results are unchanged since the last eval; its metrics are reused (%s)",
+                     ws.path("eval_metrics"))
+            _log_summary(cached)
+            return cached
         est = ws.load_sparse() if source == "triangulation" else ws.load_registration()
         metrics = {"dataset": dataset.name, "poses_from": source}
         if dataset.has_ground_truth():
             metrics.update(_against_ground_truth(pipeline, est, source))
-        dense_current = source == "triangulation" and pipeline.status("densify", deep=True).state == "fresh"
+        if source == "triangulation":
+            metrics["pose_check"] = pose_check(pipeline, est)
         if dense_current:
             metrics["dense_agreement"] = dense_agreement(dataset, ws, est)
-        elif not dataset.has_ground_truth():
-            raise DatasetError(f"{dataset.root}: no ground_truth/poses.yaml and no current densify results: nothing "
+        elif not dataset.has_ground_truth() and source != "triangulation":
+            raise DatasetError(f"{dataset.root}: no ground_truth/poses.yaml and no triangulation results: nothing "
                                "to evaluate")
-    _save(pipeline, metrics)
+    _log_summary(metrics)
+    _save(pipeline, metrics, key)
     return metrics
+
+
+def _cache_key(pipeline: Pipeline, source: str, dense_current: bool) -> str:
+    """What the metrics depend on, like a stage's fingerprint: the evaluated stages' fingerprints (settings, inputs,
+    code), whether densify is current, eval's own code and the ground truth's bytes."""
+    truth = pipeline.dataset.ground_truth_dir
+    files = sorted(p for p in truth.rglob("*") if p.is_file()) if truth.is_dir() else []
+    digest = hashlib.sha256()
+    for path in files:
+        digest.update(str(path.relative_to(truth)).encode() + b"\0" + path.read_bytes())
+    return record_fingerprint({"poses_from": source, "dense_current": dense_current,
+                               "upstream": {s: pipeline.fingerprint(s) for s in ("registration", "triangulation",
+                                                                               "densify")},
+                               "code": code_hashes(sys.modules[__name__]), "ground_truth": digest.hexdigest()})
+
+
+def _cached(ws: Workspace, key: str) -> dict | None:
+    """The metrics of the last eval when they were computed for `key` and their file is intact, else None."""
+    manifest = ws.read_manifest(folder_of("eval_metrics"))
+    if manifest is None or manifest.get("eval_key") != key or ws.verify(folder_of("eval_metrics"), manifest,
+                                                                          deep=True):
+        return None
+    try:
+        return ws.load_json("eval_metrics")
+    except ArtifactError:
+        return None
 
 
 def _against_ground_truth(pipeline: Pipeline, est: dict, source: str) -> dict:
@@ -82,6 +125,65 @@ def dense_agreement(dataset: Dataset, ws: Workspace, est: dict) -> dict:
             "per_image": dict(zip(names, per_image))}
 
 
+def pose_check(pipeline: Pipeline, sparse: dict) -> dict:
+    """The leave-one-out pose check (``sfm.pose_check``) of every camera of every model of the triangulation, with
+    the stages' own thresholds: θ = triangulation.max_reprojection_error_deg (the model's inlier threshold), its
+    minimum triangulation angle, and registration.min_resection_points. Per image also its model; centres relative
+    to that model's size (``sfm.dense.scene_size``)."""
+    dataset, ws, config = pipeline.dataset, pipeline.ws, pipeline.config
+    tri, reg = config["triangulation"], config["registration"]
+    options = pose_check_module.PoseCheckOptions(threshold_rad=np.radians(tri.max_reprojection_error_deg),
+                                                 min_angle_rad=np.radians(tri.min_triangulation_angle_deg),
+                                                 min_points=reg.min_resection_points, seed=reg.seed)
+    bearings = [o["bearings"] for o in ws.load_observations(dataset)]
+    names = list(sparse["image_names"])
+    checks = {}
+    for model in range(int(sparse["model_id"].max(initial=-1)) + 1):
+        part = select_model(sparse, model)
+        cams = np.flatnonzero(part["registered"])
+        size = scene_size(sparse["centers"][cams], part["points"])
+        found = pose_check_module.check_poses(cams, part["track_ids"], part["image_ids"], part["feature_ids"],
+                                              bearings, sparse["R_cam_from_world"], sparse["t_cam_from_world"],
+                                              options)
+        for c in cams:
+            checks[str(names[c])] = {"model": model, **found[c].as_dict(size)}
+    out = pose_check_module.summarise(checks)
+    out["threshold_deg"] = float(tri.max_reprojection_error_deg)
+    return out
+
+
+def _log_summary(metrics: dict) -> None:
+    """One line per check, in plain words (the per-image figures are in the JSON and eval/metrics.json)."""
+    check = metrics.get("pose_check")
+    if check is not None:
+        count = len(check["per_image"])
+        log.info("pose check (leave-one-out): %d of %d cameras agree with the other cameras' points; disagree: %s; "
+                 "unverifiable: %s; median rotation %s°, centre %s of the model's size",
+                 count - len(check["flagged"]), count, ", ".join(check["disagrees"]) or "none",
+                 ", ".join(check["unverifiable"]) or "none", _fmt(check["median_rot_deg"]),
+                 _fmt(check["median_centre_rel"]))
+    dense = metrics.get("dense_agreement")
+    if dense is not None:
+        log.info("dense leave-one-out agreement: median %s (visible %s), median valid share %s",
+                 _fmt(dense["median_agreement"]), _fmt(dense["median_visible_agreement"]),
+                 _fmt(dense["median_valid_share"]))
+
+
+def eval_summary(metrics: dict) -> dict:
+    """``metrics`` without its per-image and per-model lists (eval/metrics.json keeps them): what a terminal needs."""
+    out = {}
+    for key, value in metrics.items():
+        if isinstance(value, dict):
+            out[key] = {k: v for k, v in value.items() if k != "per_image"}
+        elif key != "models":
+            out[key] = value
+    return out
+
+
+def _fmt(value) -> str:
+    return "n/a" if value is None else f"{value:.3g}"
+
+
 def _model_metrics(est: dict, R_gt: np.ndarray, c_gt: np.ndarray) -> list[dict]:
     """Pose metrics of every model on its own (model 0's are also the top-level figures); pairs of images in
     different models count as failures, so a model's AUC says how much of the whole scene it covers well."""
@@ -104,13 +206,14 @@ def _current_model(pipeline: Pipeline) -> str:
                       "run the pipeline first")
 
 
-def _save(pipeline: Pipeline, metrics: dict) -> None:
+def _save(pipeline: Pipeline, metrics: dict, key: str) -> None:
     ws = pipeline.ws
     try:
         with ws.locked(command="fullview eval"), ws.transaction(folder_of("eval_metrics")) as out:
             out.save_json("eval_metrics", metrics)
             upstream = {s: pipeline.fingerprint(s) for s in ("registration", "triangulation", "densify")}
             out.commit_manifest({"fingerprint": pipeline.fingerprint(metrics["poses_from"]), "upstream": upstream,
+                                 "eval_key": key,
                                  "summary": {"poses_from": metrics["poses_from"]}})
     except (WorkspaceBusy, OSError) as e:  # eval reads; a busy or read-only workspace only loses the copy on disk
         log.warning("metrics not written to %s: %s", ws.path("eval_metrics"), e)

@@ -6,14 +6,24 @@
   made one) as PLY and OBJ with vertex colours.
 
 Every model is written to its own subfolder, ``<k>/`` (model 0 is the largest; COLMAP's ``sparse/<k>`` convention);
-the dense cloud and mesh belong to model 0 (``0/dense.ply``, ``0/dense_mesh.ply``). The export goes to the workspace's ``export_<format>/`` folder, or to ``--out DIR`` (a new or empty folder, or one a
-previous export wrote), in a transaction either way: an interrupted export leaves the previous one intact.
+the dense cloud and mesh belong to model 0 (``0/dense.ply``, ``0/dense_mesh.ply``). ``ply`` needs a fresh dense
+cloud: when densify is stale or has not run, the export stops (exit 2) saying so, unless ``--sparse-only`` asks for
+the sparse cloud alone.
+
+The export goes to the workspace's ``export_<format>/`` folder, in a transaction (an interrupted export leaves the
+previous one intact), or to ``--out DIR``: a new or empty folder, or one a previous export wrote. There the export
+changes only what it wrote itself: its ``manifest.json`` lists every file it wrote (path, size, sha256), and the
+next export into the folder replaces or removes only those, and only while unchanged; anything else there (notes,
+the user's own files and folders) stays, and an export that would have to overwrite or remove such a file is
+refused, naming it. A non-empty folder without that record is refused: choose a new or empty folder. Each file is
+replaced atomically, the record last (`io.workspace.folder_update`).
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -21,18 +31,18 @@ import numpy as np
 from fullview.io.config import ConfigError
 from fullview.io.exports import (SparseModel, sparse_point_normals, split_models, write_colmap_model,
                                  write_mesh, write_nerfstudio, write_point_cloud)
-from fullview.io.workspace import (RUN_LOCK, StageWriter, folder_of, folder_transaction, make_dirs,
-                                   read_manifest_file)
+from fullview.io.workspace import RUN_LOCK, StageWriter, folder_of, folder_update, make_dirs, read_manifest_file
 from fullview.stages.runner import Pipeline, RunnerError, record_fingerprint
 
 log = logging.getLogger(__name__)
 
 FORMATS = ("colmap", "colmap-bin", "nerfstudio", "ply")
-EXPORT_KIND = "fullview export"  # marks a folder as a previous export, which --out may replace
+EXPORT_KIND = "fullview export"  # marks a folder as a previous export, which --out may update
 
 
-def export(pipeline: Pipeline, fmt: str, out: Path | None = None) -> Path:
-    """Write the current reconstruction in `fmt`; returns the folder written."""
+def export(pipeline: Pipeline, fmt: str, out: Path | None = None, *, sparse_only: bool = False) -> Path:
+    """Write the current reconstruction in `fmt`; returns the folder written. `sparse_only`: ``ply`` without the
+    dense cloud and mesh (otherwise they must be fresh)."""
     if fmt not in FORMATS:
         raise ConfigError(f"--format {fmt!r}: expected one of {', '.join(FORMATS)}")
     ws = pipeline.ws
@@ -40,16 +50,35 @@ def export(pipeline: Pipeline, fmt: str, out: Path | None = None) -> Path:
     if status.state != "fresh":
         raise RunnerError(f"{ws.root}: the sparse model is {status.state} ({'; '.join(status.reasons)}); "
                           "run the pipeline first")
+    out = _checked_out(Path(out)) if out is not None else None
+    dense = fmt == "ply" and not sparse_only
+    if dense:
+        _require_dense(pipeline)
     if out is not None:  # nothing is written in the workspace: reading under the commit lock is enough
-        return _export_outside(pipeline, fmt, Path(out))
+        with folder_update(out) as writer:
+            _write(pipeline, fmt, writer, dense)
+        return out
     with ws.locked(command="fullview export"), ws.transaction(folder_of("export_dir", format=fmt)) as writer:
-        _write(pipeline, fmt, writer)
+        _write(pipeline, fmt, writer, dense)
     return ws.path("export_dir", format=fmt)
 
 
-def _export_outside(pipeline: Pipeline, fmt: str, out: Path) -> Path:
-    """Export into a user-chosen folder, which must be new, empty or a previous export (never a folder of other
-    files, which the swap would replace) and lie outside every workspace."""
+def _require_dense(pipeline: Pipeline) -> None:
+    """A RunnerError unless the dense cloud on disk is fresh (``ply`` exports it beside the sparse one)."""
+    status = pipeline.chain_status("densify")
+    if status.state == "fresh":
+        return
+    ws = pipeline.ws
+    run = shlex.join(["fullview", "run", str(pipeline.dataset.root), "-w", str(ws.root.parent)])
+    what = "has not run" if status.state == "missing" and status.reasons == ["never run"] else \
+        f"is {status.state} ({'; '.join(status.reasons)})"
+    raise RunnerError(f"{ws.root}: densify {what}, so the dense cloud is not the current model's; run `{run}` "
+                      "(with the same settings) first, or pass --sparse-only to export the sparse cloud alone")
+
+
+def _checked_out(out: Path) -> Path:
+    """A user-chosen export folder: new, empty or a previous export (never a folder of other files), outside every
+    workspace."""
     out = out.resolve()
     if out == Path.cwd() or out in Path.cwd().parents:
         raise ConfigError(f"--out {out}: is the current folder or contains it; choose a new folder")
@@ -57,10 +86,8 @@ def _export_outside(pipeline: Pipeline, fmt: str, out: Path) -> Path:
     if inside is not None:
         raise ConfigError(f"--out {out}: lies inside the workspace {inside}; leave out --out to export there")
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not _is_export(out))):
-        raise ConfigError(f"--out {out}: exists and is not empty nor a previous fullview export; choose a new folder")
-    make_dirs(out.parent)
-    with folder_transaction(out) as writer:
-        _write(pipeline, fmt, writer)
+        raise ConfigError(f"--out {out}: exists and is not empty nor a previous fullview export; choose a new or "
+                          "empty folder")
     return out
 
 
@@ -70,11 +97,11 @@ def _is_export(folder: Path) -> bool:
     return manifest is not None and manifest.get("summary", {}).get("kind") == EXPORT_KIND
 
 
-def _write(pipeline: Pipeline, fmt: str, writer: StageWriter) -> None:
+def _write(pipeline: Pipeline, fmt: str, writer: StageWriter, dense: bool) -> None:
     ws = pipeline.ws
     models = sparse_models(pipeline)
     for k, model in enumerate(models):
-        _write_model(pipeline, fmt, model, writer, str(k), dense=k == 0)
+        _write_model(pipeline, fmt, model, writer, str(k), dense=dense and k == 0)
     writer.commit_manifest({"fingerprint": record_fingerprint({"triangulation": pipeline.fingerprint("triangulation"),
                                                                "format": fmt}),
                             "upstream": {"triangulation": pipeline.fingerprint("triangulation")},
@@ -101,8 +128,7 @@ def _write_model(pipeline: Pipeline, fmt: str, model: SparseModel, writer: Stage
         normals = sparse_point_normals(model.points, model.centers, track_point3d=model.track_point3d,
                                        track_image=model.track_image)
         write_point_cloud(folder / "sparse.ply", model.points, model.colors, normals)
-        cloud = pipeline.ws.load_dense_cloud() if dense and pipeline.status("densify", deep=True).state == "fresh" \
-            else None
+        cloud = pipeline.ws.load_dense_cloud() if dense else None
         if cloud is not None:
             xyz = np.column_stack([cloud["x"], cloud["y"], cloud["z"]])
             normals = np.column_stack([cloud["nx"], cloud["ny"], cloud["nz"]]) if "nx" in cloud else None

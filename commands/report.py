@@ -207,7 +207,7 @@ def metric_rows(metrics: dict) -> list[tuple[str, object]]:
 
 
 def _viewer(pipeline: Pipeline) -> str:
-    command = f"fullview view {pipeline.dataset.root} -w {pipeline.ws.root.parent}"
+    command = f"fullview view {pipeline.dataset.root}{pipeline.ws.workspace_option(pipeline.dataset.root)}"
     return f"<h2>Viewer</h2><p>Walk the tour and pick hand points: <code>{html.escape(command)}</code></p>"
 
 

@@ -2,29 +2,43 @@
 
 from __future__ import annotations
 
+import errno
 import logging
 import webbrowser
 
 from fullview.io.config import Config, ConfigError
 from fullview.stages.runner import Pipeline
-from fullview.viewer.server import VENDOR, VENDORED, ViewerApp, make_server
+from fullview.viewer.server import VENDOR, VENDORED, ViewerApp, make_server, page_url
 
 log = logging.getLogger(__name__)
 
+PORTS = range(0, 65536)  # TCP ports; 0 lets the system pick a free one
+
 
 def view(pipeline: Pipeline, config: Config, *, port: int = 0, open_browser: bool = True) -> None:
+    if port not in PORTS:
+        raise ConfigError(f"--port {port}: a port is 0 (any free one) to 65535")
     missing = [p for p in VENDORED if not (VENDOR / p).is_dir()]
     if missing:
         raise ConfigError(f"{VENDOR}: the viewer's JavaScript libraries are missing ({', '.join(missing)}); "
                           "run `make setup` (npm ci in viewer/web)")
-    server = make_server(ViewerApp(pipeline, config), port)
-    url = f"http://127.0.0.1:{server.server_address[1]}/"
+    app = ViewerApp(pipeline, config)
+    try:
+        server = make_server(app, port)
+    except OSError as e:
+        if e.errno == errno.EADDRINUSE:
+            raise ConfigError(f"port {port} is in use; pick another with --port") from None
+        if e.errno == errno.EACCES:
+            raise ConfigError(f"port {port} needs privileges on this system; pick another with --port") from None
+        raise
+    # The token in the URL is what lets only this page drive the server: print it, do not log it elsewhere.
+    url = page_url(server)
     print(f"fullview viewer of {pipeline.dataset.name}: {url}  (Ctrl-C stops it)", flush=True)
     if open_browser:
         try:
             webbrowser.open(url)
         except webbrowser.Error:
-            log.info("no browser to open; visit %s", url)
+            log.info("no browser to open; visit the URL above")
     try:
         server.serve_forever()
     except KeyboardInterrupt:

@@ -178,3 +178,34 @@ def _allowed(f: dataclasses.Field) -> str:
     if meta["zero_means"]:
         parts.append(f"or 0 = {meta['zero_means']}")
     return ", ".join(parts) or "any"
+
+
+# ------------------------------------------------------------------------------------------- layered settings
+def parse_override(item: str) -> tuple[str, str, Any]:
+    """A `--set stage.key=value` item as (section, key, value), the value read as YAML."""
+    key, sep, raw = item.partition("=")
+    section, dot, name = key.partition(".")
+    if not sep or not dot:
+        raise ConfigError(f"--set {item!r}: expected stage.key=value")
+    try:
+        return section, name, load_yaml(raw, f"--set {item}")
+    except YamlError as e:
+        raise ConfigError(str(e)) from None
+
+
+def read_config_file(path: Path) -> dict:
+    """A pipeline.yaml file's mapping of sections (not yet checked against the options)."""
+    return _read_file(Path(path))
+
+
+def layered_config(layers: list[tuple[str, dict]]) -> tuple[Config, dict[str, str]]:
+    """The defaults updated by each layer in order, a (source, {section: {key: value}}) pair, every value checked as
+    `load_config` checks it; also the source of every key a layer set ("section.key" -> source). io/settings.py
+    layers a workspace's recorded settings, a pipeline.yaml and --set this way."""
+    values: dict[str, dict[str, Any]] = {s: {} for s in OPTIONS_BY_SECTION}
+    where: dict[tuple[str, str], str] = {}
+    for source, data in layers:
+        for section, items in data.items():
+            _collect(values, where, section, items, source)
+    config = {section: _build(OPTIONS_BY_SECTION[section], items, section, where) for section, items in values.items()}
+    return config, {f"{section}.{key}": source for (section, key), source in where.items()}

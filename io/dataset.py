@@ -31,6 +31,7 @@ nothing bad is accepted silently.
 
 from __future__ import annotations
 
+import datetime
 import hashlib
 import io
 import logging
@@ -39,12 +40,13 @@ import os
 import re
 import reprlib
 import struct
+import tempfile
 import threading
-import time
+import uuid
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, partial
 from pathlib import Path
 
 import cv2
@@ -53,7 +55,7 @@ import PIL.Image
 from scipy.spatial import cKDTree
 
 from fullview.io import limits
-from fullview.io.artifacts import save_text
+from fullview.io.artifacts import apply_umask, save_text
 from fullview.io.errors import FullviewError
 from fullview.io.yamlio import YamlError, dump_yaml, load_yaml
 
@@ -64,6 +66,8 @@ _JPEG_FORMATS = ("JPEG", "MPO")  # PIL calls a JPEG with a multi-picture (MPF) t
 _HAND_POINT_KEYS = {"name", "observations"}
 _CAMERA_KEYS = ("image", "R_world_from_cam", "center")
 _COINCIDENT = 1e-9  # centres closer than this fraction of the scene extent count as one position
+
+_ABSENT = object()  # no hand_points.yaml (an empty file parses as None, and is refused)
 
 # Values quoted in messages are abbreviated: a hostile file may nest aliases into an enormous structure.
 _REPR = reprlib.Repr()
@@ -80,6 +84,14 @@ class HandTrack:
     observations: dict[str, tuple[float, float]]  # image name -> equirectangular pixel (x, y)
 
 
+class HandObservations(dict):
+    """`Dataset.hand_observations`: image name -> (track indices, pixels), and the sha256 of the file read."""
+
+    def __init__(self, per_image: dict, *, sha256: str):
+        super().__init__(per_image)
+        self.sha256 = sha256
+
+
 @dataclass(kw_only=True)
 class GroundTruthPose:
     R_world_from_cam: np.ndarray  # (3, 3)
@@ -91,6 +103,7 @@ class Dataset:
 
     def __init__(self, root: Path):
         self.root = Path(root)
+        self._pins: dict[str, tuple | None] = {}  # file -> its signature when first read (see `_pinned`)
         self._sizes: dict[str, tuple[int, int]] | None = None
         self._sizes_lock = threading.Lock()  # the features stage asks for sizes from several threads at once
         if not self.root.is_dir():
@@ -143,7 +156,27 @@ class Dataset:
         return self.images_dir / name
 
     def image_hash(self, name: str) -> str:
-        return hashlib.sha256(_read_bytes(self.image_path(name), "image")).hexdigest()
+        path = self.image_path(name)
+        return hashlib.sha256(self._pinned(path, lambda: _read_bytes(path, "image"))).hexdigest()
+
+    def _pinned(self, path: Path, read):
+        """``read()`` of `path`, which must be the same file (device, inode, size, mtime and ctime) before and after
+        the read as when this dataset first read it: the images and masks a run hashes for its fingerprints are the
+        ones it validated and decodes, without holding their bytes (a panorama is megabytes). A replaced or
+        rewritten file is an error, never a result filed under the other file's hash."""
+        before = _signature(path)
+        value = read()
+        first = self._pins.setdefault(str(path), before)  # one atomic step: threads read images at once
+        if before != first or _signature(path) != first:
+            raise DatasetError(f"{path}: changed while fullview was reading the dataset; run again once it is "
+                               f"complete")
+        return value
+
+    def refresh_inputs(self) -> None:
+        """Forget the hand points read and the files pinned (a long-lived reader, the viewer, calls this when the
+        dataset may have changed on purpose)."""
+        self.__dict__.pop("hand_observations", None)
+        self._pins.clear()
 
     # ------------------------------------------------------------------------------------------------- masks
     @property
@@ -156,8 +189,12 @@ class Dataset:
 
     def mask_hashes(self) -> dict[str, str]:
         """sha256 of every image's mask ('none' where it has none): the fingerprint input of masked stages."""
-        return {name: hashlib.sha256(_read_bytes(self.mask_path(name), "mask")).hexdigest()
+        return {name: hashlib.sha256(self._read_mask(name)).hexdigest()
                 if self.mask_path(name).exists() else "none" for name in self.image_names}
+
+    def _read_mask(self, name: str) -> bytes:
+        path = self.mask_path(name)
+        return self._pinned(path, lambda: _read_bytes(path, "mask"))
 
     def load_mask(self, name: str) -> np.ndarray | None:
         """(H, W) bool, True where the image is kept, at the image's own size; None when it has no mask. A mask of
@@ -166,7 +203,7 @@ class Dataset:
         path = self.mask_path(name)
         if not path.exists():
             return None
-        data = _read_bytes(path, "mask")
+        data = self._read_mask(name)
         w, h = self.image_sizes[name]
         mw, mh = checked_image_file(path, data, "mask")  # complete before it is decoded: no libpng message
         if (mw, mh) != (w, h):
@@ -204,8 +241,12 @@ class Dataset:
             self.load_mask(name)
 
     def hand_points_hash(self) -> str:
-        p = self.hand_points_path
-        return hashlib.sha256(_read_bytes(p, "file")).hexdigest() if p.exists() else "none"
+        """sha256 of the very bytes `hand_observations` was parsed from ('none' without the file); of the file's
+        bytes now when they are invalid (so that a status still tells the change; a run refuses the file)."""
+        try:
+            return self.hand_observations.sha256
+        except DatasetError:
+            return self._read_hand_points()[0]
 
     @property
     def image_sizes(self) -> dict[str, tuple[int, int]]:
@@ -213,7 +254,8 @@ class Dataset:
         validates every image (complete JPEG or PNG file, 2:1)."""
         with self._sizes_lock:
             if self._sizes is None:
-                self._sizes = {name: image_size(self.image_path(name)) for name in self.image_names}
+                self._sizes = {name: self._pinned(self.image_path(name), partial(image_size, self.image_path(name)))
+                               for name in self.image_names}
         return self._sizes
 
     def gps_positions(self) -> np.ndarray | None:
@@ -231,7 +273,7 @@ class Dataset:
         # reductions that divide the size exactly keep the 2:1 shape.
         reduction = max((r for r in (1, 2, 4, 8) if width and native_w // r >= width
                          and native_w % r == 0 and native_h % r == 0), default=1)
-        image = read_image(self.image_path(name), reduction)
+        image = self._pinned(self.image_path(name), partial(read_image, self.image_path(name), reduction))
         if width and image.shape[1] != width:
             interp = cv2.INTER_AREA if width < image.shape[1] else cv2.INTER_LINEAR
             image = cv2.resize(image, (width, width // 2), interpolation=interp)
@@ -239,25 +281,41 @@ class Dataset:
 
     # ------------------------------------------------------------------------------------------- hand points
     def hand_tracks(self) -> list[HandTrack]:
-        """Hand-picked tracks, validated against the image list and sizes; [] when the file is absent."""
+        """Hand-picked tracks as the file holds them now, validated against the image list and sizes; [] when the
+        file is absent. (A run uses `hand_observations`, read once.)"""
+        _, data = self._read_hand_points()
+        return [] if data is _ABSENT else self._parse_hand_points(self.hand_points_path, data)
+
+    def _read_hand_points(self) -> tuple[str, object]:
+        """(sha256, parsed YAML) of one read of hand_points.yaml: ('none', _ABSENT) when there is no file."""
         path = self.hand_points_path
         if not path.exists():
-            return []
-        return self._parse_hand_points(path, _load_yaml(path))
+            return "none", _ABSENT
+        raw = _read_bytes(path, "file")
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise DatasetError(f"{path}: not UTF-8 text (byte {e.start})") from None
+        sha = hashlib.sha256(raw).hexdigest()
+        try:
+            return sha, load_yaml(text, where=str(path))
+        except YamlError as e:
+            raise DatasetError(str(e)) from None
 
     def save_hand_points(self, points: list) -> Path | None:
-        """Validate `points` (the `points:` list of hand_points.yaml) and write the file atomically; the previous
-        file, with every point it held, is kept as hand_points.yaml.<UTC time>.bak. Returns the backup's path."""
+        """Validate `points` (the `points:` list of hand_points.yaml) and write the file atomically. The file it
+        replaces is kept first (`_keep_backup`); returns that backup's path (None when there was no file)."""
         tracks = self._parse_hand_points(self.hand_points_path, {"points": points})
         text = dump_yaml({"points": [{"name": t.name, "observations": {i: [round(x, 3), round(y, 3)]
                                                                       for i, (x, y) in t.observations.items()}}
                                      for t in tracks]}, sort_keys=False, default_flow_style=None)
-        backup = None
-        if self.hand_points_path.exists():
-            stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
-            backup = self.hand_points_path.with_name(f"{self.hand_points_path.name}.{stamp}.bak")
-            save_text(backup, self.hand_points_path.read_text())
-        save_text(self.hand_points_path, text)
+        path = self.hand_points_path
+        try:
+            backup = _keep_backup(path)
+            save_text(path, text)
+        except OSError as e:
+            where = f" at {e.filename}" if e.filename and Path(e.filename) != path else ""
+            raise DatasetError(f"{path}: cannot save the hand points ({_reason(e)}{where})") from None
         self.__dict__.pop("hand_observations", None)  # the cached parse is stale now
         return backup
 
@@ -300,14 +358,18 @@ class Dataset:
         return x, y
 
     @cached_property
-    def hand_observations(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Per image: (track indices (K,), pixels (K, 2)) of its hand observations, tracks in file order."""
+    def hand_observations(self) -> HandObservations:
+        """Per image: (track indices (K,), pixels (K, 2)) of its hand observations, tracks in file order; its
+        ``sha256`` is that of the bytes they were parsed from (one read: the fingerprint names what was used)."""
+        sha, data = self._read_hand_points()
+        tracks = [] if data is _ABSENT else self._parse_hand_points(self.hand_points_path, data)
         out = {name: ([], []) for name in self.image_names}
-        for k, track in enumerate(self.hand_tracks()):
+        for k, track in enumerate(tracks):
             for image, xy in track.observations.items():
                 out[image][0].append(k)
                 out[image][1].append(xy)
-        return {n: (np.array(t, np.int64), np.array(p, np.float64).reshape(-1, 2)) for n, (t, p) in out.items()}
+        return HandObservations({n: (np.array(t, np.int64), np.array(p, np.float64).reshape(-1, 2))
+                                 for n, (t, p) in out.items()}, sha256=sha)
 
     def hand_pair_matches(self, num_sift: list[int], i: int, j: int) -> np.ndarray:
         """(K, 2) hand correspondences of images i, j in the extended feature index space (SIFT features first, then
@@ -379,6 +441,50 @@ class Dataset:
 
 
 # ---------------------------------------------------------------------------------------------- file access
+# ------------------------------------------------------------------------------------------- hand point backups
+# Timestamped backups of hand_points.yaml kept (the newest): one per save, a few kB each, enough for a long picking
+# session; the .orig.bak (the file before the viewer's first save) is never removed.
+BACKUPS_KEPT = 50
+_ORIGINAL_SUFFIX = ".orig.bak"
+
+
+def _keep_backup(path: Path) -> Path | None:
+    """Copy `path` (when it exists) to a backup no other save can overwrite: `<name>.<UTC time, microseconds>Z-<random
+    hex>.bak`, each created exclusively. The very first save also writes `<name>.orig.bak`, exclusively, so it keeps
+    the file as it was before any save, whatever saves race. Only the newest BACKUPS_KEPT timestamped backups stay."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    _write_new(path.with_name(path.name + _ORIGINAL_SUFFIX), data)  # False once it exists: kept as it is
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+    while not _write_new(backup := path.with_name(f"{path.name}.{stamp}-{uuid.uuid4().hex[:8]}.bak"), data):
+        pass  # the same microsecond and the same 32 random bits: draw again
+    pattern = re.compile(re.escape(path.name) + r"\.\d{8}T\d{6}\.\d{6}Z-[0-9a-f]{8}\.bak")
+    stamped = sorted(p for p in path.parent.iterdir() if pattern.fullmatch(p.name))
+    for old in stamped[:-BACKUPS_KEPT]:
+        old.unlink(missing_ok=True)  # a concurrent save may have removed it already
+    return backup
+
+
+def _write_new(path: Path, data: bytes) -> bool:
+    """Create `path` holding `data`, complete or not at all; False (and nothing changed) when `path` exists."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        apply_umask(Path(tmp))
+        try:
+            os.link(tmp, path)  # unlike a rename, a link never replaces a file that exists
+        except FileExistsError:
+            return False
+        return True
+    finally:
+        os.unlink(tmp)
+
+
 def _reason(e: Exception) -> str:
     """One line saying what went wrong: an OSError's strerror ('Permission denied'), else the message."""
     text = (e.strerror if isinstance(e, OSError) else None) or str(e) or type(e).__name__
@@ -391,6 +497,16 @@ def _read_bytes(path: Path, what: str) -> bytes:
         return path.read_bytes()
     except OSError as e:
         raise DatasetError(f"cannot read {what} {path}: {_reason(e)}") from None
+
+
+def _signature(path: Path) -> tuple | None:
+    """What changes when a file is replaced or rewritten (None when it cannot be stat'ed): its device and inode,
+    size, modification time and change time (which no program sets at will)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns
 
 
 def _check_regular_file(p: Path) -> None:

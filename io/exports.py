@@ -9,6 +9,7 @@ import dataclasses
 import json
 import logging
 import os
+import re
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,11 +17,20 @@ from pathlib import Path
 import numpy as np
 
 from fullview.io.artifacts import atomic_path, save_json, save_mesh_ply, save_ply
+from fullview.io.errors import FullviewError
 from fullview.sfm.open3d_module import open3d
 
 log = logging.getLogger(__name__)
 
 COLMAP_FILES = ("cameras", "images", "points3D", "rigs", "frames")
+# What COLMAP's text reader cannot hold in an image name (pycolmap 4.2.1, read back): it splits the line at ASCII
+# whitespace ("pano 0.png" reads back as "pano") and a line break cuts the image's two lines apart (the model is
+# unreadable); other control characters are refused too. Non-ASCII letters and spaces (é, U+00A0) read back exactly.
+COLMAP_TEXT_UNSAFE = re.compile(r"[\x00-\x20\x7f-\x9f]")
+
+
+class ExportError(FullviewError, ValueError):
+    """A model cannot be written in the asked format without changing it (an image name the format cannot hold)."""
 # nerfstudio camera axes are OpenGL's (x right, y up, z back): ours with y and z flipped
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0])
 
@@ -112,6 +122,7 @@ def write_colmap_model(model: SparseModel, out_dir: Path, *, binary: bool) -> Pa
     other format's files of the same model are removed (pycolmap would read a stale .bin before a fresh .txt).
     """
     model.validate()
+    _check_names(model, binary)
     direct = not binary and _text_points_writable(model)
     rec = None if direct else build_reconstruction(model)
     out_dir = Path(out_dir)
@@ -126,9 +137,26 @@ def write_colmap_model(model: SparseModel, out_dir: Path, *, binary: bool) -> Pa
             (out_dir / (name + other)).unlink(missing_ok=True)
             if (Path(tmp) / (name + ext)).exists():
                 os.replace(Path(tmp) / (name + ext), out_dir / (name + ext))
-    log.info("COLMAP %s model: %d images, %d points -> %s", "binary" if binary else "text",
-             np.count_nonzero(model.registered), len(model.points), out_dir)
+    log.debug("COLMAP %s model: %d images, %d points -> %s", "binary" if binary else "text",
+              np.count_nonzero(model.registered), len(model.points), out_dir)
     return out_dir
+
+
+def colmap_text_safe(model: SparseModel) -> bool:
+    """Whether COLMAP's text format holds the name of every image `write_colmap_model` writes (the registered ones)."""
+    return not any(COLMAP_TEXT_UNSAFE.search(model.image_names[k]) for k in np.flatnonzero(model.registered))
+
+
+def _check_names(model: SparseModel, binary: bool) -> None:
+    """An ExportError naming the first registered image whose name the format would change."""
+    for k in np.flatnonzero(model.registered).tolist():
+        name = model.image_names[k]
+        if binary and "\x00" in name:  # the binary format ends a name at NUL (pycolmap's reader then fails)
+            raise ExportError(f"image name {name!r} holds a NUL character, which COLMAP's binary format cannot hold")
+        if not binary and COLMAP_TEXT_UNSAFE.search(name):
+            raise ExportError(f"image name {name!r} cannot be written in COLMAP's text format (its reader splits "
+                              f"names at spaces and lines at line breaks, so the model would read back with other "
+                              f"names); export with --format colmap-bin, which keeps every name, or rename the image")
 
 
 def _registered_observations(model: SparseModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

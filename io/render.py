@@ -146,8 +146,8 @@ def render_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, *, no
     if title:
         _put_text_centred(canvas, title, canvas.shape[1] // 2, 18, 0.55)
     save_png(path, canvas)
-    log.info("rendered %d points (%s) to %s", len(points),
-             "back faces culled" if normals is not None else f"{len(pts)} below the ceiling cut", path)
+    log.debug("rendered %d points (%s) to %s", len(points),
+              "back faces culled" if normals is not None else f"{len(pts)} below the ceiling cut", path)
     return Path(path)
 
 

@@ -4,6 +4,7 @@ Layout (``FILES`` is the single table of names; nothing else in fullview spells 
 
     <workspace>/<dataset name>/
         .fullview.lock, .fullview.commit.lock   run lock and commit lock (see Guarantees in the README)
+        settings.yaml                        the settings every command on this workspace uses (io/settings.py)
         <folder>/manifest.json               fingerprint, params, inputs, outputs (size + sha256), summary; last
         features/<stem>.npz                  per-image features
         matches/matches.npz                  raw matches of every pair
@@ -11,7 +12,9 @@ Layout (``FILES`` is the single table of names; nothing else in fullview spells 
         epipoles/epipoles.npz                relative poses of every pair
         registration/registration.npz, registration.json
         triangulation/sparse.npz, sparse.ply (model 0), summary.json, models/<k>/{cameras,images,points3D,...}.txt
-        densify/dense.ply, dense_preview.png, summary.json, depth/<stem>.npz, depth/<stem>.png,
+                (.bin when an image name would not read back from COLMAP's text format)
+        densify/dense.ply, dense_preview.png, summary.json (no timings: those are in the manifest's summary),
+                depth/<stem>.npz, depth/<stem>.png,
                 dense_mesh.ply, dense_mesh_preview.png   (the trimmed Poisson mesh, densify.mesh)
         eval/metrics.json                                    (fullview eval)
         colmap_<render type>/model/                          (fullview compare: cached COLMAP reference)
@@ -35,6 +38,7 @@ import json
 import logging
 import os
 import shutil
+import stat
 import tempfile
 import time
 from contextlib import contextmanager
@@ -58,6 +62,7 @@ COMMIT_LOCK = ".fullview.commit.lock"  # exclusive while a folder is swapped in,
 # Every file of a workspace: artifact -> (folder, name pattern). Patterns take `stem`, `render_type`, `format`, ...
 FILES: dict[str, tuple[str, str]] = {
     "manifest": ("{folder}", MANIFEST_NAME),
+    "settings": ("", "settings.yaml"),
     "features": ("features", "{stem}.npz"),
     "matches": ("matches", "matches.npz"),
     "inliers": ("filter", "inliers.npz"),
@@ -102,6 +107,37 @@ FEATURE_KEYS = ("pixels", "bearings", "descriptors", "scales", "colors", "image_
 POSE_KEYS = ("image_names", "registered", "model_id", "R_cam_from_world", "t_cam_from_world", "centers")
 HAND_COLOR = (255, 0, 0)  # hand points are drawn red in the sparse cloud
 MANIFEST_KEYS = {"fingerprint": str, "upstream": dict, "outputs": dict}
+# Without -w a dataset's workspace is this hidden folder inside it: found from any folder, moved with the dataset,
+# never listed as input (images are read from images/ only).
+DATASET_WORKSPACE = ".fullview"
+
+
+# Descriptors of the locks this process holds (run, commit and shared reading locks). A forked child inherits
+# them, and an flock lives as long as any descriptor of it: `close_inherited_locks` closes the child's copies, so
+# a child that outlives its parent (kill -9) cannot keep the workspace locked.
+_LOCK_FDS: set[int] = set()
+
+
+def _open_lock(path: Path, flags: int = os.O_RDWR | os.O_CREAT) -> int:
+    fd = os.open(path, flags | os.O_CLOEXEC, 0o666)  # O_CLOEXEC: no exec'd program inherits it either
+    _LOCK_FDS.add(fd)
+    return fd
+
+
+def _close_lock(fd: int) -> None:
+    _LOCK_FDS.discard(fd)
+    os.close(fd)  # closing releases the lock (unless a forked child holds a copy)
+
+
+def close_inherited_locks() -> None:
+    """In a forked child only: close its copies of the parent's lock descriptors (closing, never unlocking: an
+    unlock would release the parent's lock too)."""
+    for fd in list(_LOCK_FDS):
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _LOCK_FDS.clear()
 
 
 class WorkspaceBusy(ArtifactError):
@@ -137,6 +173,15 @@ class Workspace:
         self._lock_depth = 0
         self._lock_fd: int | None = None
 
+    @classmethod
+    def of_dataset(cls, dataset_root: Path) -> "Workspace":
+        """The default workspace of a dataset (no -w): <dataset>/.fullview/, whatever the current folder."""
+        return cls(Path(dataset_root).resolve(), DATASET_WORKSPACE)
+
+    def workspace_option(self, dataset_root: Path) -> str:
+        """What a command line needs to find this workspace: "" for the dataset's default one, else " -w ROOT"."""
+        return "" if self.root == Path(dataset_root).resolve() / DATASET_WORKSPACE else f" -w {self.root.parent}"
+
     def check_root(self) -> None:
         """An error when the workspace path cannot be a folder (it or a parent is a file)."""
         for p in [self.root, *self.root.parents]:
@@ -168,9 +213,12 @@ class Workspace:
         for rel, expected in manifest["outputs"].items():
             path = base / rel
             try:
-                size = path.stat().st_size
+                info = path.stat()
             except OSError:
                 return f"{path} is missing"
+            size = info.st_size
+            if not stat.S_ISREG(info.st_mode):  # a FIFO would block the hash, a device never end it
+                return f"{path} is not a regular file"
             if size != expected["size"]:
                 return f"{path} has {size} bytes, its stage wrote {expected['size']}"
             if deep and file_sha256(path) != expected["sha256"]:
@@ -301,7 +349,7 @@ class Workspace:
                 self._lock_depth -= 1
             return
         make_dirs(self.root)
-        fd = os.open(self.root / RUN_LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+        fd = _open_lock(self.root / RUN_LOCK)
         try:
             _acquire(fd, self.root, wait)
             os.ftruncate(fd, 0)
@@ -312,7 +360,7 @@ class Workspace:
             yield
         finally:
             self._lock_depth, self._lock_fd = 0, None
-            os.close(fd)  # closing releases the lock
+            _close_lock(fd)
 
     @property
     def is_locked(self) -> bool:
@@ -329,7 +377,7 @@ class Workspace:
             fcntl.flock(fd, fcntl.LOCK_SH)
             yield
         finally:
-            os.close(fd)
+            _close_lock(fd)
 
     # ---- writing
     @contextmanager
@@ -343,12 +391,12 @@ class Workspace:
 
     @contextmanager
     def _commit_lock(self) -> Iterator[None]:
-        fd = os.open(self.root / COMMIT_LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+        fd = _open_lock(self.root / COMMIT_LOCK)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX)
             yield
         finally:
-            os.close(fd)
+            _close_lock(fd)
 
     def _clean_leftovers(self) -> None:
         """Under the lock only: remove temp folders of killed runs; restore a folder whose swap was cut short."""
@@ -372,13 +420,13 @@ class StageWriter:
     def _hashed(self, path: Path) -> Path:
         """Take `path`'s sha256 now, on the task that wrote it (in the page cache, and the tasks run in parallel):
         `commit_manifest` uses it instead of reading the file again while its size and mtime are unchanged."""
-        stat = path.stat()
-        self._hashes[path] = (stat.st_size, stat.st_mtime_ns, file_sha256(path))
+        st = path.stat()
+        self._hashes[path] = (st.st_size, st.st_mtime_ns, file_sha256(path))
         return path
 
     def _sha256(self, path: Path) -> str:
-        stat, known = path.stat(), self._hashes.get(path)
-        return known[2] if known is not None and known[:2] == (stat.st_size, stat.st_mtime_ns) else file_sha256(path)
+        st, known = path.stat(), self._hashes.get(path)
+        return known[2] if known is not None and known[:2] == (st.st_size, st.st_mtime_ns) else file_sha256(path)
 
     def path(self, artifact: str, **fields) -> Path:
         """Where `artifact` goes in this transaction; an artifact of another folder is refused."""
@@ -450,14 +498,34 @@ class StageWriter:
 
 
 # ---------------------------------------------------------------------------------------------------- helpers
+MANIFEST_MAX_BYTES = 64 << 20  # ~200 bytes an output: far above the largest manifest (a densify of 10k panoramas, 4 MB)
+
+
 def parse_manifest(path: Path) -> tuple[dict | None, str | None]:
-    """(manifest, problem) of a manifest file: (None, None) when absent, (None, reason) when malformed."""
-    if not path.exists():
-        return None, None
+    """(manifest, problem) of a manifest file: (None, None) when absent, (None, reason) when malformed. Only a
+    regular file of at most MANIFEST_MAX_BYTES is read: a link to /dev/zero would fill the memory, a FIFO block."""
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        # O_NONBLOCK: opening a FIFO returns at once (a regular file ignores the flag)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except (FileNotFoundError, NotADirectoryError):
+        return (None, f"{path}: broken symbolic link") if os.path.islink(path) else (None, None)
+    except OSError as e:
+        return None, f"{path}: unreadable manifest ({e.strerror or type(e).__name__})"
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            return None, f"{path}: not a regular file (a FIFO, device or folder named like a manifest)"
+        if info.st_size > MANIFEST_MAX_BYTES:
+            return None, f"{path}: {info.st_size} bytes, more than a manifest can hold ({MANIFEST_MAX_BYTES})"
+        with os.fdopen(os.dup(fd), "rb") as f:
+            raw = f.read(MANIFEST_MAX_BYTES + 1)
+        if len(raw) > MANIFEST_MAX_BYTES:
+            return None, f"{path}: more than a manifest can hold ({MANIFEST_MAX_BYTES} bytes)"
+        data = json.loads(raw.decode("utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
         return None, f"{path}: unreadable manifest ({type(e).__name__})"
+    finally:
+        os.close(fd)
     if not isinstance(data, dict):
         return None, f"{path}: malformed manifest (not a mapping)"
     for key, kind in MANIFEST_KEYS.items():
@@ -483,9 +551,9 @@ def read_manifest_file(folder: Path) -> dict | None:
 
 
 @contextmanager
-def folder_transaction(final: Path, commit_lock=None) -> Iterator[StageWriter]:
+def folder_transaction(final: Path, commit_lock=None, commit=None) -> Iterator[StageWriter]:
     """Write a folder's new content beside it and swap it in only when complete (manifest written); used for
-    workspace folders (under the run lock) and for export folders outside any workspace."""
+    workspace folders (under the run lock). `commit(tmp, final)` instead of the swap: `folder_update`."""
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.running.", dir=final.parent))
     apply_umask(tmp, directory=True)
     writer = StageWriter(final.name, tmp)
@@ -494,13 +562,108 @@ def folder_transaction(final: Path, commit_lock=None) -> Iterator[StageWriter]:
         if not writer.committed:
             raise RuntimeError(f"{final}: the transaction ended without a manifest")
         if commit_lock is None:
-            swap_in(tmp, final)
+            (commit or swap_in)(tmp, final)
         else:
             with commit_lock():
-                swap_in(tmp, final)
+                (commit or swap_in)(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    if commit is not None:
+        shutil.rmtree(tmp, ignore_errors=True)  # what the commit left of the temporary folder
+
+
+PENDING_KEY = "pending"  # in the manifest of a folder being updated: the outputs being moved in, and those of
+# earlier updates cut short (`folder_update`)
+
+
+@contextmanager
+def folder_update(final: Path) -> Iterator[StageWriter]:
+    """Write a folder's new content beside it, then move it into `final` file by file: for a folder the user owns
+    (``export --out``), where other files may lie that must stay. Only the files the folder's manifest lists, with
+    the content it records, are replaced or removed; any other file is left as it is, and the update is refused
+    (ArtifactError, nothing moved) when one stands where a new file goes, or a listed file changed since (it is the
+    user's now), or a folder on the way is a symbolic link or a file. Each file is replaced atomically; until the new
+    manifest is written, last, the old one lists the incoming files as ``pending`` (still ours if the update is cut
+    short: the next one finishes it). Two updates of one folder take turns (an exclusive lock on the folder)."""
+    existed = final.exists()
+    make_dirs(final)
+    fd = os.open(final, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ArtifactError(f"{final}: another command is writing this folder; wait for it to finish") from None
+        for left in final.parent.glob(f".{final.name}.running.*"):  # of an update killed before it finished
+            shutil.rmtree(left, ignore_errors=True)
+        with folder_transaction(final, commit_lock=None, commit=_merge_into) as writer:
+            yield writer
+    except BaseException:
+        if not existed:
+            try:
+                final.rmdir()  # the folder made for it, when still empty
+            except OSError:
+                pass
+        raise
+    finally:
+        os.close(fd)
+
+
+def _merge_into(tmp: Path, final: Path) -> None:
+    """Move the files of `tmp` (a complete folder with its manifest) into `final` (`folder_update`)."""
+    new = read_manifest_file(tmp)
+    old, problem = parse_manifest(final / MANIFEST_NAME)
+    if problem:  # someone else's file of that name: never overwritten
+        raise ArtifactError(f"{problem}; {final} is not a folder a previous export wrote")
+    old = old or {"outputs": {}}
+    pending = old.get(PENDING_KEY) if isinstance(old.get(PENDING_KEY), list) else []  # of updates cut short
+    recorded: dict[str, set[str]] = {}  # file -> the contents (sha256) an update of ours wrote there
+    for listing in (old["outputs"], *pending):
+        for rel, entry in (listing.items() if isinstance(listing, dict) else ()):
+            if isinstance(entry, dict) and isinstance(entry.get("sha256"), str) and _inside_folder(rel):
+                recorded.setdefault(rel, set()).add(entry["sha256"])
+    incoming = new["outputs"]
+    for rel in sorted(set(incoming) | set(recorded)):
+        problem = _not_ours(final, rel, recorded.get(rel, set()))
+        if problem:
+            raise ArtifactError(f"{final / rel}: {problem}; move it out of {final} (or choose another folder), then "
+                                "export again")
+    save_json(final / MANIFEST_NAME, {**new, "outputs": old["outputs"], PENDING_KEY: [incoming, *pending]})
+    for rel in sorted(incoming):
+        make_dirs((final / rel).parent)
+        os.replace(tmp / rel, final / rel)
+    for rel in sorted(set(recorded) - set(incoming)):
+        path = final / rel
+        if path.is_file():
+            path.unlink()
+        for parent in path.parents:  # folders the removal left empty (rmdir: never one holding anything)
+            if parent == final:
+                break
+            try:
+                parent.rmdir()
+            except OSError:
+                break
+    os.replace(tmp / MANIFEST_NAME, final / MANIFEST_NAME)
+
+
+def _not_ours(final: Path, rel: str, contents: set[str]) -> str | None:
+    """Why `final/rel` may not be replaced or removed by an update whose earlier writes there had `contents`; None
+    when it may (absent, or a regular file holding one of them)."""
+    path = final
+    for part in Path(rel).parts[:-1]:
+        path = path / part
+        if path.is_symlink() or (path.exists() and not path.is_dir()):
+            return f"{path.name} on the way is not a folder of this export"
+    path = final / rel
+    if not os.path.lexists(path):
+        return None
+    if path.is_symlink() or not path.is_file():
+        return "not a regular file written by a previous export"
+    if not contents:
+        return "not written by a previous export"
+    if file_sha256(path) not in contents:
+        return "changed since a previous export wrote it"
+    return None
 
 
 def file_sha256(path: Path) -> str:
@@ -570,10 +733,10 @@ def _open_for_shared_lock(path: Path) -> int | None:
     if not path.parent.is_dir():
         return None
     try:
-        return os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        return _open_lock(path)
     except OSError:
         try:
-            return os.open(path, os.O_RDONLY)
+            return _open_lock(path, os.O_RDONLY)
         except OSError:
             return None
 

@@ -45,7 +45,7 @@ class FeaturesOptions:
     denoise_min_noise: float = setting(0.0, "panoramas with more sensor noise than this (grey levels, estimated) are "
                                        "denoised (non-local means) before detection (loses true matches: README)",
                                        ge=0.0, le=255.0, zero_means="never")
-    min_latitude_deg: float = setting(-90.0, "drop features below this latitude (nadir cap: tripod, hand)",
+    min_latitude_deg: float = setting(-65.0, "drop features below this latitude (nadir cap: tripod, hand)",
                                       ge=-90.0, le=90.0)
     max_latitude_deg: float = setting(90.0, "drop features above this latitude (zenith cap)", ge=-90.0, le=90.0)
     root_sift: bool = setting(True, "Hellinger-normalised descriptors (RootSIFT)")
@@ -263,7 +263,7 @@ class DensifyOptions:
     block_size: int = setting(5, "SGBM matching window side", ge=1, le=31, odd=True)
     min_texture_std: float = setting(2.0, "grey-level std below which a pixel counts as untextured (not matched)",
                                      ge=0.0, le=255.0)
-    min_latitude_deg: float = setting(-90.0, "range maps are invalid below this latitude (nadir cap: tripod, hand)",
+    min_latitude_deg: float = setting(-65.0, "range maps are invalid below this latitude (nadir cap: tripod, hand)",
                                       ge=-90.0, le=90.0)
     max_latitude_deg: float = setting(90.0, "range maps are invalid above this latitude (zenith cap)", ge=-90.0,
                                       le=90.0)
@@ -334,9 +334,10 @@ class DensifyOptions:
                                          "points (outdoor ground slopes)", ge=0.0, le=30.0, zero_means="always level")
     ground_sweep: str = setting("no_ceiling", "stereo on the ground by a sweep of ground-parallel planes (sfm/dense/"
                                 "ground_sweep.py), where a pair's SGBM has no range below the horizon or one it "
-                                "disagrees with: never, always, or no_ceiling = not in a room (no level band holds "
-                                "half the sparse points overhead, nor are there twice as many low ones)",
-                                choices=("never", "no_ceiling", "always"))  # not "off": YAML reads a bool
+                                "disagrees with: never, always, or no_ceiling = outdoors (the highest points around "
+                                "most cameras stand more than twice the camera's height above it: "
+                                "ground_sweep.indoor_or_outdoor)",
+                                choices=("never", "no_ceiling", "always"))  # "never", not "off" (YAML 1.1 read a bool)
     ground_sweep_width: int = setting(1280, "the ground sweep works at this width (at most the range maps'; its "
                                       "ranges are resized to them)", ge=64, le=65536)
     ground_sweep_window: int = setting(9, "ground sweep: NCC window side (pixels at its width)", ge=3, le=31, odd=True)

@@ -5,10 +5,12 @@
    back to both panoramas. The disparity search covers depths down to the nearest plausible one, taken from the
    sparse points (a low percentile of the camera-to-point distances), since the model's scale is arbitrary.
 2a. Ground sweep (``densify.ground_sweep``, ``fullview.sfm.dense.ground_sweep``): where no ceiling spans over the
-   cameras (outdoors), each pair's pixels below the horizon are matched again under hypotheses of ground-parallel
-   planes (plane-induced warps, NCC, a unique peak, a left-right check), so the near and slanted ground is matched
-   as if fronto-parallel and without a disparity cap; its range is taken where SGBM has none or one it disagrees
-   with, and goes through the same conditioning and checks as SGBM's.
+   cameras (outdoors: ``ground_sweep.indoor_or_outdoor``, the highest points around the cameras taller than a room;
+   the decision and its evidence are logged and kept in the summary's ``scene``), each pair's pixels below the
+   horizon are matched again under hypotheses of ground-parallel planes (plane-induced warps, NCC, a unique peak, a
+   left-right check), so the near and slanted ground is matched as if fronto-parallel and without a disparity cap;
+   its range is taken where SGBM has none or one it disagrees with, and goes through the same conditioning and
+   checks as SGBM's.
 3. Per panorama: the pair estimates are combined (median of the agreeing ones; pixels whose estimates conflict are
    dropped).
 3a. Stereo check (``densify.stereo_check``): where a panorama's pair estimates conflict, the one its neighbours'
@@ -48,7 +50,7 @@ process while the maps are saved on the side thread and each point's observing c
 the cloud's preview is drawn on the side thread while the mesh's Poisson runs in a child process, and BLAS keeps one
 thread; every result is gathered in a fixed order, so
 the outputs are the same bytes on any number of threads (``tests/test_densify_stage.py``). ``phases_s`` in the
-summary gives each phase's wall and CPU seconds (the process's and its reaped children's: a side thread's or a
+manifest's summary (not in ``summary.json``: a hashed output holds no timings) gives each phase's wall and CPU seconds (the process's and its reaped children's: a side thread's or a
 child's count in the phase it ends in).
 """
 
@@ -119,7 +121,9 @@ def _run(ctx: StageContext) -> dict:
              ", ".join(f"{i}-{j}" for i, j in pairs))
     images = dict(zip(cams, thread_map(lambda k: ctx.dataset.load_image(names[k], width=width), cams)))
     clock.lap("load")
-    sweep = _ground_sweep_setup(config, R, centers, cams, sparse["points"])
+    scene = scene_kind(sparse, cams)
+    log.info("scene %s", scene.reason)
+    sweep = _ground_sweep_setup(config, R, centers, cams, sparse["points"], scene)
     maps, singles, conflicts, pair_log = _range_maps(ctx, images, R, t, near, pairs, sweep)
     clock.lap("stereo")
     # the world planes come from the combined stereo alone (not from the stereo check's settlements and drops,
@@ -179,19 +183,36 @@ def _run(ctx: StageContext) -> dict:
             if job is not None:
                 job.result()
     clock.lap("mesh_and_previews")
-    log.info("densify phases (wall / CPU s): %s", ", ".join(f"{k} {v['wall']} / {v['cpu']}" for k, v in clock.phases.items()))
+    log.debug("densify phases (wall / CPU s): %s", ", ".join(f"{k} {v['wall']} / {v['cpu']}" for k, v in clock.phases.items()))
     summary = {
         "pairs": int(len(pairs)), "panoramas": len(maps), "points": int(len(points)), "voxel_size": voxel,
         "width": int(width), "median_pair_time_s": float(np.median([p["time_s"] for p in pair_log])),
         "valid_share": {names[k]: float(np.mean(m[1])) for k, m in maps.items()},
         "filled_share": filled,
         "stereo_dropped_share": {names[k]: float(np.mean(drop)) for k, drop in unconfirmed.items()},
+        "scene": {**scene.as_dict(), "ground_sweep": sweep is not None,
+                  "cameras": dict(zip((names[k] for k in cams), scene.cameras))},
         "pair_log": pair_log,
         "mesh": mesh,
         "phases_s": clock.phases,
     }
     summary["wall_time_s"] = round(time.perf_counter() - t_start, 2)  # mesh included
-    ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=summary)
+    # summary.json is a hashed output, the same bytes on every run of the same inputs: its figures without the
+    # times and memory (which the manifest's summary keeps, beside the stage's own wall time)
+    ctx.out.save_dense(points=points, colors=colors, normals=normals, summary=_without_timings(summary))
+    return summary
+
+
+TIMING_KEYS = frozenset({"time_s", "timings_s", "cpu_time_s", "wall_time_s", "phases_s", "median_pair_time_s",
+                         "process_peak_rss_mb"})  # what varies from run to run of the same inputs
+
+
+def _without_timings(summary):
+    """`summary` with every TIMING_KEYS entry left out, at any depth."""
+    if isinstance(summary, dict):
+        return {k: _without_timings(v) for k, v in summary.items() if k not in TIMING_KEYS}
+    if isinstance(summary, list):
+        return [_without_timings(v) for v in summary]
     return summary
 
 
@@ -258,18 +279,18 @@ def _range_maps(ctx: StageContext, images, R, t, near, pairs, sweep=None):
     # never upsample: the rectified grid spans 180° in at most as many rows as the panoramas have
     rect_height = min(config.rect_height, min(image.shape[0] for image in images.values()))
     work = partial(_densify_pair, config, images, R, t, near, rect_height, sweep)
-    for (i, j), (res, pair_errors, kept, ratio, baseline, elapsed, swept) in zip(
-            pairs, tqdm(thread_map(work, [tuple(p) for p in pairs], threads=PAIR_THREADS), total=len(pairs),
-                        desc="densify", unit="pair")):
+    for (i, j), (res, pair_errors, kept, ratio, baseline, elapsed, swept) in tqdm(zip(
+            pairs, thread_map(work, [tuple(p) for p in pairs], threads=PAIR_THREADS)), total=len(pairs),
+            desc="densify", unit="pair"):
         pair_log.append({"pair": [names[i], names[j]], "baseline": baseline, "min_depth_ratio": ratio,
                          "num_disparities": dense.disparity_search_range(rect_height, ratio),
                          "valid_i": float(res.valid_i.mean()), "valid_j": float(res.valid_j.mean()),
                          "well_conditioned_i": kept[0], "well_conditioned_j": kept[1],
                          "ground_sweep_i": swept[0], "ground_sweep_j": swept[1],
                          "time_s": round(elapsed, 3), "timings_s": {k: round(v, 3) for k, v in res.timings.items()}})
-        log.info("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%% (well conditioned %.0f%% / "
-                 "%.0f%%), %.1f s", names[i], names[j], baseline, ratio, 100 * res.valid_i.mean(),
-                 100 * res.valid_j.mean(), 100 * kept[0], 100 * kept[1], elapsed)
+        log.debug("pair %s-%s: baseline %.3f, depth ratio %.2f, valid %.0f%% / %.0f%% (well conditioned %.0f%% / "
+                  "%.0f%%), %.1f s", names[i], names[j], baseline, ratio, 100 * res.valid_i.mean(),
+                  100 * res.valid_j.mean(), 100 * kept[0], 100 * kept[1], elapsed)
         for cam, other, rng, err in ((i, j, res.range_i, pair_errors[0]), (j, i, res.range_j, pair_errors[1])):
             estimates[cam].append(rng)
             errors[cam].append(err)
@@ -298,7 +319,7 @@ def _resolve_conflicts(config: DensifyOptions, maps, singles, conflicts, R, t, c
     settled = dict(zip(cams, thread_map(lambda a: dense.resolve_conflicts(
         ranges, [singles[k] for k in cams], cams, R[cams], t[cams], neighbours, config.consistency_tolerance, a,
         *conflicts[cams[a]]), range(len(cams)))))
-    log.info("conflicting pair estimates settled: %s", ", ".join(
+    log.debug("conflicting pair estimates settled: %s", ", ".join(
         f"{k} {100 * len(p) / maps[k][0].size:.1f}%" for k, (p, _) in settled.items()))
     return settled
 
@@ -315,7 +336,7 @@ def _seen_through_stereo(config: DensifyOptions, maps, singles, R, t, centers) -
         ranges, [singles[k] for k in cams], cams, R[cams], t[cams], neighbours, config.consistency_tolerance,
         views=[a], points=points)[0], range(len(cams)))
     drops = dict(zip(cams, drops))
-    log.info("stereo check: %s", ", ".join(f"{k} {100 * d.mean():.1f}%" for k, d in drops.items()))
+    log.debug("stereo check: %s", ", ".join(f"{k} {100 * d.mean():.1f}%" for k, d in drops.items()))
     return drops
 
 
@@ -345,10 +366,25 @@ def _densify_pair(config: DensifyOptions, images, R, t, near, rect_height: int, 
     return res, pair_errors, kept, ratio, baseline, elapsed, swept
 
 
-def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points):
+def scene_kind(sparse: dict, cams: list[int]) -> ground_sweep.SceneKind:
+    """Indoors or outdoors (``ground_sweep.indoor_or_outdoor``) from the points each of ``cams`` sees."""
+    return ground_sweep.indoor_or_outdoor(sparse["centers"][cams], sparse["points"],
+                                          camera_up(sparse["R_cam_from_world"][cams]), *_observations_of(sparse, cams))
+
+
+def _observations_of(sparse: dict, cams: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """(camera row in ``cams``, point) of every sparse observation by one of ``cams``."""
+    row = np.full(len(sparse["registered"]), -1, np.intp)
+    row[cams] = np.arange(len(cams))
+    mine = row[sparse["image_ids"]] >= 0
+    return row[sparse["image_ids"][mine]], np.asarray(sparse["track_ids"][mine], np.intp)
+
+
+def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points, scene=None):
     """(up, {camera: height above its ground, NaN where the sparse points do not tell}, the sweep's options, its
-    width) for the ground sweep, or None where it does not run (never, or a room with ``no_ceiling``: indoors the
-    fills own the floor, ``ground_sweep.has_ceiling``)."""
+    width) for the ground sweep, or None where it does not run (never, or indoors with ``no_ceiling``: there the
+    fills own the floor). ``scene``: ``ground_sweep.indoor_or_outdoor`` of the cameras (from ``sparse_points``
+    alone, every camera seeing every point, when None)."""
     if config.ground_sweep == "never":
         return None
     options = ground_sweep.GroundSweepOptions(window=config.ground_sweep_window, min_ncc=config.ground_sweep_min_ncc,
@@ -358,8 +394,10 @@ def _ground_sweep_setup(config: DensifyOptions, R, centers, cams, sparse_points)
     width = config.ground_sweep_width  # read here: the settings are the stage's whether the sweep runs or not
     up = camera_up(R[cams])
     points = np.asarray(sparse_points, np.float64).reshape(-1, 3)
-    if config.ground_sweep == "no_ceiling" and ground_sweep.has_ceiling(centers[cams], points, up):
-        log.info("ground sweep: off (a ceiling over the cameras)")
+    if scene is None:
+        scene = ground_sweep.indoor_or_outdoor(centers[cams], points, up)
+    if config.ground_sweep == "no_ceiling" and scene.indoors:
+        log.info("ground sweep: off (indoors: a ceiling over the cameras)")
         return None
     heights = ground_sweep.ground_heights(centers[cams], points, up)  # NaN: a coarse sweep of each pair finds it
     log.info("ground sweep: on, camera heights from the sparse points %s", ", ".join(f"{h:.3g}" for h in heights))
@@ -438,7 +476,7 @@ def _fill_textureless(ctx: StageContext, inputs: _FillInputs, maps, world) -> di
         new = ~valid & np.isfinite(fill) & inputs.observable[a]
         maps[k] = (np.where(new, fill, rng).astype(np.float32), valid | new)
         shares[names[k]] = float(new.mean())
-        log.info("planes: %s %.0f%% filled, %.0f%% valid", names[k], 100 * new.mean(), 100 * np.mean(maps[k][1]))
+        log.debug("planes: %s %.0f%% filled, %.0f%% valid", names[k], 100 * new.mean(), 100 * np.mean(maps[k][1]))
     return shares
 
 
@@ -475,8 +513,8 @@ def _world_planes(wopt: world_planes.WorldPlaneOptions, seed: int, views, sparse
         found, points, ranges, np.array([camera_center(v.R_cam_from_world, v.t_cam_from_world) for v in views]),
         up, np.random.default_rng(seed), wopt)
     for plane in (p for p in tilted if not any(p is q for q in found)):
-        log.info("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
-                 np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support, len(found) - len(tilted))
+        log.debug("world planes: the ground refitted %.2f° from level (%d points; %d level pieces of it dropped)",
+                  np.degrees(np.arccos(min(1.0, abs(plane.normal @ up)))), plane.support, len(found) - len(tilted))
     found = tilted
     return wopt, found, len(points), time.perf_counter() - t0
 

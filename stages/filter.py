@@ -225,8 +225,8 @@ def _gravity(ctx: StageContext, mode: str):
         # Images are independent and OpenCV's line detector releases the GIL: two at a time use both cores (the
         # same results as one after the other; `test_gravity_in_threads_equals_serial`).
         estimate = partial(_image_gravity, ctx.dataset, ctx.options.seed)
-        for k, (name, (found, frame)) in enumerate(zip(names, tqdm(thread_map(estimate, names, threads=2),
-                                                                   total=len(names), desc="gravity", unit="image"))):
+        for k, (name, (found, frame)) in enumerate(tqdm(zip(names, thread_map(estimate, names, threads=2)),
+                                                        total=len(names), desc="gravity", unit="image")):
             if found is None:
                 log.warning("%s: no vertical lines found; its pairs are verified without the upright prior", name)
                 continue

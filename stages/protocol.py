@@ -4,9 +4,11 @@ its transaction."""
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
 import os
 import resource
+import signal
 import sys
 import threading
 import time
@@ -17,7 +19,7 @@ from functools import partial
 from typing import Any, Callable, Iterable, Iterator, Protocol
 
 from fullview.io.dataset import Dataset
-from fullview.io.workspace import StageWriter, Workspace
+from fullview.io.workspace import StageWriter, Workspace, close_inherited_locks
 
 # How a stage fans work out: map(fn, items, threads=None) -> the results in the order of `items`. `fn` must be
 # picklable (a top-level function, or a functools.partial of one) because a cluster runs it in other processes.
@@ -100,7 +102,8 @@ def process_map(fn: Callable[[Any], Any], items: Iterable[Any], *, processes: in
     # Several tasks per message on long lists (the pipe's cost per task ~0.1 ms), but many more tasks than workers, so
     # that both finish together whatever each item costs.
     chunk = max(1, len(items) // (32 * workers))
-    with multiprocessing.get_context("fork").Pool(workers, initializer=_install_forked, initargs=(fn,)) as pool:
+    with multiprocessing.get_context("fork").Pool(workers, initializer=_install_forked,
+                                                  initargs=(fn, os.getpid())) as pool:
         yield from pool.imap(_call_forked, items, chunk)
         pool.close()
         pool.join()  # reaped: their CPU time is in RUSAGE_CHILDREN now
@@ -139,7 +142,7 @@ def forked(fn: Callable[..., Any], *args: Any) -> Iterator[Any]:
                 yield job
             return
         pool = multiprocessing.get_context("fork").Pool(1, initializer=_install_forked,
-                                                        initargs=(lambda _: fn(*args),))
+                                                        initargs=(lambda _: fn(*args), os.getpid()))
         job = pool.apply_async(_call_forked, (None,), callback=done, error_callback=done)
         job.result = job.get  # the interface of a future
         try:
@@ -153,11 +156,24 @@ def forked(fn: Callable[..., Any], *args: Any) -> Iterator[Any]:
 
 
 _FORKED: Callable[[Any], Any] | None = None  # a worker process's function (set in the child only)
+PR_SET_PDEATHSIG = 1  # prctl(2): the signal the calling process gets when its parent (the forking thread) ends
 
 
-def _install_forked(fn: Callable[[Any], Any]) -> None:
+def _install_forked(fn: Callable[[Any], Any], parent: int) -> None:
+    """A forked worker's start: it dies with the run that forked it and holds none of its workspace locks.
+
+    Why: after a kill -9 of the run, a pool worker waits forever for its next task (it holds the pipes' other ends
+    itself), and its inherited copy of the run lock's descriptor kept the workspace locked ("in use by" the dead
+    pid) until it ended. SIGKILL on the parent's death (Linux's PR_SET_PDEATHSIG; the pools are made, and left,
+    on the thread that uses them, which the signal follows) ends it; its lock descriptors are closed in any case."""
     global _FORKED
     _FORKED = fn
+    close_inherited_locks()
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if os.getppid() != parent:  # the parent died before the signal was armed
+        os._exit(1)
 
 
 def _call_forked(item: Any) -> Any:

@@ -129,6 +129,9 @@ class Pipeline:
     # ---------------------------------------------------------------- fingerprints
     @cached_property
     def _input_hashes(self) -> dict[str, dict]:
+        # Hashes of what the stages use: hand points parsed from the bytes hashed (one read), images and masks
+        # pinned to the files validated and hashed (`Dataset._pinned`): a file replaced meanwhile stops the run
+        # instead of filing a result under the other file's hash. Memoised for the run.
         return {
             "images": {name: self.dataset.image_hash(name) for name in self.dataset.image_names},
             "hand_points": {"hand_points.yaml": self.dataset.hand_points_hash()},
@@ -152,6 +155,7 @@ class Pipeline:
         the dataset may have changed)."""
         self._fingerprints.clear()
         self.__dict__.pop("_input_hashes", None)
+        self.dataset.refresh_inputs()
 
     def fingerprint(self, stage: str) -> str:
         # Memoised: the chain asks for every upstream fingerprint again, and the inputs cannot change meanwhile.

@@ -22,7 +22,7 @@ import logging
 import numpy as np
 
 from fullview.io.errors import NothingLeftError
-from fullview.io.exports import SparseModel, split_models, write_colmap_model
+from fullview.io.exports import SparseModel, colmap_text_safe, split_models, write_colmap_model
 from fullview.sfm import heights, manhattan
 from fullview.sfm.bundle import bundle_adjust, gravity_error_factor, gravity_prior_for_models, with_gravity_error
 from fullview.sfm.registration.free_blocks import camera_heights, camera_links, free_block_similarities
@@ -300,7 +300,8 @@ def _write(ctx: StageContext, obs, model_id, R, t, tracks: Tracks, points, error
                         track_image=tracks.image_ids, track_point2d=tracks.feature_ids,
                         pixels=[o["pixels"] for o in obs])
     for k, model in enumerate(split_models(whole, model_id)):
-        write_colmap_model(model, ctx.out.path("sparse_model", model=k), binary=False)
+        # text, COLMAP's readable form, unless a name would not read back from it (then binary: the exact names)
+        write_colmap_model(model, ctx.out.path("sparse_model", model=k), binary=not colmap_text_safe(model))
     return summary
 
 

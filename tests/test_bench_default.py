@@ -1,6 +1,6 @@
 """`make bench`'s default path (synthetic scenes at 2048-wide by default, no --scale) runs to its result table.
 
-The scaling rows have their own runs in the README; this keeps the default command from breaking unnoticed (a
+The scaling rows have their own runs (docs/benchmarks.md); this keeps the default command from breaking unnoticed (a
 row's ``kind`` once named a variable that only the scaling path defines)."""
 
 from __future__ import annotations

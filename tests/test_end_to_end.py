@@ -1,12 +1,14 @@
 """End to end on a tiny synthetic scene: every sparse stage, eval, and the COLMAP export."""
 
 import json
+import shutil
 
 import numpy as np
 import pycolmap
 import pytest
 
 from fullview.cli import main
+from fullview.commands.evaluate import eval_summary
 from fullview.io.artifacts import load_ply
 
 SPARSE_UNTIL = "triangulation"
@@ -27,7 +29,28 @@ def test_eval_metrics(reconstructed, capsys, tiny_set_args):
     assert metrics["registered"] == 3
     assert metrics["auc@5"] > 95
     assert metrics["median_relative_rotation_error_deg"] < 0.1
-    assert json.loads((ws / "tiny" / "eval" / "metrics.json").read_text()) == metrics
+    stored = json.loads((ws / "tiny" / "eval" / "metrics.json").read_text())
+    assert eval_summary(stored) == metrics  # the terminal gets the summary, the file every per-image figure
+    assert "per_image" in stored["pose_check"] and "per_image" not in metrics["pose_check"]
+
+
+def test_a_second_eval_reuses_the_first_until_an_input_changes(reconstructed, caplog, tiny_set_args, tmp_path):
+    """eval is cached like a stage: unchanged results give the stored metrics at once; a changed ground truth (an
+    input of the metrics) computes them again."""
+    dataset, ws = reconstructed
+    assert main(["eval", str(dataset), "-w", str(ws), *tiny_set_args]) == 0
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        assert main(["eval", str(dataset), "-w", str(ws), *tiny_set_args]) == 0
+    assert "reused" in caplog.text
+    moved = tmp_path / "tiny"
+    shutil.copytree(dataset, moved)
+    poses = moved / "ground_truth" / "poses.yaml"
+    poses.write_text(poses.read_text() + "\n# edited\n")
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        assert main(["eval", str(moved), "-w", str(ws), *tiny_set_args]) == 0
+    assert "reused" not in caplog.text
 
 
 def test_colmap_model_is_readable(reconstructed):

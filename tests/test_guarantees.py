@@ -1,5 +1,5 @@
 """Nothing a user does corrupts a workspace: each numbered reproduction of the hostile-tester report, then the
-concurrency and kill -9 suites. The README's "Guarantees" section names these tests."""
+concurrency and kill -9 suites. docs/guarantees.md names these tests."""
 
 from __future__ import annotations
 

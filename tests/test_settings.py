@@ -1,5 +1,6 @@
 """One source of settings: every key has a default, bounds and a meaning in sfm/options.py; the loader enforces every
-bound with an error naming the key; every key is read by the code it configures; the README's table is generated."""
+bound with an error naming the key; every key is read by the code it configures; docs/configuration.md's table is
+generated."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from fullview.sfm.options import OPTIONS_BY_SECTION, option_fields
 from fullview.stages import PIPELINE
 from fullview.stages.protocol import StageContext
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+CONFIGURATION_DOC = Path(__file__).resolve().parents[1] / "docs" / "configuration.md"
 ALL_KEYS = [(s, f) for s, cls in OPTIONS_BY_SECTION.items() for f in option_fields(cls)]
 
 
@@ -117,8 +118,9 @@ def test_a_folder_as_config_and_bad_set_syntax(tmp_path):
         load_config(None, ["working_width=3"])
 
 
-def test_the_readme_key_table_is_the_generated_one():
-    assert key_table_markdown() in README.read_text(), "README key table is stale: paste key_table_markdown()"
+def test_the_documented_key_table_is_the_generated_one():
+    assert key_table_markdown() in CONFIGURATION_DOC.read_text(), \
+        "docs/configuration.md's key table is stale: run python docs/generate.py"
 
 
 # ------------------------------------------------------------------------------------------------ hypothesis

@@ -14,6 +14,7 @@ import threading
 import time
 import urllib.request
 from pathlib import Path
+from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 import pytest
@@ -24,7 +25,7 @@ from fullview.io.dataset import Dataset
 from fullview.io.workspace import Workspace
 from fullview.sfm.camera import bearings_to_lonlat, bearings_to_pixels, pixels_to_bearings
 from fullview.stages.runner import Pipeline
-from fullview.viewer.server import VENDOR, ViewerApp, make_server
+from fullview.viewer.server import TOKEN_HEADER, VENDOR, ViewerApp, make_server, page_url
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 playwright = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (make setup)")
@@ -54,7 +55,7 @@ def server(reconstructed):
     httpd = make_server(ViewerApp(pipeline, config))
     thread = threading.Thread(target=httpd.serve_forever, daemon=True)
     thread.start()
-    yield f"http://127.0.0.1:{httpd.server_address[1]}/"
+    yield page_url(httpd)
     httpd.shutdown()
     httpd.server_close()
 
@@ -75,9 +76,26 @@ def page(browser, server):
     page.on("pageerror", lambda e: page.problems.append(str(e)))
     page.on("request", lambda r: page.requests.append(r.url))
     page.goto(server)
-    page.wait_for_function("window.fullview && window.fullview.ready", timeout=30000)
+    page.wait_for_function("() => window.fullview && window.fullview.ready", timeout=30000)
     yield page
     page.close()
+
+
+def origin(url: str) -> str:
+    """http://127.0.0.1:PORT/ of a page URL `fullview view` printed (http://127.0.0.1:PORT/?token=...)."""
+    return f"http://{urlparse(url).netloc}/"
+
+
+def call(url: str, path: str, body=None, *, timeout: float = 60):
+    """What the viewer's own page sends: GET or (with a body) POST of JSON to `path`, with the token of the printed
+    `url`, the server's own Origin and Content-Type: application/json. Returns the parsed JSON answer."""
+    headers = {TOKEN_HEADER: parse_qs(urlparse(url).query)["token"][0]}
+    if body is not None:
+        headers |= {"Content-Type": "application/json", "Origin": origin(url).rstrip("/")}
+    request = urllib.request.Request(origin(url) + path, data=None if body is None else json.dumps(body).encode(),
+                                     method="GET" if body is None else "POST", headers=headers)
+    with urllib.request.urlopen(request, timeout=timeout) as answer:
+        return json.loads(answer.read())
 
 
 def _poses(pipeline):
@@ -90,7 +108,7 @@ def _poses(pipeline):
 def test_loads_offline_without_console_errors(page, server):
     time.sleep(0.5)
     assert not page.problems, page.problems
-    outside = [u for u in page.requests if not (u.startswith(server) or u.startswith(("blob:", "data:")))]
+    outside = [u for u in page.requests if not (u.startswith(origin(server)) or u.startswith(("blob:", "data:")))]
     assert not outside, outside
     assert "fullview · tiny" in page.inner_text("#title")
 
@@ -110,7 +128,7 @@ def test_the_mesh_is_shown_when_chosen(page, reconstructed, tmp_path):
     mesh = reconstructed[0].ws.load_dense_mesh()
     assert not page.is_disabled("#cloud option[value=mesh]")
     page.select_option("#cloud", "mesh")
-    page.wait_for_function("window.fullview.shown && window.fullview.shown.kind === 'mesh'", timeout=15000)
+    page.wait_for_function("() => window.fullview.shown && window.fullview.shown.kind === 'mesh'", timeout=15000)
     shown = page.evaluate("window.fullview.shown")
     assert shown["triangles"] == len(mesh["triangles"]) and shown["vertices"] == len(mesh["vertices"])
     assert f"{len(mesh['triangles']):,} triangles" in page.inner_text("#budget-label")
@@ -128,7 +146,7 @@ def test_clicking_a_camera_opens_its_panorama(page, reconstructed):
     names, _ = _poses(reconstructed[0])
     x, y = page.evaluate(f"window.fullview.cameraScreenPosition({json.dumps(names[1])})")
     page.mouse.click(x, y)
-    page.wait_for_function(f"window.fullview.tour && window.fullview.tour.ready && "
+    page.wait_for_function(f"() => window.fullview.tour && window.fullview.tour.ready && "
                            f"window.fullview.tour.name === {json.dumps(names[1])}", timeout=15000)
     assert page.is_visible("#tour")
 
@@ -140,12 +158,12 @@ def test_hotspot_moves_to_that_neighbour_keeping_the_world_direction(page, recon
     page.click("button[data-tab=scene]")
     x, y = page.evaluate(f"window.fullview.cameraScreenPosition({json.dumps(names[0])})")
     page.mouse.click(x, y)
-    page.wait_for_function("window.fullview.tour && window.fullview.tour.ready", timeout=15000)
+    page.wait_for_function("() => window.fullview.tour && window.fullview.tour.ready", timeout=15000)
     target = names[2]
     hotspot = page.locator(".hotspot", has_text=target)
     before = page.evaluate("window.fullview.tourPosition()")
     hotspot.click()
-    page.wait_for_function(f"window.fullview.tour.ready && window.fullview.tour.name === {json.dumps(target)}",
+    page.wait_for_function(f"() => window.fullview.tour.ready && window.fullview.tour.name === {json.dumps(target)}",
                            timeout=15000)
     after = page.evaluate("window.fullview.tourPosition()")
     R, i, j = sparse["R_cam_from_world"], 0, 2
@@ -158,7 +176,7 @@ def test_hotspot_moves_to_that_neighbour_keeping_the_world_direction(page, recon
 def test_hotspots_point_at_the_neighbours(reconstructed, server):
     pipeline = reconstructed[0]
     names, sparse = _poses(pipeline)
-    state = json.loads(urllib.request.urlopen(server + "api/state").read())
+    state = call(server, "api/state")
     cam = state["model"]["cameras"][0]
     R, c = sparse["R_cam_from_world"], sparse["centers"]
     for nb in cam["neighbours"]:
@@ -182,7 +200,7 @@ def test_epipolar_circle_and_marker_where_python_puts_them(page, reconstructed):
     k = central[0]
     x, y = page.evaluate(f"window.fullview.viewPagePosition({json.dumps(names[0])}, {px[k, 0]}, {px[k, 1]})")
     page.mouse.click(x, y)
-    page.wait_for_function("window.fullview.lastClick !== null", timeout=10000)
+    page.wait_for_function("() => window.fullview.lastClick !== null", timeout=10000)
     click = page.evaluate("window.fullview.lastClick")
     clicked = np.array(click["pixel"])
     ray = R[0].T @ pixels_to_bearings(clicked[None], W, H)[0]
@@ -214,13 +232,13 @@ def test_picking_writes_hand_points_with_a_backup(page, reconstructed):
     for name, (x, y) in clicks.items():
         page.mouse.click(*page.evaluate(f"window.fullview.viewPagePosition({json.dumps(name)}, {x}, {y})"))
     page.click("#save-tracks")
-    page.wait_for_function("window.fullview.saved === true", timeout=10000)
+    page.wait_for_function("() => window.fullview.saved === true", timeout=10000)
     data = yaml.safe_load(dataset.hand_points_path.read_text())
     new = data["points"][-1]
     assert set(new["observations"]) == set(clicks)
     for name, xy in clicks.items():
         assert np.allclose(new["observations"][name], xy, atol=1.0)
-    backups = list(dataset.hand_points_path.parent.glob("hand_points.yaml.*.bak"))
+    backups = sorted(dataset.hand_points_path.parent.glob("hand_points.yaml.2*.bak"))  # timestamped, newest last
     assert backups and backups[-1].read_text() == before
     assert len(Dataset(dataset.root).hand_tracks()) == len(yaml.safe_load(before)["points"]) + 1
 
@@ -240,10 +258,8 @@ def test_a_server_killed_during_saves_leaves_a_valid_file(reconstructed, tmp_pat
                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         url = proc.stdout.readline().split()[-4]
         points[0]["name"] = f"renamed_{trial}"
-        body = json.dumps({"points": points}).encode()
-        request = urllib.request.Request(url + "api/hand_points", data=body, method="POST",
-                                         headers={"Content-Type": "application/json"})
-        sender = threading.Thread(target=lambda: _ignore_errors(urllib.request.urlopen, request), daemon=True)
+        sender = threading.Thread(target=lambda: _ignore_errors(call, url, "api/hand_points", {"points": points}),
+                                  daemon=True)
         sender.start()
         time.sleep(float(rng.uniform(0.0, 0.05)))
         proc.send_signal(signal.SIGKILL)
@@ -294,9 +310,7 @@ def test_hand_check_flags_the_point_far_from_its_epipolar_circle(reconstructed, 
             obs[names[j]] = bearings_to_pixels((b / np.linalg.norm(b))[None], W, H)[0].tolist()
         tracks.append({"name": f"t{k}", "observations": obs})
     tracks[3]["observations"][names[1]][1] += 25.0  # a wrong click: 25 px off its true position
-    request = urllib.request.Request(server + "api/hand_check", data=json.dumps({"points": tracks}).encode(),
-                                     method="POST", headers={"Content-Type": "application/json"})
-    result = json.loads(urllib.request.urlopen(request).read())
+    result = call(server, "api/hand_check", {"points": tracks})
     (pair,) = result["pairs"]
     assert {pair["a"], pair["b"]} == {names[0], names[1]}
     assert pair["flagged"] == [tracks[3]["name"]]
@@ -314,8 +328,8 @@ def test_a_dataset_never_run_gets_a_message_not_a_blank_page(reconstructed, brow
     page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
     page.on("pageerror", lambda e: problems.append(str(e)))
     try:
-        page.goto(f"http://127.0.0.1:{httpd.server_address[1]}/")
-        page.wait_for_function("window.fullview && window.fullview.ready", timeout=30000)
+        page.goto(page_url(httpd))
+        page.wait_for_function("() => window.fullview && window.fullview.ready", timeout=30000)
         assert "not been reconstructed yet" in page.inner_text("#message") and page.is_visible("#message")
         assert not problems, problems
     finally:

@@ -6,12 +6,17 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
+import os
+import stat
 from functools import lru_cache
+from pathlib import Path
 
 import cv2
 import numpy as np
 
 from fullview.io.artifacts import ArtifactError
+from fullview.io.errors import FullviewError
 from fullview.io.workspace import image_stem
 from fullview.sfm import two_view
 from fullview.sfm.camera import bearings_to_lonlat, camera_up, pixels_to_bearings
@@ -22,6 +27,14 @@ log = logging.getLogger(__name__)
 
 NEIGHBOURS = 4  # hotspots per panorama: its nearest registered panoramas among those it shares verified pairs with
 POINT_SEED = 0  # clouds are shuffled once, so any prefix is a uniform subsample (the page's point budget)
+
+
+class RequestError(FullviewError):
+    """A request the viewer refuses, with the HTTP status it answers (400 bad input, 403 refused, 404 absent)."""
+
+    def __init__(self, message: str, status: int = 400):
+        super().__init__(message)
+        self.status = status
 
 
 class SceneData:
@@ -121,7 +134,7 @@ class SceneData:
     def matches(self, a: str, b: str) -> list[list[float]]:
         """Inlier matches of a verified pair as [x_a, y_a, x_b, y_b] pixels of the full-size panoramas."""
         names = self.dataset.image_names
-        i, j = names.index(a), names.index(b)
+        i, j = names.index(self.image(a)), names.index(self.image(b))
         flip = i > j
         if flip:
             i, j = j, i
@@ -137,12 +150,8 @@ class SceneData:
         """For every pair of images sharing >= 8 hand tracks: the F those tracks give (b_aᵀ F b_b = 0, bearings)
         and each track's angular distance to its epipolar circle; tracks beyond `threshold_deg` are flagged."""
         sizes = self.dataset.image_sizes
-        names = [n for n in self.dataset.image_names]
-        obs = {}
-        for point in points if isinstance(points, list) else []:
-            for image, xy in (point.get("observations") or {}).items():
-                if image in sizes and isinstance(xy, (list, tuple)) and len(xy) == 2:
-                    obs.setdefault(image, {})[str(point.get("name"))] = (float(xy[0]), float(xy[1]))
+        names = self.dataset.image_names
+        obs = _picks(points, sizes)
         out = []
         for a_idx, a in enumerate(names):
             for b in names[a_idx + 1:]:
@@ -163,6 +172,9 @@ class SceneData:
         native = self.dataset.image_sizes[name][0]
         width = int(min(max(width, 256), native))
         key = self.dataset.image_hash(name)[:12]
+        stem = f"{image_stem(name)}_{width}_{key}"
+        if os.path.lexists(cached := self.ws.path("view_cache", stem=stem)):
+            self.workspace_file(cached)  # the cache is read back as it is: only from inside the workspace
 
         def encode() -> bytes:
             ok, jpg = cv2.imencode(".jpg", self.dataset.load_image(name, width=width), [cv2.IMWRITE_JPEG_QUALITY, 88])
@@ -170,11 +182,30 @@ class SceneData:
                 raise ArtifactError(f"cannot encode {name} for display")
             return jpg.tobytes()
 
-        return self.ws.cached_bytes("view_cache", encode, stem=f"{image_stem(name)}_{width}_{key}")
+        return self.ws.cached_bytes("view_cache", encode, stem=stem)
 
     def depth_png(self, name: str) -> bytes | None:
-        path = self.ws.path("depth_image", stem=image_stem(name))
-        return path.read_bytes() if path.exists() else None
+        path = self.ws.path("depth_image", stem=image_stem(self.image(name)))
+        return self.workspace_file(path).read_bytes() if os.path.lexists(path) else None
+
+    # ---------------------------------------------------------------------------------------------- what is served
+    def image(self, name: str) -> str:
+        """`name` when it is in the dataset's image list (the only images served), else a RequestError."""
+        if name not in self.dataset.image_names:
+            raise RequestError(f"unknown image {name!r}: not in {self.dataset.images_dir}", 404)
+        return name
+
+    def workspace_file(self, path: Path) -> Path:
+        """The real path of a workspace file about to be served: a regular file whose real path lies inside this
+        dataset's workspace folder, else a RequestError (a symbolic link planted there cannot serve /etc/passwd)."""
+        real, root = os.path.realpath(path), os.path.realpath(self.ws.root)
+        try:
+            regular = stat.S_ISREG(os.stat(real).st_mode)
+        except OSError:
+            regular = False
+        if os.path.commonpath([real, root]) != root or not regular:
+            raise RequestError(f"{path}: not served (not a regular file inside the workspace {root})", 403)
+        return Path(real)
 
 
 @lru_cache(maxsize=4)
@@ -195,6 +226,44 @@ def _mesh_bytes(root, generation: str, scene: SceneData) -> bytes:
     rgb = colors.astype(np.uint8).tobytes()
     pad = bytes(-len(rgb) % 4)  # the page views the indices as a Uint32Array, which needs 4-byte alignment
     return head + vertices.astype("<f4").tobytes() + rgb + pad + triangles.astype("<u4").tobytes()
+
+
+def _picks(points, sizes: dict[str, tuple[int, int]]) -> dict[str, dict[str, tuple[float, float]]]:
+    """The page's picks ({"points": [{"name", "observations": {image: [x, y]}}]}, tracks of any length) as
+    image -> track name -> pixel; a RequestError naming the first thing that is not a finite pixel of a known image."""
+    if not isinstance(points, list):
+        raise RequestError('expected a JSON object {"points": [...]}')
+    obs: dict[str, dict[str, tuple[float, float]]] = {}
+    for k, point in enumerate(points):
+        if not isinstance(point, dict):
+            raise RequestError(f"points[{k}]: expected an object {{name, observations}}, got {type(point).__name__}")
+        if not isinstance(point.get("observations", {}), dict):
+            raise RequestError(f"points[{k}]: 'observations' must map image names to [x, y], got "
+                               f"{type(point['observations']).__name__}")
+        name = point.get("name", f"point_{k}")
+        if not isinstance(name, str):
+            raise RequestError(f"points[{k}]: the name must be a string")
+        for image, xy in point.get("observations", {}).items():
+            if image not in sizes:
+                raise RequestError(f"points[{k}] ({name[:80]!r}): unknown image {image[:80]!r}")
+            pixel = _pixel(xy)
+            w, h = sizes[image]
+            if pixel is None or not (0 <= pixel[0] <= w and 0 <= pixel[1] <= h):
+                raise RequestError(f"points[{k}] ({name[:80]!r}) in {image[:80]!r}: expected [x, y], two finite "
+                                   f"numbers inside {w}x{h}")
+            obs.setdefault(image, {})[name] = pixel
+    return obs
+
+
+def _pixel(xy) -> tuple[float, float] | None:
+    if not isinstance(xy, list) or len(xy) != 2 or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in xy):
+        return None
+    try:
+        x, y = float(xy[0]), float(xy[1])
+    except OverflowError:  # an integer beyond float range
+        return None
+    return (x, y) if math.isfinite(x) and math.isfinite(y) else None
 
 
 def _hand_f(b_a: np.ndarray, b_b: np.ndarray, threshold_rad: float) -> np.ndarray:

@@ -13,6 +13,17 @@ const TARGET_FPS = 30;        // the point budget is lowered until the 3-D scene
 const MIN_BUDGET = 20000;     // ... but never below this many points
 const hooks = window.fullview = { ready: false, lastClick: null, tour: null, errors: [] };
 
+// ------------------------------------------------------------------------------------------------ server access
+// The server answers data requests only with the token of its start, which `fullview view` prints in the page's URL;
+// fetches send it as a header, image URLs (which cannot) as a query parameter. Names (images, tracks) reach the page
+// as text only: textContent, DOM elements, or escaped where a library option takes HTML.
+const TOKEN = new URLSearchParams(location.search).get('token') || '';
+const api = (url, options = {}) => fetch(url, { ...options, headers: { ...options.headers, 'X-Fullview-Token': TOKEN } });
+const post = (url, body) => api(url, { method: 'POST', headers: { 'Content-Type': 'application/json' },
+  body: JSON.stringify(body) });
+const withToken = (url) => `${url}${url.includes('?') ? '&' : '?'}token=${encodeURIComponent(TOKEN)}`;
+const escapeHtml = (text) => String(text).replace(/[&<>"']/g, (c) => `&#${c.charCodeAt(0)};`);
+
 // ------------------------------------------------------------------------------------------------ small math
 const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
 const sub = (a, b) => [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
@@ -59,14 +70,14 @@ const imageSize = new Map();
 let clouds = {};          // kind -> {positions Float32Array (world), colors Uint8Array, count}
 
 async function getJSON(url) {
-  const r = await fetch(url);
+  const r = await api(url);
   const body = await r.json();
   if (!r.ok) throw new Error(body.error || r.statusText);
   return body;
 }
 async function getCloud(kind) {
   if (clouds[kind]) return clouds[kind];
-  const buf = await (await fetch(`/api/points/${kind}`)).arrayBuffer();
+  const buf = await (await api(`/api/points/${kind}`)).arrayBuffer();
   const count = new Uint32Array(buf, 0, 1)[0];
   const positions = new Float32Array(buf.slice(4, 4 + 12 * count));
   const colors = new Uint8Array(buf.slice(4 + 12 * count, 4 + 15 * count));
@@ -77,7 +88,7 @@ async function getCloud(kind) {
 let meshData = null;
 async function getMesh() {
   if (meshData) return meshData;
-  const buf = await (await fetch('/api/mesh')).arrayBuffer();
+  const buf = await (await api('/api/mesh')).arrayBuffer();
   const [nv, nt] = new Uint32Array(buf, 0, 2);
   const positions = new Float32Array(buf.slice(8, 8 + 12 * nv));
   const colors = new Uint8Array(buf.slice(8 + 12 * nv, 8 + 15 * nv));
@@ -282,8 +293,8 @@ async function openTour(name, position = null) {
   hooks.tour = { name, ready: false };
   // Opened from the scene or a list: face the nearest neighbour, so the first hotspot is in view.
   const facing = cam && cam.neighbours.length ? { yaw: cam.neighbours[0].yaw, pitch: 0 } : { yaw: 0, pitch: 0 };
-  await tour.setPanorama(`/pano/${encodeURIComponent(name)}?width=${TOUR_WIDTH}`,
-    { position: position || facing, caption: name, transition: false, showLoader: false });
+  await tour.setPanorama(withToken(`/pano/${encodeURIComponent(name)}?width=${TOUR_WIDTH}`),
+    { position: position || facing, caption: escapeHtml(name), transition: false, showLoader: false });
   markers.clearMarkers();
   const info = document.getElementById('tour-info');
   if (!cam || !cam.registered) {
@@ -291,8 +302,11 @@ async function openTour(name, position = null) {
   } else {
     info.textContent = `${name}: ${cam.neighbours.length} neighbour(s); click a label to walk there`;
     for (const nb of cam.neighbours) {
+      const label = document.createElement('div');
+      label.className = 'hotspot';
+      label.textContent = `→ ${nb.name}`;
       markers.addMarker({ id: `to-${nb.name}`, position: { yaw: nb.yaw, pitch: nb.pitch }, anchor: 'center center',
-        html: `<div class="hotspot">→ ${nb.name}</div>`, data: { target: nb.name }, tooltip: nb.name });
+        element: label, data: { target: nb.name }, tooltip: escapeHtml(nb.name) });
     }
   }
   hooks.tour = { name, ready: true, neighbours: cam ? cam.neighbours : [] };
@@ -307,6 +321,7 @@ async function moveTo(target) {
 hooks.moveTo = moveTo;
 hooks.registeredNames = () => [...cams.values()].filter((c) => c.registered).map((c) => c.name);
 hooks.tourPosition = () => tour.getPosition();
+hooks.tourLookAt = (position) => tour.rotate(position);
 
 // ------------------------------------------------------------------------------------------------ correlated views
 const corr = { views: [], tracks: [], current: -1 };
@@ -315,13 +330,17 @@ function initCorr() {
   const list = document.getElementById('corr-pick-list');
   const names = state.images.map((i) => i.name);
   const chosen = names.slice(0, Math.min(4, names.length));
-  list.innerHTML = '';
+  list.replaceChildren();
   for (const name of names) {
     const label = document.createElement('label');
-    label.innerHTML = `<input type="checkbox" value="${name}" ${chosen.includes(name) ? 'checked' : ''}> ${name}`;
-    label.querySelector('input').addEventListener('change', () => {
+    const box = document.createElement('input');
+    box.type = 'checkbox';
+    box.value = name;
+    box.checked = chosen.includes(name);
+    label.append(box, ` ${name}`);
+    box.addEventListener('change', () => {
       const on = [...list.querySelectorAll('input:checked')].map((i) => i.value);
-      if (on.length > 4) { label.querySelector('input').checked = false; return; }
+      if (on.length > 4) { box.checked = false; return; }
       buildCorrViews(on);
     });
     list.appendChild(label);
@@ -340,7 +359,7 @@ function initCorr() {
 
 function buildCorrViews(names) {
   const box = document.getElementById('corr-views');
-  box.innerHTML = '';
+  box.replaceChildren();
   corr.views = names.map((name) => {
     const div = document.createElement('div');
     div.className = 'corr';
@@ -354,7 +373,7 @@ function buildCorrViews(names) {
     const view = { name, canvas, image: new Image(), depth: null, overlay: null };
     [view.W, view.H] = imageSize.get(name);
     view.image.onload = () => { canvas.width = view.image.width; canvas.height = view.image.height; redraw(view); };
-    view.image.src = `/pano/${encodeURIComponent(name)}?width=${CORR_WIDTH}`;
+    view.image.src = withToken(`/pano/${encodeURIComponent(name)}?width=${CORR_WIDTH}`);
     canvas.addEventListener('click', (e) => onCorrClick(view, e));
     return view;
   });
@@ -452,7 +471,7 @@ function drawDepth(view, ctx) {
     view.depth = new Image();
     view.depth.onload = () => redraw(view);
     view.depth.onerror = () => { view.depth.failed = true; };
-    view.depth.src = `/depth/${encodeURIComponent(view.name)}`;
+    view.depth.src = withToken(`/depth/${encodeURIComponent(view.name)}`);
     return;
   }
   if (view.depth.complete && !view.depth.failed) {
@@ -509,8 +528,7 @@ function pick(view, px) {
 // Pairs with >= 8 shared tracks: the F they give (server-side geometry), its epipolar circles for the current
 // track, and the tracks far from their circles.
 async function checkTracks() {
-  const r = await fetch('/api/hand_check', { method: 'POST', headers: { 'Content-Type': 'application/json' },
-    body: JSON.stringify({ points: corr.tracks }) });
+  const r = await post('/api/hand_check', { points: corr.tracks });
   const body = await r.json();
   corr.check = r.ok ? body : null;
   hooks.handCheck = corr.check;
@@ -537,7 +555,7 @@ function handCircles(view) {
 
 function renderTracks() {
   const list = document.getElementById('tracks');
-  list.innerHTML = '';
+  list.replaceChildren();
   corr.tracks.forEach((t, k) => {
     const li = document.createElement('li');
     const flagged = corr.check ? corr.check.pairs.filter((p) => p.flagged.includes(t.name)) : [];
@@ -585,8 +603,7 @@ function drawTracks(view, ctx, sx, sy) {
 async function saveTracks() {
   const status = document.getElementById('picker-status');
   const points = corr.tracks.filter((t) => Object.keys(t.observations).length >= 2);
-  const r = await fetch('/api/hand_points', { method: 'POST', headers: { 'Content-Type': 'application/json' },
-    body: JSON.stringify({ points }) });
+  const r = await post('/api/hand_points', { points });
   const body = await r.json();
   status.textContent = r.ok ? `saved ${points.length} track(s) to ${body.saved}` +
     (body.backup ? ` (previous file kept as ${body.backup})` : '') + `; rerun: ${body.command}` : `not saved: ${body.error}`;
@@ -594,7 +611,7 @@ async function saveTracks() {
 }
 
 async function rerun() {
-  const body = await (await fetch('/api/rerun', { method: 'POST' })).json();
+  const body = await (await post('/api/rerun', {})).json();
   document.getElementById('picker-status').textContent = `pipeline run ${body.rerun}; the page notices when it is done`;
 }
 
@@ -627,6 +644,7 @@ async function poll() {
 }
 
 async function main() {
+  if (!TOKEN) throw new Error('this address has no token: open the URL `fullview view` printed');
   state = await getJSON('/api/state');
   document.getElementById('title').textContent = `fullview · ${state.dataset}`;
   document.getElementById('stages').textContent = Object.entries(state.stages)
