@@ -32,7 +32,7 @@ class FeaturesOptions:
     working_width: int = setting(2048, "panoramas are resized to this width before detection (never upsampled)",
                                  ge=128, le=65536, zero_means="native width")
     # le: the native face of the widest panorama PIL's pixel limit admits (13,377 px: 3,716 at margin 5); 4096² x 290
-    # bytes (measured) x 2 images at once = 9 GiB; a machine with less memory refuses less (io/limits.max_face_size)
+    # bytes (measured) x 2 images at once = 9 GiB; a machine with less memory allows less (io/limits.max_face_size)
     face_size: int = setting(0, "cube face side in pixels", ge=32, le=4096,
                              zero_means="as many pixels per degree as the working panorama")
     margin_deg: float = setting(5.0, "extra field of view on each side of a face's 90°, keeps features at seams",
