@@ -248,6 +248,8 @@ class DensifyOptions:
         5.0, "partner baselines must subtend at least this at the scene's median depth", gt=0.0, lt=90.0)
     max_triangulation_angle_deg: float = setting(60.0, "... and at most this", gt=0.0, le=180.0)
     min_pair_inliers: int = setting(50, "epipolar inliers a stereo pair needs", ge=8, le=1_000_000)
+    # le: never above the native width. The pixel budget bounds one panorama, but densify holds all of them (about
+    # 36 bytes per pixel each, run peaks of a 6-view scene at 512 and 1024 px): 0 on many huge panoramas may not fit
     working_width: int = setting(2048, "panoramas are resized to this width; range maps have this size "
                                  "(never upsampled)", ge=128, le=65536, zero_means="native width")
     # le: never above the panoramas' height at the working width (stages/densify.py), which the pixel budget bounds
@@ -286,6 +288,7 @@ class DensifyOptions:
     preview: bool = setting(True, "render densify/dense_preview.png")
     fill_planes: bool = setting(True, "fill textureless regions with the planes through their border depths, kept "
                                 "where another view's own result agrees (sfm/dense/planes.py)")
+    # le: never above the range maps' width (densify.working_width)
     fill_width: int = setting(1024, "textureless filling works at this width (at most the range maps')", ge=64,
                               le=65536)
     plane_tolerance: float = setting(0.03, "relative range difference within which a border depth lies on a plane",
@@ -338,6 +341,7 @@ class DensifyOptions:
                                 "most cameras stand more than twice the camera's height above it: "
                                 "ground_sweep.indoor_or_outdoor)",
                                 choices=("never", "no_ceiling", "always"))  # "never", not "off" (YAML 1.1 read a bool)
+    # le: never above the range maps' width (densify.working_width)
     ground_sweep_width: int = setting(1280, "the ground sweep works at this width (at most the range maps'; its "
                                       "ranges are resized to them)", ge=64, le=65536)
     ground_sweep_window: int = setting(9, "ground sweep: NCC window side (pixels at its width)", ge=3, le=31, odd=True)
