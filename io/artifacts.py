@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import tempfile
@@ -49,8 +50,15 @@ def atomic_path(path: Path) -> Iterator[Path]:
         with open(tmp, "rb+") as f:  # flush to disk before the rename makes it visible
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            # A write's OSError names no file: name the artifact and the stage whose transaction folder holds it.
+            stage = next((p.name.split(".")[1] for p in path.parents
+                          if p.name.startswith(".") and ".running." in p.name), None)
+            during = f" (writing the {stage} stage's output)" if stage else ""
+            raise ArtifactError(f"{path}: {os.strerror(e.errno)}{during}; free some space and run "
+                                f"again") from None
         raise
 
 

@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from fullview.io import limits
 from fullview.io.errors import FullviewError
 from fullview.io.yamlio import YamlError, load_yaml
 from fullview.sfm.options import OPTIONS_BY_SECTION, option_fields
@@ -44,13 +45,27 @@ def load_config(path: Path | None, overrides: list[str] = ()) -> Config:
         section, dot, name = key.partition(".")
         if not sep or not dot:
             raise ConfigError(f"--set {item!r}: expected stage.key=value")
+        source = f"--set {item}" if item.isprintable() else f"--set {item!r}"  # a newline would split the message
         try:
-            value = load_yaml(raw, f"--set {item}")
+            value = load_yaml(raw, source)
         except YamlError as e:
             raise ConfigError(str(e)) from None
-        _collect(values, where, section, {name: value}, f"--set {item}")
-    return {section: _build(OPTIONS_BY_SECTION[section], items, section, where)
-            for section, items in values.items()}
+        _collect(values, where, section, {name: value}, source)
+    config = {section: _build(OPTIONS_BY_SECTION[section], items, section, where)
+              for section, items in values.items()}
+    _check_memory(config, where)
+    return config
+
+
+def _check_memory(config: Config, where: dict) -> None:
+    """Settings whose memory does not follow the images' size (which the dataset's pixel budget bounds) checked
+    against this machine's memory: the cube faces' side."""
+    face_size, limit = config["features"].face_size, limits.max_face_size()
+    if face_size > limit:
+        need = limits.FEATURES_IMAGES_AT_ONCE * limits.FACE_BYTES_PER_SIDE2 * face_size**2 / 2**30
+        raise ConfigError(f"{where.get(('features', 'face_size'), 'defaults')}: features.face_size={face_size} "
+                          f"needs about {need:.0f} GiB for its cube faces; at most {limit} fits "
+                          f"({limits.memory_text()})")
 
 
 def _read_file(path: Path) -> dict:
@@ -89,10 +104,8 @@ def _collect(values: dict, where: dict, section: Any, items: Any, source: str) -
 def checked_value(f: dataclasses.Field, value: Any, name: str) -> Any:
     """`value` converted to the field's type and checked against its bounds; ConfigError naming `name` if not."""
     meta = f.metadata
-    if meta["choices"] is not None and isinstance(value, bool):
-        # YAML (and --set) read on/off/yes/no as booleans: name the choices rather than the type.
-        raise ConfigError(f"{name} must be one of {list(meta['choices'])}, got {value!r} "
-                          "(YAML reads on/off/yes/no as true/false)")
+    if meta["choices"] is not None and isinstance(value, bool):  # name the choices rather than the type
+        raise ConfigError(f"{name} must be one of {list(meta['choices'])}, got {value!r}")
     value = _typed(f, value, name)
     if meta["choices"] is not None:
         if value not in meta["choices"]:
@@ -128,14 +141,20 @@ def _build(cls: type, items: dict, section: str, where: dict) -> Any:
     options = cls(**items)
     for rule, holds in cls.RULES:
         if not holds(options):
-            keys = sorted({where.get((section, k), "defaults") for k in items} or {"defaults"})
+            named = _rule_keys(cls, rule)
+            # The sources of the keys the rule names (else of every key given for the section, else the defaults).
+            keys = sorted({where[section, k] for k in named if (section, k) in where}
+                          or {where.get((section, k), "defaults") for k in items} or {"defaults"})
             raise ConfigError(f"{', '.join(keys)}: {section}: {rule} must hold "
-                              f"({', '.join(f'{k}={getattr(options, k)!r}' for k in _rule_keys(rule))})")
+                              f"({', '.join(f'{section}.{k}={getattr(options, k)!r}' for k in named)})")
     return options
 
 
-def _rule_keys(rule: str) -> list[str]:
-    return [word for word in rule.replace("<", " ").replace(">", " ").replace("=", " ").split() if word.isidentifier()]
+def _rule_keys(cls: type, rule: str) -> list[str]:
+    """The settings a rule's text names, in order (its other words, such as 'when' or 'is', are prose)."""
+    known = {f.name for f in option_fields(cls)}
+    words = rule.replace("<", " ").replace(">", " ").replace("=", " ").replace(",", " ").split()
+    return list(dict.fromkeys(word for word in words if word in known))
 
 
 def key_table_markdown() -> str:

@@ -43,6 +43,8 @@ import struct
 import tempfile
 import threading
 import uuid
+import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property, partial
 from pathlib import Path
@@ -50,12 +52,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import PIL.Image
-import yaml
 from scipy.spatial import cKDTree
 
+from fullview.io import limits
 from fullview.io.artifacts import apply_umask, save_text
 from fullview.io.errors import FullviewError
-from fullview.io.yamlio import YamlError, load_yaml
+from fullview.io.yamlio import YamlError, dump_yaml, load_yaml
 
 log = logging.getLogger(__name__)
 
@@ -196,18 +198,25 @@ class Dataset:
 
     def load_mask(self, name: str) -> np.ndarray | None:
         """(H, W) bool, True where the image is kept, at the image's own size; None when it has no mask. A mask of
-        another size than its image, or an unreadable one, is an error naming the file."""
+        another size than its image, an unreadable or incomplete one, or one that keeps no pixel is an error naming
+        the file."""
         path = self.mask_path(name)
         if not path.exists():
             return None
         data = self._read_mask(name)
+        w, h = self.image_sizes[name]
+        mw, mh = checked_image_file(path, data, "mask")  # complete before it is decoded: no libpng message
+        if (mw, mh) != (w, h):
+            raise DatasetError(f"{path}: mask is {mw}x{mh}, its image {name} is {w}x{h}")
         mask = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
         if mask is None:
             raise DatasetError(f"{path}: not a readable image (a mask is a PNG, white = keep)")
-        w, h = self.image_sizes[name]
         if mask.shape != (h, w):
             raise DatasetError(f"{path}: mask is {mask.shape[1]}x{mask.shape[0]}, its image {name} is {w}x{h}")
-        return mask > 127
+        keep = mask > 127
+        if not keep.any():  # the image would give no feature: say so here, not stages later
+            raise DatasetError(f"{path}: the mask keeps no pixel of {name} (white = keep; remove the image instead)")
+        return keep
 
     def validate_inputs(self) -> None:
         """Check every input a run reads (image files, hand points, masks); a DatasetError names the first bad
@@ -218,8 +227,12 @@ class Dataset:
 
     def check_masks(self) -> None:
         """Validate every mask (and refuse masks of no image) before any stage runs."""
-        if not self.masks_dir.is_dir():
+        if self.masks_dir.is_symlink() and not self.masks_dir.exists():
+            raise DatasetError(f"{self.masks_dir}: broken symbolic link (to {os.readlink(self.masks_dir)!r})")
+        if not self.masks_dir.exists():
             return
+        if not self.masks_dir.is_dir():
+            raise DatasetError(f"{self.masks_dir}: not a folder (masks are masks/<image name>.png)")
         known = {f"{n}.png" for n in self.image_names}
         stray = sorted(p.name for p in self.masks_dir.iterdir() if p.name not in known)
         if stray:
@@ -293,9 +306,9 @@ class Dataset:
         """Validate `points` (the `points:` list of hand_points.yaml) and write the file atomically. The file it
         replaces is kept first (`_keep_backup`); returns that backup's path (None when there was no file)."""
         tracks = self._parse_hand_points(self.hand_points_path, {"points": points})
-        text = yaml.safe_dump({"points": [{"name": t.name, "observations": {i: [round(x, 3), round(y, 3)]
-                                                                             for i, (x, y) in t.observations.items()}}
-                                          for t in tracks]}, sort_keys=False, default_flow_style=None)
+        text = dump_yaml({"points": [{"name": t.name, "observations": {i: [round(x, 3), round(y, 3)]
+                                                                      for i, (x, y) in t.observations.items()}}
+                                     for t in tracks]}, sort_keys=False, default_flow_style=None)
         path = self.hand_points_path
         try:
             backup = _keep_backup(path)
@@ -310,17 +323,22 @@ class Dataset:
         points = data.get("points") if isinstance(data, dict) else None
         if not isinstance(points, list):
             raise DatasetError(f"{path}: expected a top-level 'points:' list")
-        tracks = [self._hand_track(path, k, p) for k, p in enumerate(points)]
+        unknown = sorted(map(str, set(data) - {"points"}))
+        if unknown:  # a `version:` or a misspelt section would otherwise be ignored without a word
+            raise DatasetError(f"{path}: unknown top-level key {_REPR.repr(unknown[0])}; hand_points.yaml holds "
+                               f"only 'points:'")
+        given = {p["name"] for p in points if isinstance(p, dict) and isinstance(p.get("name"), str)}
+        tracks = [self._hand_track(path, k, p, given) for k, p in enumerate(points)]
         _check_unique_names(path, tracks)
         return tracks
 
-    def _hand_track(self, path: Path, k: int, point) -> HandTrack:
+    def _hand_track(self, path: Path, k: int, point, given: set[str]) -> HandTrack:
         if not isinstance(point, dict) or not isinstance(point.get("observations"), dict):
             raise DatasetError(f"{path}: points[{k}] needs an 'observations' mapping")
         unknown = sorted(map(str, set(point) - _HAND_POINT_KEYS))
         if unknown:  # most likely a misspelt 'name', which would otherwise be ignored
             raise DatasetError(f"{path}: points[{k}] has unknown key(s) {unknown}; allowed: name, observations")
-        name = _track_name(path, k, point)
+        name = _track_name(path, k, point, given)
         obs = {image: self._hand_pixel(path, name, image, xy) for image, xy in point["observations"].items()}
         if len(obs) < 2:  # one observation constrains nothing
             raise DatasetError(f"{path}: point {name!r} has {len(obs)} observation(s); a track needs at least 2")
@@ -583,9 +601,15 @@ def _check_distinct_centers(path: Path, poses: dict[str, GroundTruthPose]) -> No
                            f"{poses[names[a]].center.tolist()}")
 
 
-def _track_name(path: Path, k: int, point: dict) -> str:
+def _track_name(path: Path, k: int, point: dict, given: set[str]) -> str:
+    """The point's name, or for an unnamed one point_<k>, made unique against the names the file gives (an unnamed
+    point beside one named point_0 is not a duplicate)."""
     if "name" not in point:
-        return f"point_{k}"
+        name, n = f"point_{k}", 1
+        while name in given:
+            n += 1
+            name = f"point_{k}_{n}"
+        return name
     name = point["name"]
     if not isinstance(name, str) or not name.strip():
         raise DatasetError(f"{path}: points[{k}] name must be a non-empty string, got {_REPR.repr(name)}")
@@ -666,32 +690,73 @@ def _png_may_hold_exif(path: Path) -> bool:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header, validated as a complete JPEG or PNG file and 2:1."""
+    """(width, height) from the file header, validated as a complete JPEG or PNG file, 2:1, within this machine's
+    pixel budget, at least `MIN_IMAGE_HEIGHT` high, and holding the data its header claims."""
     data = _read_bytes(path, "image")
-    try:
-        with PIL.Image.open(io.BytesIO(data)) as im:
-            w, h = im.size
-            _check_complete(path, im, data)  # first: PNG's verify() must come directly after open
-            if im.format in _JPEG_FORMATS:  # (verify() leaves a PNG unusable, but its orientation is moot too)
-                _log_orientation(path, im)
-    except (OSError, PIL.Image.DecompressionBombError):  # UnidentifiedImageError is an OSError
-        raise DatasetError(f"cannot read image {path}: not a JPEG or PNG image, or its header is corrupt") from None
+    w, h = checked_image_file(path, data, "image")
     _check_two_to_one(path, w, h)
     return w, h
 
 
-def _check_complete(path: Path, im: PIL.Image.Image, data: bytes) -> None:
+def checked_image_file(path: Path, data: bytes, what: str) -> tuple[int, int]:
+    """(width, height) of the JPEG or PNG file `data` (read from `path`) after checking, in this order and before
+    anything decodes it: the size its header claims against the pixel budget (`io/limits.py`) and the minimum
+    size; its structure and that its compressed data can hold that many pixels (`_check_complete`). Every
+    failure is a DatasetError naming the file."""
+    claimed = _header_size(data)
+    if claimed is not None:
+        _check_pixel_count(path, *claimed, what)
+    try:
+        with PIL.Image.open(io.BytesIO(data)) as im:
+            w, h = im.size
+            _check_pixel_count(path, w, h, what)
+            _check_complete(path, im, data, what)  # first: PNG's verify() must come directly after open
+            if im.format in _JPEG_FORMATS:  # (verify() leaves a PNG unusable, but its orientation is moot too)
+                _log_orientation(path, im)
+    except (OSError, PIL.Image.DecompressionBombError):  # UnidentifiedImageError is an OSError
+        raise DatasetError(f"cannot read {what} {path}: not a JPEG or PNG image, or its header is corrupt") from None
+    return w, h
+
+
+MIN_IMAGE_HEIGHT = 3  # the features' noise estimate (sfm/features.noise_sigma) needs a pixel with a full 3x3 neighbourhood
+
+
+def _check_pixel_count(path: Path, w: int, h: int, what: str) -> None:
+    budget = limits.pixel_budget()
+    if w * h > budget:
+        raise DatasetError(f"{what} {path} is {w}x{h} ({w * h / 1e6:.1f} Mpx), more than this machine's budget "
+                           f"of {budget / 1e6:.1f} Mpx per image ({limits.budget_text()})")
+    if min(w, h) < MIN_IMAGE_HEIGHT:
+        raise DatasetError(f"{what} {path} is {w}x{h}; an image must be at least {MIN_IMAGE_HEIGHT} pixels high "
+                           f"(the features' noise estimate needs a 3x3 neighbourhood)")
+
+
+def _header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) a JPEG's first frame header or a PNG's IHDR claims, read without PIL (which warns about, or
+    refuses, a large claim before it can be checked against the budget); None when not found."""
+    if data[:8] == PNG_SIGNATURE and data[12:16] == b"IHDR" and len(data) >= 24:
+        return struct.unpack(">II", data[16:24])
+    frame = _jpeg_frame(data)
+    return None if frame is None else (frame.width, frame.height)
+
+
+def _check_complete(path: Path, im: PIL.Image.Image, data: bytes, what: str) -> None:
+    """The file's structure is complete (JPEG markers up to the EOI, PNG chunks' CRCs up to IEND) and its compressed
+    data holds the pixels its header claims (`_check_jpeg_data`, `_check_png_data`)."""
     if im.format in _JPEG_FORMATS:
-        if _jpeg_end(data) is None:
-            raise DatasetError(f"cannot read image {path}: truncated or corrupt JPEG (its data ends before the "
+        walk = _jpeg_walk(data)
+        if walk is None:
+            raise DatasetError(f"cannot read {what} {path}: truncated or corrupt JPEG (its data ends before the "
                                f"end-of-image marker)")
+        _check_jpeg_data(path, walk, *im.size, what)
     elif im.format == "PNG":
         try:
             im.verify()  # CRC of every chunk up to IEND, without decompressing
         except (OSError, SyntaxError, ValueError, EOFError) as e:
-            raise DatasetError(f"cannot read image {path}: truncated or corrupt PNG ({_reason(e)})") from None
+            raise DatasetError(f"cannot read {what} {path}: truncated or corrupt PNG ({_reason(e)})") from None
+        _check_png_data(path, data, *im.size, what)
     else:
-        raise DatasetError(f"cannot read image {path}: a {im.format} file; expected JPEG or PNG")
+        raise DatasetError(f"cannot read {what} {path}: a {im.format} file; expected JPEG or PNG")
 
 
 def _check_two_to_one(path: Path, w: int, h: int) -> None:
@@ -713,12 +778,38 @@ _SCAN_END = re.compile(rb"\xff[^\x00\xd0-\xd7\xff]")
 _STANDALONE_MARKERS = {0x01, *range(0xD0, 0xD8)}  # TEM and RSTn carry no length
 
 
+@dataclass(kw_only=True)
+class _JpegFrame:
+    marker: int  # SOFn: 0xC0-0xC3, 0xC5-0xC7 Huffman coded, 0xC9-0xCB, 0xCD-0xCF arithmetic coded
+    width: int
+    height: int
+    mcus: int  # minimum coded units of an interleaved scan (each holds one or more 8x8 blocks of every component)
+
+
+_SOF_MARKERS = {*range(0xC0, 0xC4), *range(0xC5, 0xC8), *range(0xC9, 0xCC), *range(0xCD, 0xD0)}
+_ARITHMETIC_SOF = {*range(0xC9, 0xCC), *range(0xCD, 0xD0)}
+
+
 def _jpeg_end(data: bytes) -> int | None:
     """Offset just past the EOI marker ending the primary image of a JPEG file, None when the marker structure
     breaks off before it (truncated or corrupt file). Bytes after it (padding, trailers) are not looked at."""
+    walk = _jpeg_walk(data)
+    return None if walk is None else walk[0]
+
+
+def _jpeg_frame(data: bytes) -> _JpegFrame | None:
+    """The first frame header (SOFn) of a JPEG file, None when there is none before the structure breaks off."""
+    walk = _jpeg_walk(data, stop_at_frame=True)
+    return None if walk is None else walk[2]
+
+
+def _jpeg_walk(data: bytes, stop_at_frame: bool = False) -> tuple[int, int, _JpegFrame | None] | None:
+    """(offset past the EOI, bytes of entropy-coded data of all scans, the first frame header) of the primary image
+    of a JPEG file, None when its marker structure breaks off before the EOI. With `stop_at_frame`, returns at the
+    first frame header (offset and bytes 0)."""
     if data[:2] != b"\xff\xd8":
         return None
-    pos = 2
+    pos, entropy, frame = 2, 0, None
     while pos + 1 < len(data):
         if data[pos] != 0xFF:
             return None
@@ -726,14 +817,35 @@ def _jpeg_end(data: bytes) -> int | None:
         if marker == 0xFF:  # fill byte before a marker
             pos += 1
         elif marker == 0xD9:
-            return pos + 2
+            return pos + 2, entropy, frame
         elif marker in _STANDALONE_MARKERS:
             pos += 2
         else:
-            pos = _skip_segment(data, pos, marker)
-            if pos is None:
+            if marker in _SOF_MARKERS and frame is None:
+                frame = _parse_frame(data, pos, marker)
+                if stop_at_frame:
+                    return (0, 0, frame) if frame is not None else None
+            end = _skip_segment(data, pos, marker)
+            if end is None:
                 return None
+            if marker == 0xDA:
+                entropy += end - (pos + 2 + int.from_bytes(data[pos + 2:pos + 4], "big"))
+            pos = end
     return None
+
+
+def _parse_frame(data: bytes, pos: int, marker: int) -> _JpegFrame | None:
+    """The frame header at `pos`: precision, height, width, components (id, sampling factors, table)."""
+    if pos + 10 > len(data):
+        return None
+    height, width, count = struct.unpack(">HHB", data[pos + 5:pos + 10])
+    sampling = data[pos + 10:pos + 10 + 3 * count]
+    if count == 0 or len(sampling) < 3 * count:
+        return None
+    h_max = max(max(b >> 4 for b in sampling[1::3]), 1)
+    v_max = max(max(b & 15 for b in sampling[1::3]), 1)
+    mcus = math.ceil(width / (8 * h_max)) * math.ceil(height / (8 * v_max))
+    return _JpegFrame(marker=marker, width=width, height=height, mcus=mcus)
 
 
 def _skip_segment(data: bytes, pos: int, marker: int) -> int | None:
@@ -747,3 +859,62 @@ def _skip_segment(data: bytes, pos: int, marker: int) -> int | None:
         return end
     scan_end = _SCAN_END.search(data, end)
     return scan_end.start() if scan_end else None
+
+
+# ------------------------------------------------------------------------------ compressed data vs header
+# A file whose header claims more pixels than its data holds decodes "successfully": libjpeg fills the missing
+# blocks with grey and only warns on stderr; libpng fails inside the features stage with its own message. The
+# claim is checked against the data at validation instead.
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # colour type -> samples per pixel
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+_INFLATE_STEP = 1 << 20  # bytes of PNG data inflated at a time: the check never holds the image
+
+
+def _check_jpeg_data(path: Path, walk: tuple, w: int, h: int, what: str) -> None:
+    _, entropy, frame = walk
+    if frame is None:
+        raise DatasetError(f"cannot read {what} {path}: corrupt JPEG (no frame header before its end)")
+    # Huffman coding spends at least one bit on each 8x8 block of an interleaved scan (a DC difference code, and
+    # a baseline block its end-of-block code too): fewer bytes than MCUs / 8 cannot hold the claimed image.
+    # Arithmetic coding can go below a bit per block; such a file (no camera writes one) is decoded as it is.
+    if frame.marker not in _ARITHMETIC_SOF and 8 * entropy < frame.mcus:
+        raise DatasetError(f"cannot read {what} {path}: its header claims {w}x{h} pixels but it holds {entropy} "
+                           f"bytes of image data, fewer than the {math.ceil(frame.mcus / 8)} that many pixels take "
+                           f"at least (a forged or truncated JPEG)")
+
+
+def _check_png_data(path: Path, data: bytes, w: int, h: int, what: str) -> None:
+    """Inflate the PNG's image data (in steps, keeping none of it) and compare its length with what the IHDR's
+    size, bit depth, colour type and interlacing need: rows of filter byte + packed samples."""
+    depth, colour, interlace = data[24], data[25], data[28]
+    bits = depth * _PNG_CHANNELS.get(colour, 4)
+    passes = _ADAM7 if interlace == 1 else ((0, 0, 1, 1),)
+    needed = 0
+    for x0, y0, dx, dy in passes:
+        cols, rows = max(0, math.ceil((w - x0) / dx)), max(0, math.ceil((h - y0) / dy))
+        if cols and rows:
+            needed += rows * (1 + math.ceil(cols * bits / 8))
+    inflater, got = zlib.decompressobj(), 0
+    try:
+        for chunk in _png_chunks(data, b"IDAT"):
+            while chunk and got < needed:
+                got += len(inflater.decompress(chunk, _INFLATE_STEP))
+                chunk = inflater.unconsumed_tail
+            if got >= needed:
+                return
+    except zlib.error as e:
+        raise DatasetError(f"cannot read {what} {path}: corrupt PNG image data ({_reason(e)})") from None
+    raise DatasetError(f"cannot read {what} {path}: its header claims {w}x{h} pixels but its image data holds "
+                       f"{got} of the {needed} bytes they take (a forged or truncated PNG)")
+
+
+def _png_chunks(data: bytes, kind: bytes) -> Iterator[memoryview]:
+    """The data of every chunk of type `kind` of a PNG file whose chunk structure is already verified."""
+    view, pos = memoryview(data), 8
+    while pos + 8 <= len(data):
+        length, chunk_kind = struct.unpack(">I4s", data[pos:pos + 8])
+        if chunk_kind == kind:
+            yield view[pos + 8:pos + 8 + length]
+        if chunk_kind == b"IEND":
+            return
+        pos += 12 + length

@@ -692,6 +692,9 @@ def make_dirs(path: Path) -> None:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
+        for part in (path, *path.parents):
+            if part.is_symlink() and not part.exists():
+                raise ArtifactError(f"{part}: a dangling symbolic link (to {os.readlink(part)!r})") from None
         raise ArtifactError(f"{path}: a part of this path is a file, not a folder") from None
 
 

@@ -1060,7 +1060,10 @@ def _median_depths(x: np.ndarray, problem: _Problem) -> np.ndarray:
     order = np.lexsort((dist, problem.obs_camera))
     counts = np.bincount(problem.obs_camera, minlength=len(centers))
     starts = np.r_[0, np.cumsum(counts)[:-1]]
-    return np.where(counts > 0, dist[order][starts + counts // 2], np.inf)
+    depth = np.full(len(centers), np.inf)
+    seen = counts > 0  # (cameras without observations, the last ones included, index no observation)
+    depth[seen] = dist[order][starts[seen] + counts[seen] // 2]
+    return depth
 
 
 def _pose_change_rad(x_old: np.ndarray, x_new: np.ndarray, problem: _Problem, depth: np.ndarray) -> float:

@@ -122,7 +122,11 @@ _MAD_TO_SIGMA = 0.6745
 def noise_sigma(grey: np.ndarray) -> float:
     """Standard deviation of a grey image's white sensor noise, in grey levels: the median absolute response of
     `_NOISE_KERNEL` (edges and texture are a minority of a room's pixels; the median ignores them). The responses of
-    a uint8 image are integers, so the median is interpolated within its unit bin (a plain median jumps by 0.25)."""
+    a uint8 image are integers, so the median is interpolated within its unit bin (a plain median jumps by 0.25).
+    The image needs a pixel with a full 3x3 neighbourhood (the dataset refuses smaller ones: io/dataset.py)."""
+    if min(grey.shape[:2]) < _NOISE_KERNEL.shape[0]:
+        raise ValueError(f"noise_sigma: a {grey.shape[1]}x{grey.shape[0]} image has no pixel with a full 3x3 "
+                         "neighbourhood")
     response = np.abs(cv2.filter2D(grey.astype(np.float32), -1, _NOISE_KERNEL)[1:-1, 1:-1])
     levels = np.rint(response).astype(np.int64).ravel()
     counts = np.bincount(levels)

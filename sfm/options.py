@@ -28,9 +28,12 @@ Rule = tuple[str, Callable[[Any], bool]]
 
 @dataclass(frozen=True, kw_only=True)
 class FeaturesOptions:
+    # le: never above the native width, whose memory the dataset's pixel budget bounds (io/limits.py)
     working_width: int = setting(2048, "panoramas are resized to this width before detection (never upsampled)",
                                  ge=128, le=65536, zero_means="native width")
-    face_size: int = setting(0, "cube face side in pixels", ge=32, le=16384,
+    # le: the native face of the widest panorama PIL's pixel limit admits (13,377 px: 3,716 at margin 5); 4096² x 290
+    # bytes (measured) x 2 images at once = 9 GiB; a machine with less memory allows less (io/limits.max_face_size)
+    face_size: int = setting(0, "cube face side in pixels", ge=32, le=4096,
                              zero_means="as many pixels per degree as the working panorama")
     margin_deg: float = setting(5.0, "extra field of view on each side of a face's 90°, keeps features at seams",
                                 ge=0.0, le=30.0)
@@ -242,8 +245,11 @@ class DensifyOptions:
         5.0, "partner baselines must subtend at least this at the scene's median depth", gt=0.0, lt=90.0)
     max_triangulation_angle_deg: float = setting(60.0, "... and at most this", gt=0.0, le=180.0)
     min_pair_inliers: int = setting(50, "epipolar inliers a stereo pair needs", ge=8, le=1_000_000)
+    # le: never above the native width. The pixel budget bounds one panorama, but densify holds all of them (about
+    # 36 bytes per pixel each, run peaks of a 6-view scene at 512 and 1024 px): 0 on many huge panoramas may not fit
     working_width: int = setting(2048, "panoramas are resized to this width; range maps have this size "
                                  "(never upsampled)", ge=128, le=65536, zero_means="native width")
+    # le: never above the panoramas' height at the working width (stages/densify.py), which the pixel budget bounds
     rect_height: int = setting(1024, "rectified grid height (angle from the epipole); width = 2x", ge=16, le=16384)
     min_depth_percentile: float = setting(1.0, "nearest plausible depth: this percentile of a camera's sparse-point "
                                           "distances", ge=0.0, le=100.0)
@@ -279,6 +285,7 @@ class DensifyOptions:
     preview: bool = setting(True, "render densify/dense_preview.png")
     fill_planes: bool = setting(True, "fill textureless regions with the planes through their border depths, kept "
                                 "where another view's own result agrees (sfm/dense/planes.py)")
+    # le: never above the range maps' width (densify.working_width)
     fill_width: int = setting(1024, "textureless filling works at this width (at most the range maps')", ge=64,
                               le=65536)
     plane_tolerance: float = setting(0.03, "relative range difference within which a border depth lies on a plane",
@@ -330,7 +337,8 @@ class DensifyOptions:
                                 "disagrees with: never, always, or no_ceiling = outdoors (the highest points around "
                                 "most cameras stand more than twice the camera's height above it: "
                                 "ground_sweep.indoor_or_outdoor)",
-                                choices=("never", "no_ceiling", "always"))  # not "off": YAML reads a bool
+                                choices=("never", "no_ceiling", "always"))  # "never", not "off" (YAML 1.1 read a bool)
+    # le: never above the range maps' width (densify.working_width)
     ground_sweep_width: int = setting(1280, "the ground sweep works at this width (at most the range maps'; its "
                                       "ranges are resized to them)", ge=64, le=65536)
     ground_sweep_window: int = setting(9, "ground sweep: NCC window side (pixels at its width)", ge=3, le=31, odd=True)

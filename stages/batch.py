@@ -168,9 +168,13 @@ def cluster_map(fn: Callable[[Any], Any], items: Iterable[Any], *, threads: int 
 
 class WorkerLogging(WorkerPlugin):
     """A worker plugin: fullview's warnings and errors on a worker are printed, marked as coming from one (without
-    it a worker's root logger has no handler and only Python's last-resort one prints warnings, bare)."""
+    it a worker's root logger has no handler and only Python's last-resort one prints warnings, bare); a failed
+    task's traceback is not (distributed logs one per failed task: a bad dataset's nine images gave nine)."""
 
     def setup(self, worker) -> None:
+        worker_log = logging.getLogger("distributed.worker")
+        if not any(isinstance(f, TaskFailureFilter) for f in worker_log.filters):
+            worker_log.addFilter(TaskFailureFilter())
         logger = logging.getLogger("fullview")
         if not any(getattr(h, "fullview_worker", False) for h in logger.handlers):
             handler = logging.StreamHandler()
@@ -179,6 +183,15 @@ class WorkerLogging(WorkerPlugin):
                                                    datefmt="%H:%M:%S"))
             handler.setLevel(logging.WARNING)
             logger.addHandler(handler)
+
+
+class TaskFailureFilter(logging.Filter):
+    """Drops distributed's "Compute Failed" record (key, task, exception, traceback) of a task that raised: the
+    exception travels to the batch with the task's result, which reports it once, in one line naming the dataset
+    (`_record_stage`)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Compute Failed")
 
 
 def _short(summary: dict) -> str:

@@ -21,6 +21,7 @@ import logging
 
 import numpy as np
 
+from fullview.io.errors import NothingLeftError
 from fullview.io.exports import SparseModel, colmap_text_safe, split_models, write_colmap_model
 from fullview.sfm import heights, manhattan
 from fullview.sfm.bundle import bundle_adjust, gravity_error_factor, gravity_prior_for_models, with_gravity_error
@@ -90,6 +91,10 @@ def run(ctx: StageContext) -> dict:
                              height=floor)
     mask, points = _triangulate_and_filter(tracks, bearings, R, t, max_err, min_angle)
     final = tracks.subset(mask)
+    if tracks.num_tracks and not final.num_tracks:  # no model to write; densify and the exports need points
+        raise NothingLeftError(f"triangulation: no point survives triangulation.min_triangulation_angle_deg="
+                               f"{config.min_triangulation_angle_deg:g} and max_reprojection_error_deg="
+                               f"{config.max_reprojection_error_deg:g} (of {tracks.num_tracks} tracks)")
     if config.bundle_adjust and final.num_tracks:
         floor = _height_prior(final, R, t, points, model_id, measured, config, check=tracks_kept.num_tracks > 0)
         R, t, points, errors = _bundle(final, bearings, R, t, points, model_id, config, gravity,

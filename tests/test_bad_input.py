@@ -102,7 +102,7 @@ def test_missing_config_file(tmp_path):
 @pytest.mark.parametrize("item,message", [
     ("matches.pairs=seq", "matches.pairs must be one of"),
     ("registration.model=Planar", "registration.model must be one of"),
-    ("densify.ground_sweep=off", r"densify.ground_sweep must be one of \['never', 'no_ceiling', 'always'\], got False"),
+    ("densify.ground_sweep=off", r"densify.ground_sweep must be one of \['never', 'no_ceiling', 'always'\], got 'off'"),  # YAML 1.2: a string
     ("features.working_width=-5", r"features.working_width must be >= 128 or 0 \(native width\)"),
     ("matches.window=0", r"matches.window must be >= 1"),
     ("filter.min_hand_points=5", r"filter.min_hand_points must be >= 8"),

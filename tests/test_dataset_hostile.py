@@ -16,11 +16,10 @@ import cv2
 import numpy as np
 import PIL.Image
 import pytest
-import yaml
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from fullview.io.dataset import Dataset, DatasetError, _jpeg_end
-from fullview.io.yamlio import YamlError, load_yaml
+from fullview.io.yamlio import YamlError, dump_yaml, load_yaml
 
 NAMES = ["a.jpg", "b.jpg"]
 W, H = 64, 32
@@ -190,7 +189,7 @@ def test_duplicate_key_in_poses_is_an_error(ds_root):
 
 
 def test_load_yaml_messages_are_one_line_and_name_where(tmp_path):
-    for text in ["a: 1\na: 2\n", "a: [\n", "a: !!bool maybe\n", "a: 2024-13-45\n", "[" * 3000, "? [1]\n: 2\n",
+    for text in ["a: 1\na: 2\n", "a: [\n", "a: !!bool maybe\n", "a: !!timestamp 2024-13-45\n", "[" * 3000, "? [1]\n: 2\n",
                  "\x00", "a: 1\n---\nb: 2\n"]:
         with pytest.raises(YamlError) as info:
             load_yaml(text, "where.yaml")
@@ -255,7 +254,7 @@ def _camera(image="a.jpg", R=None, center=(0, 0, 0)) -> dict:
 
 
 def _write_poses(root: Path, cameras) -> None:
-    (root / "ground_truth" / "poses.yaml").write_text(yaml.safe_dump({"cameras": cameras}))
+    (root / "ground_truth" / "poses.yaml").write_text(dump_yaml({"cameras": cameras}))
 
 
 @pytest.mark.parametrize("cameras,problem", [
@@ -393,7 +392,7 @@ def _write(path: Path, content) -> None:
     elif isinstance(content, str):
         path.write_text(content, encoding="utf-8")
     else:
-        path.write_text(yaml.safe_dump(content, sort_keys=False), encoding="utf-8")
+        path.write_text(dump_yaml(content, sort_keys=False), encoding="utf-8")
 
 
 def _result_or_error(fn, file_name: str):
@@ -487,9 +486,9 @@ _PLAIN = st.integers() | st.text(max_size=8) | st.booleans() | st.none()
 @given(mapping=st.dictionaries(_KEYS, _PLAIN, min_size=1, max_size=5), data=st.data(), nested=st.booleans())
 def test_yaml_with_a_duplicate_key_always_raises(mapping, data, nested):
     key = data.draw(st.sampled_from(sorted(mapping)))
-    text = yaml.safe_dump(mapping) + yaml.safe_dump({key: data.draw(_PLAIN)})
+    text = dump_yaml(mapping) + dump_yaml({key: data.draw(_PLAIN)})
     if nested:
         text = "outer:\n" + "".join(f"  {line}\n" for line in text.splitlines())
-    assert load_yaml(yaml.safe_dump(mapping), "w") == mapping  # no false alarm without the repeat
+    assert load_yaml(dump_yaml(mapping), "w") == mapping  # no false alarm without the repeat
     with pytest.raises(YamlError, match=r"^w: not valid YAML .*duplicate key"):
         load_yaml(text, "w")
