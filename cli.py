@@ -264,10 +264,11 @@ def cmd_report(args) -> int:
 
 
 def cmd_view(args) -> int:
-    from fullview.commands.view import view
+    from fullview.commands.view import check_port, view
+    check_port(args.port)  # a bad port is one line before anything is read
     pipeline = _pipeline(args)
-    log.info("%s", _freshness(args, pipeline))
-    view(pipeline, pipeline.config, port=args.port, open_browser=not args.no_browser)
+    view(pipeline, pipeline.config, port=args.port, open_browser=not args.no_browser,
+         note=_freshness(args, pipeline))
     return 0
 
 

@@ -15,9 +15,15 @@ log = logging.getLogger(__name__)
 PORTS = range(0, 65536)  # TCP ports; 0 lets the system pick a free one
 
 
-def view(pipeline: Pipeline, config: Config, *, port: int = 0, open_browser: bool = True) -> None:
+def check_port(port: int) -> None:
     if port not in PORTS:
         raise ConfigError(f"--port {port}: a port is 0 (any free one) to 65535")
+
+
+def view(pipeline: Pipeline, config: Config, *, port: int = 0, open_browser: bool = True, note: str = "") -> None:
+    """Serve until Ctrl-C; `note` (the results' freshness) is logged once the port is bound, so a refused start is
+    one line."""
+    check_port(port)
     missing = [p for p in VENDORED if not (VENDOR / p).is_dir()]
     if missing:
         raise ConfigError(f"{VENDOR}: the viewer's JavaScript libraries are missing ({', '.join(missing)}); "
@@ -31,6 +37,8 @@ def view(pipeline: Pipeline, config: Config, *, port: int = 0, open_browser: boo
         if e.errno == errno.EACCES:
             raise ConfigError(f"port {port} needs privileges on this system; pick another with --port") from None
         raise
+    if note:
+        log.info("%s", note)
     # The token in the URL is what lets only this page drive the server: print it, do not log it elsewhere.
     url = page_url(server)
     print(f"fullview viewer of {pipeline.dataset.name}: {url}  (Ctrl-C stops it)", flush=True)

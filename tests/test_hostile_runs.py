@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from fullview.cli import main
+from fullview.io.dataset import Dataset
 from fullview.io.workspace import RUN_LOCK, Workspace
 from fullview.stages import protocol
 
@@ -233,24 +234,26 @@ def test_13_densify_rerun_writes_the_same_bytes_its_summary_without_timings(tiny
 
 
 # ----------------------------------------------------------------- 5. fingerprints of the very inputs that were used
-def _replace_right_after_the_lock(monkeypatch, path: Path, data: bytes) -> list[Path]:
-    """Replace `path` by `data` (atomically, as the picker saves) once, right after the next run takes its lock: the
-    window in which the tester's save made a result fresh for the file it was not computed from."""
+def _replace_right_after_the_read(monkeypatch, path: Path, data: bytes, cls, method: str) -> list[Path]:
+    """Replace `path` by `data` (atomically, as the picker saves) once, right after the run's first `cls.method` call
+    (the read that validates and hashes it) returns: the window in which the tester's save made a result fresh for
+    the file it was not computed from."""
     done: list[Path] = []
-    original = Workspace._clean_leftovers
+    original = getattr(cls, method)
 
-    def then_replace(self):
-        original(self)
+    def then_replace(self, *args, **kwargs):
+        out = original(self, *args, **kwargs)
         if not done:
             tmp = path.with_name(path.name + ".new")
             tmp.write_bytes(data)
             os.replace(tmp, path)
             done.append(path)
-    monkeypatch.setattr(Workspace, "_clean_leftovers", then_replace)
+        return out
+    monkeypatch.setattr(cls, method, then_replace)
     return done
 
 
-def test_5_hand_points_replaced_after_the_lock_never_leave_a_fresh_result_of_the_old_file(
+def test_5_hand_points_replaced_after_they_were_read_never_leave_a_fresh_result_of_the_old_file(
         dataset_copy, tmp_path, tiny_set_args, capsys, monkeypatch):
     import hashlib
 
@@ -261,7 +264,7 @@ def test_5_hand_points_replaced_after_the_lock_never_leave_a_fresh_result_of_the
     points = yaml.safe_load(old)["points"]
     new = yaml.safe_dump({"points": points[: len(points) // 2]}, sort_keys=False).encode()
     ws = tmp_path / "ws"
-    replaced = _replace_right_after_the_lock(monkeypatch, hand, new)
+    replaced = _replace_right_after_the_read(monkeypatch, hand, new, Dataset, "_read_hand_points")
     assert _cli(capsys, "run", dataset_copy, "-w", ws, "--until", "filter", *tiny_set_args)[0] == 0
     assert replaced and hand.read_bytes() == new
     manifest = json.loads((ws / "tiny" / "filter" / "manifest.json").read_text())
@@ -277,18 +280,19 @@ def test_5_hand_points_replaced_after_the_lock_never_leave_a_fresh_result_of_the
     assert manifest["inputs"]["hand_points"]["hand_points.yaml"] == hashlib.sha256(new).hexdigest()
 
 
-def test_5_an_image_replaced_after_the_lock_stops_the_run_naming_it(dataset_copy, tmp_path, tiny_set_args, capsys,
+def test_5_an_image_replaced_after_it_was_hashed_stops_the_run_naming_it(dataset_copy, tmp_path, tiny_set_args, capsys,
                                                                    monkeypatch):
     import cv2
 
     images = sorted((dataset_copy / "images").iterdir())
     flipped = cv2.imencode(images[0].suffix, cv2.imread(str(images[0]))[:, ::-1])[1].tobytes()  # valid, other pixels
     ws = tmp_path / "ws"
-    replaced = _replace_right_after_the_lock(monkeypatch, images[0], flipped)
+    replaced = _replace_right_after_the_read(monkeypatch, images[0], flipped, Dataset, "image_hash")
     code, _, err = _cli(capsys, "run", dataset_copy, "-w", ws, "--until", "features", *tiny_set_args)
     assert replaced
     assert code == 2 and images[0].name in err and "changed while fullview was reading" in err, err
-    assert len(err.strip().splitlines()) == 1
+    lines = [line for line in err.split("\n") if line.strip() and "\r" not in line]  # progress bars redraw with \r
+    assert len(lines) == 1 and lines[0].startswith("fullview: error:") and "Traceback" not in err, err
     assert not (ws / "tiny" / "features" / "manifest.json").exists()  # no result filed under either file's hash
     monkeypatch.undo()
     assert _cli(capsys, "run", dataset_copy, "-w", ws, "--until", "features", *tiny_set_args)[0] == 0
