@@ -288,8 +288,10 @@ def _refined(bl_i, bl_j, hyp: _Hypothesis, threshold: float, max_elev: float) ->
 
 
 def _distinct(a: _Hypothesis, b: _Hypothesis, tolerance: float) -> bool:
-    """Poses further apart than `tolerance` in yaw or in baseline direction."""
-    return bool(abs(np.angle(np.exp(1j * (a.theta - b.theta)))) > tolerance or a.T @ b.T < np.cos(tolerance))
+    """Rotations further apart than `tolerance` in yaw. Not the baseline: with few inliers its direction is
+    uncertain by degrees (a rival that only moves it explains the same matches; registration's direction check,
+    `registration.max_direction_residual_deg`, judges it), while the yaw is what a wrong pose gets wrong."""
+    return bool(abs(np.angle(np.exp(1j * (a.theta - b.theta)))) > tolerance)
 
 
 def _band_candidates(bl_i, bl_j, theta: float, T: np.ndarray, width: float):
@@ -335,7 +337,7 @@ def verify_wide(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, gra
 
     The hypothesis of least NFA wins only if it is also unique: against every distinct hypothesis B, its inliers
     that B does not explain must be meaningful on their own (NFA over the matches outside B's inliers < ε). Two
-    poses several degrees apart that explain the same matches (points near the epipoles of a straight walk) leave
+    rotations several degrees apart that explain the same matches (points near the epipoles of a straight walk) leave
     the yaw undetermined: not verified."""
     L_i, L_j = upright.leveling_rotation(gravity_i), upright.leveling_rotation(gravity_j)
     bl_i, bl_j = normalize(bear_i) @ L_i.T, normalize(bear_j) @ L_j.T
