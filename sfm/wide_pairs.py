@@ -411,24 +411,27 @@ def verify_wide(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, gra
 
 # --------------------------------------------------------------------------------------------- the filter's pass
 def verify_rejected(options, obs, raw, gravity, results, descriptors) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """{pair k: (F, inliers)} of the upright pairs the normal fit rejected (`results`: the filter's per-pair
+    """{pair k: (F, inliers)} ({} unless `options.wide_pairs`) of the upright pairs the normal fit rejected (`results`: the filter's per-pair
     results, read for inliers, seeded, no_baseline and F) that the wide test verifies. obs: per image bearings
     (`Workspace.load_observations`), raw: the raw matches, gravity (N, 3) (NaN: unknown), descriptors(n): image n's
     SIFT descriptors. The NFA's multiplicity is the number of pairs tested, so that `options.wide_false_alarms`
     bounds the wrong pairs expected over the whole dataset."""
     from fullview.sfm.baseline import has_no_baseline
 
+    threshold = math.radians(options.threshold_deg)
+    max_elev = max_elevation(options.wide_height_spread_m, options.wide_min_baseline_m)
+    epsilon, band = options.wide_false_alarms, options.wide_guided_band
+    if not options.wide_pairs:
+        return {}
     tried = [k for k, ((i, j), r) in enumerate(zip(raw.pairs, results))
              if not len(r.inliers) and not r.seeded and not r.no_baseline and len(raw.matches[k]) > SAMPLE + 1
              and np.isfinite(gravity[i]).all() and np.isfinite(gravity[j]).all()]
-    threshold = math.radians(options.threshold_deg)
-    max_elev = max_elevation(options.wide_height_spread_m, options.wide_min_baseline_m)
     found = {}
     for k in tried:
         i, j = raw.pairs[k]
         res = verify_wide(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], gravity[i], gravity[j], threshold,
-                          max_elev=max_elev, epsilon=options.wide_false_alarms, pairs=len(tried),
-                          descriptors=(descriptors(i), descriptors(j)), band=options.wide_guided_band,
+                          max_elev=max_elev, epsilon=epsilon, pairs=len(tried),
+                          descriptors=(descriptors(i), descriptors(j)), band=band,
                           ratio=options.guided_ratio, seeds=(results[k].F,))
         log.info("wide pair %d-%d: %d raw, %d informative, %d of them inliers, NFA %.2g, guided %d/%d NFA %.2g, "
                  "rival NFA %.2g: %s", i, j, len(raw.matches[k]), res.informative, res.informative_inliers, res.nfa,

@@ -72,10 +72,10 @@ def run(ctx: StageContext) -> dict:
     # threads of it used the two cores only 1.4 times, spending a quarter more CPU time on the handovers.
     fan_out = process_map if len(raw.pairs) >= FORK_MIN_PAIRS else thread_map
     results = list(tqdm(fan_out(verify, range(len(raw.pairs))), total=len(raw.pairs), desc="filter", unit="pair"))
-    if options.wide_pairs:  # upright pairs the fit rejected, tested by their chance of fitting (sfm/wide_pairs.py)
-        load = lambda n: ctx.ws.load_descriptors(ctx.dataset.image_names[n])  # noqa: E731
-        for k, (F, good) in wide_pairs.verify_rejected(options, obs, raw, gravity, results, load).items():
-            results[k] = replace(results[k], F=F, inliers=good, weak=len(good) < options.min_inliers, wide=True)
+    # upright pairs the fit rejected, tested by their chance of fitting (filter.wide_pairs, sfm/wide_pairs.py)
+    load = lambda n: ctx.ws.load_descriptors(ctx.dataset.image_names[n])  # noqa: E731
+    for k, (F, good) in wide_pairs.verify_rejected(options, obs, raw, gravity, results, load).items():
+        results[k] = replace(results[k], F=F, inliers=good, weak=len(good) < options.min_inliers, wide=True)
     for (i, j), r in zip(raw.pairs, results):
         if r.no_baseline:
             log.warning("pair %s-%s has no baseline (a rotation explains its matches); skipped",
