@@ -23,7 +23,9 @@ contrario elimination of outliers", IPOL 2012) under the physically constrained 
    latitude circle in image j within the threshold of its epipolar circle (`chance_per_match`): the null keeps each
    bearing's latitude (SIFT features cluster on the horizon and the poles) and draws its longitude in j uniformly.
    The 3 inliers left out of the tail are those with the smallest p_m (the most telling: conservative). K is a sum
-   of independent Bernoulli(p_m): `tail_at_least` is its exact Poisson-binomial tail. Accepted when NFA < ε.
+   of independent Bernoulli(p_m): `tail_at_least` is its exact Poisson-binomial tail. Accepted when NFA < ε and the
+   pose is unique: against every hypothesis whose yaw differs by more than a coarse cell, the inliers it does not
+   explain are meaningful on their own (`verify_wide`).
 5. Guided evidence (`guided_nfa`): for the best hypotheses, every informative feature of i is matched again among
    the informative features of j within `band` thresholds of its epipolar circle and in front of both cameras, by
    the ratio test among those candidates only. Those matches are biased towards the hypothesis — they lie in the
@@ -31,6 +33,8 @@ contrario elimination of outliers", IPOL 2012) under the physically constrained 
    candidates is unrelated to its exact distance from the circle, so it falls within one threshold with probability
    q = sin(t) / sin(band·t) ≈ 1/band. Guided NFA = pairs tried × hypotheses rematched × P(Binomial(n_g, q) ≥ k_g),
    over guided matches whose feature in i had no raw match (independent of the evidence that chose the hypothesis).
+   Reported, not used to accept: it tells that a pair overlaps, not that the pose is right (a pose 4.3° off on a
+   real pair scored 2.7e-12).
 6. Once accepted, the pose is refined on the informative inliers and guided inliers, and the pair's inliers are the
    raw matches within the threshold plus the features matched again along its epipolar circles (the ratio test
    among candidates within one threshold) — all in front of both cameras.
@@ -411,8 +415,9 @@ def verify_wide(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, gra
 
 # --------------------------------------------------------------------------------------------- the filter's pass
 def verify_rejected(options, obs, raw, gravity, results, descriptors) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """{pair k: (F, inliers)} ({} unless `options.wide_pairs`) of the upright pairs the normal fit rejected (`results`: the filter's per-pair
-    results, read for inliers, seeded, no_baseline and F) that the wide test verifies. obs: per image bearings
+    """{pair k: (F, inliers)} ({} unless `options.wide_pairs`) of the upright pairs the normal fit rejected
+    (`results`: the filter's per-pair results, read for inliers, seeded, no_baseline and F) that the wide test
+    verifies. obs: per image bearings
     (`Workspace.load_observations`), raw: the raw matches, gravity (N, 3) (NaN: unknown), descriptors(n): image n's
     SIFT descriptors. The NFA's multiplicity is the number of pairs tested, so that `options.wide_false_alarms`
     bounds the wrong pairs expected over the whole dataset."""
