@@ -291,6 +291,18 @@ def _refined(bl_i, bl_j, hyp: _Hypothesis, threshold: float, max_elev: float) ->
     return _Hypothesis(theta=theta, T=T, count=int(((err <= threshold) & front).sum()))
 
 
+def _walls_agree(h: _Hypothesis, walls, L_i: np.ndarray, L_j: np.ndarray) -> bool:
+    """Whether the hypothesis' rotation carries i's wall axis onto j's modulo 90° within the walls' tolerance (False
+    without walls)."""
+    if walls is None:
+        return False
+    from fullview.sfm import wall_check
+
+    axis_i, axis_j, gravity_j, tolerance = walls
+    R = upright.unlevel_rotation(yaw_rotation(h.theta), L_i, L_j)
+    return abs(wall_check.wall_residual_deg(R, axis_i, axis_j, gravity_j)) <= tolerance
+
+
 def _distinct(a: _Hypothesis, b: _Hypothesis, tolerance: float) -> bool:
     """Rotations further apart than `tolerance` in yaw. Not the baseline: with few inliers its direction is
     uncertain by degrees (a rival that only moves it explains the same matches; registration's direction check,
@@ -332,17 +344,20 @@ def guided_matches(desc_i, desc_j, bl_i, bl_j, theta: float, T: np.ndarray, widt
 def verify_wide(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, gravity_i: np.ndarray,
                 gravity_j: np.ndarray, threshold: float, *, max_elev: float, epsilon: float, pairs: int = 1,
                 descriptors=None, band: float = 3.0, ratio: float = 0.9, keep: int = 3,
-                seeds: tuple[np.ndarray, ...] = ()) -> WideResult:
+                seeds: tuple[np.ndarray, ...] = (), walls=None) -> WideResult:
     """The a-contrario verification of one upright pair (module docstring). bear_*: (N, 3) bearings of the
     features (SIFT first; descriptors, when given, (desc_i, desc_j) of the SIFT features), matches (M, 2) raw
     matches, gravity_* the images' gravity (camera frame), threshold in radians, pairs: pairs this test is run on in
     the dataset (the NFA's multiplicity), seeds: F of the original bearings to try beside the scan (the normal
-    filter's fit).
+    filter's fit), walls: (axis_i, axis_j, gravity_j, tolerance_deg) of the images' Manhattan frames
+    (`wall_check.wall_residual_deg`) or None.
 
     The hypothesis of least NFA wins only if it is also unique: against every distinct hypothesis B, its inliers
     that B does not explain must be meaningful on their own (NFA over the matches outside B's inliers < ε). Two
     rotations several degrees apart that explain the same matches (points near the epipoles of a straight walk) leave
-    the yaw undetermined: not verified."""
+    the yaw undetermined: not verified. The walls, where both images have an axis, are evidence independent of the
+    matches: among the meaningful hypotheses one whose yaw agrees with them (modulo 90°) is preferred, and rivals
+    whose yaw they contradict are not rivals of one they agree with."""
     L_i, L_j = upright.leveling_rotation(gravity_i), upright.leveling_rotation(gravity_j)
     bl_i, bl_j = normalize(bear_i) @ L_i.T, normalize(bear_j) @ L_j.T
     empty = np.zeros((0, 2), np.int64)
@@ -369,11 +384,14 @@ def verify_wide(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, gra
         fit = (err <= threshold) & front
         p = chance_per_match(A_i, A_j, h.theta, h.T, threshold)
         scored.append((nfa(p, fit, pairs), h, fit, p))
-    scored.sort(key=lambda s: s[0])
+    agrees = [_walls_agree(h, walls, L_i, L_j) for _, h, _, _ in scored]
+    # the least NFA, among the meaningful hypotheses the walls agree with when there are such
+    order = sorted(range(len(scored)), key=lambda k: (not (agrees[k] and scored[k][0] < epsilon), scored[k][0]))
+    scored, agrees = [scored[k] for k in order], [agrees[k] for k in order]
     best_nfa, best, fit, p = scored[0]
-    # uniqueness: the best's evidence beyond each distinct rival's inliers
-    unique_nfa = max([nfa(p[~f], fit[~f], pairs) for _, h, f, _ in scored[1:]
-                      if _distinct(h, best, COARSE_STEPS * threshold)], default=0.0)
+    # uniqueness: the best's evidence beyond each distinct rival's inliers (rivals the walls rule out do not count)
+    unique_nfa = max([nfa(p[~f], fit[~f], pairs) for (_, h, f, _), ok in zip(scored[1:], agrees[1:])
+                      if _distinct(h, best, COARSE_STEPS * threshold) and (ok or not agrees[0])], default=0.0)
     g_n = g_k = 0
     g_nfa = float("inf")
     guided = empty
@@ -414,12 +432,14 @@ def verify_wide(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, gra
 
 
 # --------------------------------------------------------------------------------------------- the filter's pass
-def verify_rejected(options, obs, raw, gravity, results, descriptors) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+def verify_rejected(options, obs, raw, gravity, results, descriptors, frames=None
+                    ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """{pair k: (F, inliers)} ({} unless `options.wide_pairs`) of the upright pairs the normal fit rejected
     (`results`: the filter's per-pair results, read for inliers, seeded, no_baseline and F) that the wide test
     verifies. obs: per image bearings
     (`Workspace.load_observations`), raw: the raw matches, gravity (N, 3) (NaN: unknown), descriptors(n): image n's
-    SIFT descriptors. The NFA's multiplicity is the number of pairs tested, so that `options.wide_false_alarms`
+    SIFT descriptors, frames: the images' Manhattan frames (the filter's `_gravity`: axis, its error, the gravity
+    refitted with it; NaN where unknown) or None. The NFA's multiplicity is the number of pairs tested, so that `options.wide_false_alarms`
     bounds the wrong pairs expected over the whole dataset."""
     from fullview.sfm.baseline import has_no_baseline
 
@@ -434,10 +454,15 @@ def verify_rejected(options, obs, raw, gravity, results, descriptors) -> dict[in
     found = {}
     for k in tried:
         i, j = raw.pairs[k]
+        walls = None
+        if frames is not None and np.isfinite(frames[0][i]).all() and np.isfinite(frames[0][j]).all():
+            from fullview.sfm import wall_check
+
+            walls = (frames[0][i], frames[0][j], frames[2][j], wall_check.tolerance_deg(frames[1][i], frames[1][j]))
         res = verify_wide(obs[i]["bearings"], obs[j]["bearings"], raw.matches[k], gravity[i], gravity[j], threshold,
                           max_elev=max_elev, epsilon=epsilon, pairs=len(tried),
                           descriptors=(descriptors(i), descriptors(j)), band=band,
-                          ratio=options.guided_ratio, seeds=(results[k].F,))
+                          ratio=options.guided_ratio, seeds=(results[k].F,), walls=walls)
         log.info("wide pair %d-%d: %d raw, %d informative, %d of them inliers, NFA %.2g, guided %d/%d NFA %.2g, "
                  "rival NFA %.2g: %s", i, j, len(raw.matches[k]), res.informative, res.informative_inliers, res.nfa,
                  res.guided_hits, res.guided, res.guided_nfa, res.unique_nfa,

@@ -74,7 +74,7 @@ def run(ctx: StageContext) -> dict:
     results = list(tqdm(fan_out(verify, range(len(raw.pairs))), total=len(raw.pairs), desc="filter", unit="pair"))
     # upright pairs the fit rejected, tested by their chance of fitting (filter.wide_pairs, sfm/wide_pairs.py)
     load = lambda n: ctx.ws.load_descriptors(ctx.dataset.image_names[n])  # noqa: E731
-    for k, (F, good) in wide_pairs.verify_rejected(options, obs, raw, gravity, results, load).items():
+    for k, (F, good) in wide_pairs.verify_rejected(options, obs, raw, gravity, results, load, frames).items():
         results[k] = replace(results[k], F=F, inliers=good, weak=len(good) < options.min_inliers, wide=True)
     for (i, j), r in zip(raw.pairs, results):
         if r.no_baseline:
