@@ -395,7 +395,7 @@ def verify_wide(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, gra
     g_n = g_k = 0
     g_nfa = float("inf")
     guided = empty
-    if descriptors is not None:
+    if descriptors is not None and best_nfa < epsilon:  # (only logged: not computed for a pair chance explains)
         desc_i, desc_j = descriptors
         rows_ok = informative(bl_i[:len(desc_i)], width)
         rows_ok[matches[matches[:, 0] < len(desc_i), 0]] = False  # features with a raw match: not new evidence
@@ -421,7 +421,8 @@ def verify_wide(bear_i: np.ndarray, bear_j: np.ndarray, matches: np.ndarray, gra
         guided = guided_matches(desc_i, desc_j, bl_i, bl_j, theta, T, band * threshold, ratio)
         pool = np.concatenate([matches, guided])
         refined = _refined(bl_i[pool[:, 0]], bl_j[pool[:, 1]], best, threshold, max_elev)
-        theta, T = refined.theta, refined.T
+        if not _distinct(refined, best, COARSE_STEPS * threshold):  # the guided matches refine, never move, the pose
+            theta, T = refined.theta, refined.T
     pool = np.concatenate([matches, guided]) if len(guided) else matches
     err, front = errors_and_front(bl_i[pool[:, 0]], bl_j[pool[:, 1]], theta, T)
     pool = np.unique(pool[(err <= threshold) & front], axis=0)
