@@ -125,6 +125,16 @@ class FilterOptions:
     upright: str = setting("vanishing", "levelled panoramas: yaw-only relative rotations, 3-point solver. level: gravity is "
                            "each image's down axis; vanishing: gravity from vertical lines (none where none found)",
                            choices=("none", "level", "vanishing"))
+    wide_pairs: bool = setting(False, "upright pairs the fit rejected are tested again by the chance of a wrong pair "
+                               "fitting as well: an a-contrario test with guided rematching (docs/wide-baselines.md)")
+    wide_false_alarms: float = setting(1e-3, "wrong pairs the wide test may accept by chance, expected over a "
+                                       "dataset (its bound on the number of false alarms)", gt=0.0, lt=1.0)
+    wide_height_spread_m: float = setting(0.1, "the cameras of a tour are at one height to within this (m): with "
+                                          "wide_min_baseline_m it bounds the baseline's elevation", ge=0.0, le=10.0)
+    wide_min_baseline_m: float = setting(2.0, "the shortest baseline the wide test serves (m): closer pairs share "
+                                         "enough matches for the normal fit", gt=0.0, le=1000.0)
+    wide_guided_band: float = setting(3.0, "the wide test rematches features within this many thresholds of a "
+                                      "hypothesis' epipolar circles", gt=1.0, le=100.0)
     RULES: ClassVar[list[Rule]] = []
 
 

@@ -15,7 +15,7 @@ from functools import lru_cache, partial
 import numpy as np
 from tqdm import tqdm
 
-from fullview.sfm import manhattan, two_view, upright, wall_check
+from fullview.sfm import manhattan, two_view, upright, wall_check, wide_pairs
 from fullview.sfm.baseline import has_no_baseline
 from fullview.sfm.matching import epipolar_candidates, match_descriptors
 from fullview.sfm.options import FilterOptions, MatchesOptions
@@ -47,6 +47,7 @@ class _PairResult:
     early_rejected: bool  # too few matches to try
     guided_added: int | None  # matches guided matching added (None: not run)
     wall_fitted: bool = False  # its fit contradicted the images' walls and the pose they allow explained as much
+    wide: bool = False  # verified by the wide-baseline test (filter.wide_pairs)
 
 
 def run(ctx: StageContext) -> dict:
@@ -71,6 +72,10 @@ def run(ctx: StageContext) -> dict:
     # threads of it used the two cores only 1.4 times, spending a quarter more CPU time on the handovers.
     fan_out = process_map if len(raw.pairs) >= FORK_MIN_PAIRS else thread_map
     results = list(tqdm(fan_out(verify, range(len(raw.pairs))), total=len(raw.pairs), desc="filter", unit="pair"))
+    # upright pairs the fit rejected, tested by their chance of fitting (filter.wide_pairs, sfm/wide_pairs.py)
+    load = lambda n: ctx.ws.load_descriptors(ctx.dataset.image_names[n])  # noqa: E731
+    for k, (F, good) in wide_pairs.verify_rejected(options, obs, raw, gravity, results, load, frames).items():
+        results[k] = replace(results[k], F=F, inliers=good, weak=len(good) < options.min_inliers, wide=True)
     for (i, j), r in zip(raw.pairs, results):
         if r.no_baseline:
             log.warning("pair %s-%s has no baseline (a rotation explains its matches); skipped",
@@ -100,7 +105,8 @@ def run(ctx: StageContext) -> dict:
             "guided_matches_added": int(sum(r.guided_added or 0 for r in results)),
             "early_rejected_pairs": int(sum(r.early_rejected for r in results)),
             "wall_fitted_pairs": [[names[i], names[j]] for (i, j), r in zip(raw.pairs, results) if r.wall_fitted],
-            "upright_images": int(np.isfinite(gravity).all(axis=1).sum())}
+            "upright_images": int(np.isfinite(gravity).all(axis=1).sum()),
+            "wide_verified_pairs": [[names[i], names[j]] for (i, j), r in zip(raw.pairs, results) if r.wide]}
 
 
 def _filter_pair(ctx: StageContext, options: FilterOptions, obs, num_sift, raw, gravity, descriptors,
