@@ -83,9 +83,12 @@ class SceneData:
         reg = registered.nonzero()[0]
         R_display = display_rotation(R[reg], centers[reg])
         geometry = _tour_geometry(self.ws.root, self.generation(), self, R_display.tobytes())
+        labels, problem = self.tour_names()  # read on every request: tour.yaml is the user's, edited any time
         for cam, extra in zip(cams, geometry["cameras"]):
-            cam.update(extra)
-        return {"poses_from": source, "cameras": cams, "tour": geometry["model"],
+            cam.update(extra, label=labels.get(cam["name"], cam["name"]),
+                       hotspots=[{**h, "label": labels.get(h["name"], h["name"])} for h in extra["hotspots"]],
+                       left_out=[{**h, "label": labels.get(h["name"], h["name"])} for h in extra["left_out"]])
+        return {"poses_from": source, "cameras": cams, "tour": {**geometry["model"], "names_problem": problem},
                 "unregistered": [n for n, ok in zip(names, registered) if not ok],
                 "unregistered_reasons": ((self.ws.read_manifest("registration") or {}).get("summary") or {})
                 .get("unregistered_reasons", {}),
@@ -261,7 +264,7 @@ def _cloud_order(root, kind: str, generation: str, scene: SceneData) -> tuple[np
 
 @lru_cache(maxsize=2)
 def _tour_geometry(root, generation: str, scene: SceneData, R_display_bytes: bytes) -> dict:
-    """Per camera (in pose order): its tour name, verdict, whether it is walked, its floor and ceiling (distance
+    """Per camera (in pose order): its verdict, whether it is walked, its floor and ceiling (distance
     below / above the centre, with what gave them) and its hotspots (see `_hotspots`); for the model: the robust
     bounds of the cloud in the display frame, the floor and ceiling heights there and the readable point budget."""
     ws = scene.ws
@@ -271,16 +274,17 @@ def _tour_geometry(root, generation: str, scene: SceneData, R_display_bytes: byt
         names = [str(n) for n in poses["image_names"]]
         registered = poses["registered"].astype(bool)
         R, centers = poses["R_cam_from_world"], poses["centers"]
-        labels, problem = scene.tour_names()
         verdicts = scene.verdicts(names)
         depths = {n: ws.load_depth(n) for n, ok in zip(names, registered) if ok}
-        kind = "dense" if ws.load_dense_cloud() is not None else "sparse"
     clouds = []
     for k in ("dense", "sparse"):
         try:
-            clouds.append((k, scene.load_cloud(k)[0].astype(np.float32)))
+            points = scene.load_cloud(k)[0].astype(np.float32)
         except ArtifactError:
-            pass
+            continue
+        if len(points):
+            clouds.append((k, points))
+    kind = clouds[0][0] if clouds else "sparse"
     observed = _observed_points(ws, len(names))
     up = camera_up(R[registered]) if registered.any() else np.array([0.0, -1.0, 0.0])
     floor, ceiling = _vertical(names, R, centers, registered, depths, clouds, up)
@@ -289,18 +293,18 @@ def _tour_geometry(root, generation: str, scene: SceneData, R_display_bytes: byt
     drops = [d for d, _ in floor if d is not None]
     radius = tour.HOTSPOT_RADIUS * float(np.median(drops)) if drops else None
     links = scene._links(len(names))
-    seen = {k: dict(zip([j for j in np.flatnonzero(walked) if j != k],
-                        tour.visibility(centers[k], R[k], centers[[j for j in np.flatnonzero(walked) if j != k]],
-                                        depths.get(names[k]), clouds, observed[k], tolerance)))
-            for k in np.flatnonzero(walked)}
+    seen = {}  # k -> j -> visibility of j from k
+    for k in np.flatnonzero(walked):
+        others = [j for j in np.flatnonzero(walked) if j != k]
+        seen[k] = dict(zip(others, tour.visibility(centers[k], R[k], centers[others], depths.get(names[k]), clouds,
+                                                   observed[k], tolerance)))
     cameras = []
     for k, name in enumerate(names):
-        cam = {"label": labels.get(name, str(k + 1)), "verdict": verdicts[name] if registered[k] else None,
+        cam = {"verdict": verdicts[name] if registered[k] else None,
                "walked": bool(walked[k]), "floor_drop": floor[k][0], "floor_from": floor[k][1],
                "ceiling_rise": ceiling[k][0], "ceiling_from": ceiling[k][1], "hotspots": [], "left_out": []}
         if walked[k]:
-            cam["hotspots"], cam["left_out"] = _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names,
-                                                         labels)
+            cam["hotspots"], cam["left_out"] = _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names)
         cameras.append(cam)
     points = dict(clouds).get(kind, np.zeros((0, 3)))
     bounds = tour.robust_bounds(points @ R_display.T) if len(points) else None
@@ -313,7 +317,7 @@ def _tour_geometry(root, generation: str, scene: SceneData, R_display_bytes: byt
              "floor": float(np.median(floors)) if floors else None,
              "ceiling": float(np.median(ceilings)) if ceilings else None,
              "readable_points": _cloud_order(root, kind, generation, scene)[1] if len(points) else 0,
-             "cloud": kind, "names_problem": problem,
+             "cloud": kind,
              "left_apart": [n for n, ok, w in zip(names, registered, walked) if ok and not w]}
     return {"cameras": cameras, "model": model}
 
@@ -358,7 +362,7 @@ def _observed_points(ws, n: int) -> list[np.ndarray]:
     return [points[np.unique(tracks[images == k])] for k in range(n)]
 
 
-def _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names, labels):
+def _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names):
     """Camera k's hotspots: every walked camera the geometry shows visible (`tour.visibility` of the segment
     between the centres from both ends, `tour.mutual`; where nothing says, a verified pair between them counts), placed on the floor below it
     (at its floor drop; at its centre without one), laid out by `tour.place_hotspots`. Left out: the ones behind a
@@ -369,19 +373,19 @@ def _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names, labe
         if visible is None and links[k, j] > 0:
             visible, evidence = True, "no geometry along the way; a verified pair"
         if not visible:
-            left.append({"name": names[j], "label": labels[names[j]],
+            left.append({"name": names[j],
                          "reason": f"not seen: {evidence}" if visible is False else
                          "not seen: no depth, point or verified pair says it is"})
             continue
         spot = centers[j] - (floor[j][0] or 0.0) * up
         rel = R[k] @ (spot - centers[k])
-        candidates.append({"name": names[j], "label": labels[names[j]], "bearing": rel / np.linalg.norm(rel),
+        candidates.append({"name": names[j], "bearing": rel / np.linalg.norm(rel),
                            "distance": float(np.linalg.norm(rel)), "evidence": evidence,
                            "walk_distance": float(np.linalg.norm(centers[j] - centers[k]))})
     r = radius if radius else 0.1 * min([c["walk_distance"] for c in candidates] or [1.0])
     placed, behind = tour.place_hotspots(candidates, r)
     for b in behind:
-        left.append({"name": b["name"], "label": labels[b["name"]], "reason": f"behind the hotspot of {b['behind']}"})
+        left.append({"name": b["name"], "reason": f"behind the hotspot of {b['behind']}"})
     return [{key: v for key, v in p.items() if key != "bearing"} for p in placed], left
 
 
