@@ -205,6 +205,8 @@ function boxCorners(box) {
   return out;
 }
 // Where the bounds' corners project in the 3-D view (NDC; tests check they are all in view).
+hooks.sceneCamera = () => scene3d.camera.position.toArray();
+hooks.state = () => state;
 hooks.sceneFraming = () => boxCorners(scene3d.bounds).map((c) => c.clone().project(scene3d.camera))
   .map((p) => [p.x, p.y, p.z]);
 
@@ -358,6 +360,7 @@ function initTour() {
     plugins: [[MarkersPlugin, { defaultHoverScale: null }]], defaultZoomLvl: 0 });
   markers = tour.getPlugin(MarkersPlugin);
   markers.addEventListener('select-marker', ({ marker }) => moveTo(marker.data.target));
+  tour.addEventListener('panorama-loaded', () => { hooks.loadedAt = performance.now(); });
 }
 
 function tourHint(text) {
@@ -438,7 +441,9 @@ async function moveTo(target) {
   const world = mulT(from.R_cam_from_world, fromYawPitch(tour.getPosition()));
   const start = performance.now();
   await openTour(target, yawPitch(mul(to.R_cam_from_world, world)), true);
-  (hooks.transitions = hooks.transitions || []).push({ from: from.name, to: target, ms: performance.now() - start });
+  const end = performance.now();  // ms: click to done (loading the next panorama, then the fade); fade_ms: the fade
+  (hooks.transitions = hooks.transitions || []).push({ from: from.name, to: target, ms: end - start,
+    fade_ms: end - Math.max(start, hooks.loadedAt || start) });
 }
 // Boxes of the hotspots on screen (tests check that none overlap).
 hooks.hotspotBoxes = () => [...document.querySelectorAll('.psv-marker--visible .hotspot')].map((el) => {
