@@ -93,9 +93,17 @@ class SceneData:
                 "unregistered_reasons": ((self.ws.read_manifest("registration") or {}).get("summary") or {})
                 .get("unregistered_reasons", {}),
                 "R_display_from_world": R_display.tolist(),
-                "has_sparse": source == "triangulation", "has_dense": stages["densify"]["state"] == "fresh",
-                "has_mesh": stages["densify"]["state"] == "fresh" and self.ws.path("dense_mesh").exists(),
+                "has_sparse": source == "triangulation",
+                "has_dense": self.dense_matches_poses() and self.ws.path("dense_cloud").exists(),
+                "has_mesh": self.dense_matches_poses() and self.ws.path("dense_mesh").exists(),
                 "pairs": self._pairs(names)}
+
+    def dense_matches_poses(self) -> bool:
+        """Whether densify's output was made from the poses on disk (its upstream triangulation is the one there):
+        then it is shown even when stale for another reason (a code or setting change; the page says results may
+        be outdated), never when it belongs to other poses."""
+        dense, tri = self.ws.read_manifest("densify"), self.ws.read_manifest("triangulation")
+        return bool(dense and tri and dense.get("upstream", {}).get("triangulation") == tri.get("fingerprint"))
 
     def _links(self, n: int) -> np.ndarray:
         """(N, N) verified inliers between images (0 = no verified pair)."""
@@ -275,9 +283,10 @@ def _tour_geometry(root, generation: str, scene: SceneData, R_display_bytes: byt
         registered = poses["registered"].astype(bool)
         R, centers = poses["R_cam_from_world"], poses["centers"]
         verdicts = scene.verdicts(names)
-        depths = {n: ws.load_depth(n) for n, ok in zip(names, registered) if ok}
+        dense_ok = scene.dense_matches_poses()  # depth and dense cloud of other poses are not used
+        depths = {n: ws.load_depth(n) for n, ok in zip(names, registered) if ok and dense_ok}
     clouds = []
-    for k in ("dense", "sparse"):
+    for k in ("dense", "sparse") if dense_ok else ("sparse",):
         try:
             points = scene.load_cloud(k)[0].astype(np.float32)
         except ArtifactError:

@@ -23,6 +23,7 @@ POINTS_IN_CONE = 3  # ... without depth there, this many points in a cone as wid
 HOTSPOT_RADIUS = 0.15  # a hotspot is a floor disc of this share of the median camera height (0.22 m at 1.5 m)
 MIN_RADIUS_DEG = 2.0  # never smaller than this angle (a 1000-px high view at 90° shows it 25 px wide)
 MAX_RADIUS_DEG = 12.0  # never larger than this (a neighbour right next to the camera)
+SHRINK_LIMIT = 0.5  # a hotspot crowded by nearer ones is shrunk to no less than this share of its size by distance
 GAP = 1.02  # two hotspots' discs keep this factor of their radii apart (rounding of the page's pixels)
 BOUNDS_PERCENTILES = (2.0, 98.0)  # the 3-D view's bounds: these percentiles of the points per axis
 READABLE_CELLS = 128  # the point budget never drops below one point per occupied cell of (bounds extent / this)
@@ -136,13 +137,15 @@ def place_hotspots(candidates: list[dict], radius_world: float) -> tuple[list[di
     """Hotspots from the visible candidates ({"name", "bearing" (unit, camera frame, towards the floor point),
     "distance" (to the floor point)}): nearest first, each a disc of angular radius atan(radius_world / distance)
     clamped to [MIN_RADIUS_DEG, MAX_RADIUS_DEG], shrunk to clear the nearer ones already placed; one that cannot
-    clear them at MIN_RADIUS_DEG is left out, named with the nearer hotspot in its way (you walk there first).
+    clear them at SHRINK_LIMIT of its size (nor at MIN_RADIUS_DEG) is left out, named with the nearer hotspot in its
+    way (you walk there first): sizes keep saying distance.
     Returns (hotspots with "radius" in radians, left out with "behind")."""
     lo, hi = np.radians(MIN_RADIUS_DEG), np.radians(MAX_RADIUS_DEG)
     placed: list[dict] = []
     left: list[dict] = []
     for c in sorted(candidates, key=lambda c: c["distance"]):
         radius = float(np.clip(np.arctan2(radius_world, c["distance"]), lo, hi))
+        smallest = max(lo, SHRINK_LIMIT * radius)
         blocker = None
         for p in placed:
             sep = float(np.arccos(np.clip(np.dot(p["bearing"], c["bearing"]), -1, 1)))
@@ -150,7 +153,7 @@ def place_hotspots(candidates: list[dict], radius_world: float) -> tuple[list[di
             if room < radius:
                 radius = room
                 blocker = p
-        if radius < lo:
+        if radius < smallest:
             left.append({"name": c["name"], "behind": blocker["name"]})
             continue
         lon, lat = bearings_to_lonlat(np.asarray(c["bearing"]))

@@ -151,7 +151,9 @@ function buildScene(model) {
   scene3d.bounds = box;
   const size = box.getSize(new THREE.Vector3());
   const extent = Math.max(1e-6, size.length());
-  const radius = 0.012 * extent;
+  const spacing = display.map((p, i) => Math.min(...display.filter((_, j) => j !== i).map((q) => p.distanceTo(q))))
+    .sort((a, b) => a - b)[Math.floor(display.length / 2)];  // median distance to the nearest other camera
+  const radius = Math.min(0.012 * extent, 0.25 * (spacing || extent));
   scene3d.cameraMeshes = [];
   for (const cam of registered) {
     const sphere = new THREE.Mesh(new THREE.SphereGeometry(radius, 16, 12),
