@@ -264,23 +264,19 @@ def test_the_tour_tab_opened_directly_shows_a_panorama(browser, server, state, t
 
 def test_the_tour_tab_clicked_before_anything_loaded_gives_a_hint_then_a_panorama(browser, server):
     page = browser.new_page(viewport=VIEWPORT)
-    release = threading.Event()
-
-    def slow_state(route):
-        release.wait(20)
-        route.continue_()
-
-    page.route("**/api/state", slow_state)
+    held = []
+    page.route("**/api/state", lambda route: held.append(route))  # answered only when the test says so
     try:
         page.goto(server)
+        page.wait_for_function("() => window.fullview !== undefined")
         page.click("button[data-tab=tour]")
         assert page.is_visible("#tour-hint") and "loading" in page.inner_text("#tour-hint")
-        release.set()
+        assert held and page.evaluate("window.fullview.tour") is None
+        page.unroute("**/api/state")  # lets the held request through
         page.wait_for_function("() => window.fullview.tour && window.fullview.tour.ready", timeout=120000)
         assert not page.is_visible("#tour-hint") and page.is_visible("#tour")
         assert page.url.endswith("#tour")
     finally:
-        release.set()
         page.close()
 
 
