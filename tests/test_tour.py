@@ -11,7 +11,7 @@ import itertools
 import json
 import shutil
 import threading
-import time
+import urllib.error
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +22,7 @@ from fullview import synth
 from fullview.io.config import load_config
 from fullview.io.dataset import Dataset
 from fullview.io.workspace import Workspace
+from fullview.sfm.camera import pixels_to_bearings
 from fullview.stages.runner import Pipeline
 from fullview.synth import write_synthetic_dataset
 from fullview.viewer import tour
@@ -224,6 +225,52 @@ def test_room_names_come_from_tour_yaml_as_text(home, tmp_path):
     model = SceneData(moved).state()["model"]
     assert "unknown image 'nope.png'" in model["tour"]["names_problem"]
     assert model["cameras"][1]["label"] == "2"
+
+
+def test_a_distance_measured_from_the_depth_agrees_with_the_truth_within_its_stated_error(home, server):
+    pipeline = home[0]
+    centres, R_world_from_cam, _, _ = _gt(pipeline)
+    poses, _ = pipeline.ws.load_poses()
+    names = [str(n) for n in poses["image_names"]]
+    gt_c = np.array([centres[n] for n in names])
+    i, j = np.triu_indices(len(names), 1)  # the model's scale, from the true camera centres (the viewer has none)
+    model = poses["centers"]
+    scale = np.median(np.linalg.norm(gt_c[i] - gt_c[j], axis=1) / np.linalg.norm(model[i] - model[j], axis=1))
+    name = names[0]
+    truth_range = np.load(pipeline.dataset.root / "ground_truth" / "depth" / f"{Path(name).stem}.npy")
+    H, W = truth_range.shape
+    valid = pipeline.ws.load_depth(name)["valid"]
+    assert valid.shape == truth_range.shape  # densify at the panoramas' width: pixels are the same
+    ys, xs = np.nonzero(valid[5:-5, 5:-5])
+    ys, xs = ys + 5, xs + 5
+    smooth = np.array([truth_range[y - 2:y + 3, x - 2:x + 3].std() < 0.02 * truth_range[y, x] for y, x in zip(ys, xs)])
+    ys, xs = ys[smooth], xs[smooth]  # not across an edge of the true scene
+    rng = np.random.default_rng(0)
+    z = []
+    for _ in range(15):
+        a, b = rng.choice(len(ys), 2, replace=False)
+        pa, pb = (xs[a] + 0.5, ys[a] + 0.5), (xs[b] + 0.5, ys[b] + 0.5)
+        m = call(server, f"api/measure?image={name}&a={pa[0]},{pa[1]}&b={pb[0]},{pb[1]}")
+        truth = [centres[name] + R_world_from_cam[name] @ (
+            pixels_to_bearings(np.array([p], float), W, H)[0] * truth_range[int(p[1]), int(p[0])]) for p in (pa, pb)]
+        true_d = np.linalg.norm(truth[0] - truth[1])
+        z.append((m["distance"] * scale - true_d) / (m["sigma"] * scale))
+        assert m["units"] == "model units" and m["sigma"] > 0
+    assert np.all(np.abs(z) < 3), z  # the stated standard error covers the true error
+
+
+def test_a_measurement_without_depth_is_refused_with_the_reason(home, server):
+    pipeline = home[0]
+    name = pipeline.dataset.image_names[0]
+    valid = pipeline.ws.load_depth(name)["valid"]
+    H, W = valid.shape
+    free = np.ones_like(valid)
+    for dy, dx in itertools.product(range(-2, 3), repeat=2):  # no valid depth within the 5x5 window
+        free &= ~np.roll(np.roll(valid, dy, 0), dx, 1)
+    y, x = np.argwhere(free[3:-3])[0] + [3, 0]
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        call(server, f"api/measure?image={name}&a={x + 0.5},{y + 0.5}&b=10,100")
+    assert refused.value.code == 409 and "no depth at point A" in json.loads(refused.value.read())["error"]
 
 
 # ------------------------------------------------------------------------------------------------ in the browser

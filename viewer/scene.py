@@ -155,6 +155,42 @@ class SceneData:
         placements = report.get("placements") if isinstance(report.get("placements"), dict) else {}
         return {n: str((placements.get(n) or {}).get("verdict", "verified")) for n in names}
 
+    def measure(self, name: str, a: tuple[float, float], b: tuple[float, float]) -> dict:
+        """Distance between two pixels (full size) of a panorama, from its depth map, with its standard error; in
+        model units (no metric scale is known to the viewer). A RequestError names why it cannot be measured."""
+        name = self.image(name)
+        W, H = self.dataset.image_sizes[name]
+        for label, (x, y) in (("A", a), ("B", b)):
+            if not (0 <= x <= W and 0 <= y <= H):
+                raise RequestError(f"point {label} ({x:g}, {y:g}) is outside the {W}x{H} panorama")
+        with self.ws.reading():
+            poses, _ = self.ws.load_poses()
+            names = [str(n) for n in poses["image_names"]]
+            k = names.index(name) if name in names else -1
+            if k < 0 or not poses["registered"][k]:
+                raise RequestError(f"cannot measure in {name}: it is not placed in the model", 409)
+            depth = self.ws.load_depth(name) if self.dense_matches_poses() else None
+        if depth is None:
+            raise RequestError(f"cannot measure in {name}: it has no depth map made from these poses (run densify)",
+                               409)
+        R, c = poses["R_cam_from_world"][k], poses["centers"][k]
+        rel = self.pipeline.config["densify"].consistency_tolerance
+        points, rays, sigmas = [], [], []
+        for label, px in (("A", a), ("B", b)):
+            bearing = pixels_to_bearings(np.array([px], float), W, H)[0]
+            found = tour.range_at(depth, bearing, rel)
+            if found is None:
+                raise RequestError(f"cannot measure: no depth at point {label} ({px[0]:.0f}, {px[1]:.0f}) of {name} "
+                                   f"(the depth map has none within {tour.MEASURE_WINDOW_PX} pixels: plain or far)",
+                                   409)
+            ray = R.T @ bearing
+            points.append(c + found[0] * ray)
+            rays.append(ray)
+            sigmas.append(found[1])
+        d, sigma = tour.distance_between(np.array(points), np.array(rays), np.array(sigmas))
+        return {"image": name, "distance": d, "sigma": sigma, "units": "model units",
+                "points": np.array(points).tolist(), "ranges": [float(np.linalg.norm(p - c)) for p in points], "range_sigmas": sigmas}
+
     # ---------------------------------------------------------------------------------------------- points
     def points(self, kind: str) -> bytes:
         """A cloud as bytes: uint32 count, float32 xyz (world frame) and uint8 rgb, in a fixed random order."""
@@ -373,7 +409,8 @@ def _observed_points(ws, n: int) -> list[np.ndarray]:
 
 def _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names):
     """Camera k's hotspots: every walked camera the geometry shows visible (`tour.visibility` of the segment
-    between the centres from both ends, `tour.mutual`; where nothing says, a verified pair between them counts), placed on the floor below it
+    between the centres from both ends, `tour.mutual`; where nothing says, a verified pair between them counts),
+    placed on the floor below it
     (at its floor drop; at its centre without one), laid out by `tour.place_hotspots`. Left out: the ones behind a
     wall (with the evidence) and the ones behind a nearer hotspot."""
     candidates, left = [], []

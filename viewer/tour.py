@@ -25,6 +25,7 @@ MIN_RADIUS_DEG = 2.0  # never smaller than this angle (a 1000-px high view at 90
 MAX_RADIUS_DEG = 12.0  # never larger than this (a neighbour right next to the camera)
 SHRINK_LIMIT = 0.5  # a hotspot crowded by nearer ones is shrunk to no less than this share of its size by distance
 GAP = 1.02  # two hotspots' discs keep this factor of their radii apart (rounding of the page's pixels)
+MEASURE_WINDOW_PX = 2  # a measured point's range: the valid depth within this many depth-map pixels (a 5x5 window)
 BOUNDS_PERCENTILES = (2.0, 98.0)  # the 3-D view's bounds: these percentiles of the points per axis
 READABLE_CELLS = 128  # the point budget never drops below one point per occupied cell of (bounds extent / this)
 ORDER_LEVELS = 14  # spatial order: one representative per voxel of extent / 2^L, L = 0 .. ORDER_LEVELS - 1
@@ -66,8 +67,9 @@ def visibility(center: np.ndarray, R: np.ndarray, targets: np.ndarray, depth: di
                ) -> list[tuple[bool | None, str, float]]:
     """Whether each target (world points) is seen from a camera: (True, evidence, window) when the geometry along
     its direction lies beyond it (within `tolerance`, relative), (False, evidence, window) when it stops nearer,
-    (None, "", inf) when nothing says; `window` is the angular radius of the evidence (radians). The evidence nearest in angle decides: for each window of WINDOW_STEPS pixels (of the depth map's
-    width) around the direction, the depth map (the median of its valid ranges there); then points: any cloud's
+    (None, "", inf) when nothing says; `window` is the angular radius of the evidence (radians). The evidence
+    nearest in angle decides: for each window of WINDOW_STEPS pixels (of the depth map's width) around the
+    direction, the depth map (the median of its valid ranges there); then points: any cloud's
     point nearer than the target in that cone blocks it (a surface is there), and the camera's `own` points (sparse
     points it observed) beyond it see it. Points of other cameras beyond it prove nothing (a plain wall between
     holds no point but hides what they saw)."""
@@ -159,6 +161,33 @@ def place_hotspots(candidates: list[dict], radius_world: float) -> tuple[list[di
         lon, lat = bearings_to_lonlat(np.asarray(c["bearing"]))
         placed.append({**c, "radius": radius, "yaw": float(lon), "pitch": float(lat)})
     return placed, left
+
+
+def range_at(depth: dict, bearing: np.ndarray, relative_sigma: float) -> tuple[float, float] | None:
+    """The range along a camera-frame bearing and its standard error: the median of the valid depth within
+    MEASURE_WINDOW_PX of its pixel, the error the larger of the window's robust spread (1.4826 MAD: a window across
+    an edge mixes surfaces) and `relative_sigma` of the range; None when the window holds no valid depth."""
+    rng, valid = depth["range"], depth["valid"]
+    H, W = rng.shape
+    x, y = np.floor(bearings_to_pixels(bearing[None], W, H)[0]).astype(int)
+    ys = np.clip(np.arange(y - MEASURE_WINDOW_PX, y + MEASURE_WINDOW_PX + 1), 0, H - 1)
+    xs = np.arange(x - MEASURE_WINDOW_PX, x + MEASURE_WINDOW_PX + 1) % W
+    values = rng[np.ix_(ys, xs)][valid[np.ix_(ys, xs)]]
+    if not len(values):
+        return None
+    r = float(np.median(values))
+    return r, max(1.4826 * float(np.median(np.abs(values - r))), relative_sigma * r)
+
+
+def distance_between(points: np.ndarray, rays: np.ndarray, sigmas: np.ndarray) -> tuple[float, float]:
+    """Distance between two points (world) found along unit rays (world) with range errors `sigmas`, and its
+    standard error (first order: d distance / d range_i = ±(A − B)·ray_i / distance)."""
+    diff = points[0] - points[1]
+    d = float(np.linalg.norm(diff))
+    if d == 0:
+        return 0.0, float(np.hypot(*sigmas))
+    j = np.array([diff @ rays[0], -diff @ rays[1]]) / d
+    return d, float(np.hypot(j[0] * sigmas[0], j[1] * sigmas[1]))
 
 
 def robust_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

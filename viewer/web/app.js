@@ -202,8 +202,9 @@ function frameModel() {
 
 function boxCorners(box) {
   const out = [];
-  for (const x of [box.min.x, box.max.x]) for (const y of [box.min.y, box.max.y]) for (const z of [box.min.z, box.max.z])
-    out.push(new THREE.Vector3(x, y, z));
+  for (const x of [box.min.x, box.max.x]) {
+    for (const y of [box.min.y, box.max.y]) for (const z of [box.min.z, box.max.z]) out.push(new THREE.Vector3(x, y, z));
+  }
   return out;
 }
 // Where the bounds' corners project in the 3-D view (NDC; tests check they are all in view).
@@ -363,7 +364,51 @@ function initTour() {
   markers = tour.getPlugin(MarkersPlugin);
   markers.addEventListener('select-marker', ({ marker }) => moveTo(marker.data.target));
   tour.addEventListener('panorama-loaded', () => { hooks.loadedAt = performance.now(); });
+  tour.addEventListener('click', ({ data }) => { if (measuring.on && !data.marker) measureClick(data); });
+  document.getElementById('measure').addEventListener('click', () => {
+    measuring.on = !measuring.on;
+    measuring.points = [];
+    document.getElementById('measure').classList.toggle('active', measuring.on);
+    clearMeasureMarks();
+    document.getElementById('measure-result').textContent = measuring.on ? 'click two points in the panorama' : '';
+  });
 }
+
+// ------------------------------------------------------------------------------------------------ measuring
+// Two clicks in a panorama: the server reads both ranges from its depth map and gives the distance with its
+// standard error (model units: no metric scale is known), or says why it cannot.
+const measuring = { on: false, points: [] };
+function clearMeasureMarks() {
+  for (const id of ['measure-A', 'measure-B']) {
+    if (markers.getMarkers().some((m) => m.id === id)) markers.removeMarker(id);
+  }
+}
+async function measureClick(data) {
+  const name = hooks.tour && hooks.tour.name;
+  const size = imageSize.get(name);
+  if (!size) return;
+  if (measuring.points.length === 2) { measuring.points = []; clearMeasureMarks(); }
+  const px = [(data.yaw / (2 * Math.PI) + 0.5) * size[0], (0.5 - data.pitch / Math.PI) * size[1]];
+  const id = measuring.points.length ? 'measure-B' : 'measure-A';
+  const dotEl = document.createElement('div');
+  dotEl.className = 'measure-dot';
+  markers.addMarker({ id, position: { yaw: data.yaw, pitch: data.pitch }, anchor: 'center center', element: dotEl });
+  measuring.points.push(px);
+  const out = document.getElementById('measure-result');
+  if (measuring.points.length < 2) { out.textContent = 'click the second point'; return; }
+  const [a, b] = measuring.points;
+  const r = await api(`/api/measure?image=${encodeURIComponent(name)}&a=${a[0]},${a[1]}&b=${b[0]},${b[1]}`);
+  const body = await r.json();
+  hooks.measured = body;
+  out.textContent = r.ok ? `${body.distance.toFixed(3)} ± ${body.sigma.toFixed(3)} ${body.units} ` +
+    `(ranges ${body.ranges.map((v, i) => `${v.toFixed(2)} ± ${body.range_sigmas[i].toFixed(2)}`).join(', ')})`
+    : `not measured: ${body.error}`;
+}
+hooks.measurePixels = async (a, b) => {  // tests: the same request as two clicks
+  const name = hooks.tour.name;
+  const r = await api(`/api/measure?image=${encodeURIComponent(name)}&a=${a[0]},${a[1]}&b=${b[0]},${b[1]}`);
+  return { ok: r.ok, ...(await r.json()) };
+};
 
 function tourHint(text) {
   const el = document.getElementById('tour-hint');
@@ -391,8 +436,8 @@ async function openTour(name, position = null, transition = false) {
   markers.clearMarkers();
   const spots = cam && cam.walked ? cam.hotspots : [];
   // Opened from the scene or a list: face the nearest hotspot, looking a little above it, so it is in view.
-  const facing = spots.length ? { yaw: spots[0].yaw, pitch: Math.min(0, spots[0].pitch + FACE_BELOW_DEG * Math.PI / 180) }
-    : { yaw: 0, pitch: 0 };
+  const facing = spots.length
+    ? { yaw: spots[0].yaw, pitch: Math.min(0, spots[0].pitch + FACE_BELOW_DEG * Math.PI / 180) } : { yaw: 0, pitch: 0 };
   const label = cam ? cam.label || name : name;
   const caption = label === name ? name : `${label} · ${name}`;
   await tour.setPanorama(withToken(`/pano/${encodeURIComponent(name)}?width=${TOUR_WIDTH}`),
