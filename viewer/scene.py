@@ -189,7 +189,8 @@ class SceneData:
             sigmas.append(found[1])
         d, sigma = tour.distance_between(np.array(points), np.array(rays), np.array(sigmas))
         return {"image": name, "distance": d, "sigma": sigma, "units": "model units",
-                "points": np.array(points).tolist(), "ranges": [float(np.linalg.norm(p - c)) for p in points], "range_sigmas": sigmas}
+                "points": np.array(points).tolist(), "ranges": [float(np.linalg.norm(p - c)) for p in points],
+                "range_sigmas": sigmas}
 
     # ---------------------------------------------------------------------------------------------- points
     def points(self, kind: str) -> bytes:
