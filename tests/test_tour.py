@@ -273,6 +273,25 @@ def test_a_measurement_without_depth_is_refused_with_the_reason(home, server):
     assert refused.value.code == 409 and "no depth at point A" in json.loads(refused.value.read())["error"]
 
 
+def test_cameras_placed_approximately_are_left_out_of_the_walk(home, tmp_path):
+    pipeline, config = home
+    ws_root = tmp_path / "ws"
+    shutil.copytree(pipeline.ws.root, ws_root / pipeline.dataset.name)
+    ws = Workspace(ws_root, pipeline.dataset.name)
+    names = pipeline.dataset.image_names
+    report_path = ws.path("registration_report")
+    report = json.loads(report_path.read_text())
+    report["placements"] = {n: {"verdict": "approximate" if n == names[1] else "verified"} for n in names}
+    report_path.write_text(json.dumps(report))  # as registration writes it once verdicts exist
+    from fullview.viewer.scene import SceneData
+    model = SceneData(Pipeline(pipeline.dataset, ws, config)).state()["model"]
+    cams = {c["name"]: c for c in model["cameras"]}
+    assert not cams[names[1]]["walked"] and not cams[names[1]]["hotspots"]
+    assert all(h["name"] != names[1] for c in cams.values() for h in c["hotspots"])
+    assert model["tour"]["left_apart"] == [names[1]]
+    assert all(cams[n]["walked"] for n in names if n != names[1])
+
+
 # ------------------------------------------------------------------------------------------------ in the browser
 def test_no_two_hotspots_overlap_at_any_heading(browser, server, state):
     page = _open(browser, server)
