@@ -458,12 +458,15 @@ async function openTour(name, position = null, transition = false) {
       const el = document.createElement('div');
       el.className = 'hotspot';
       el.dataset.target = h.name;
-      el.title = h.label === h.name ? h.name : `${h.label} · ${h.name}`;
       const text = document.createElement('span');
       text.textContent = h.label;
-      el.appendChild(text);
+      const file = document.createElement('span');  // the file name, for screen readers and searches; not drawn
+      file.className = 'file';
+      file.textContent = h.name;
+      el.append(text, file);
       markers.addMarker({ id: `to-${h.name}`, position: { yaw: h.yaw, pitch: h.pitch }, anchor: 'center center',
-        element: el, data: { target: h.name }, scale: hotspotScale(h.radius), hoverScale: null });
+        element: el, data: { target: h.name }, scale: hotspotScale(h.radius), hoverScale: null,
+        tooltip: escapeHtml(h.label === h.name ? h.name : `${h.label} · ${h.name}`) });  // PSV tooltips are HTML
     }
   }
   hooks.tour = { name, ready: true, hotspots: spots, neighbours: cam ? cam.neighbours : [] };
