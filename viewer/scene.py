@@ -416,7 +416,7 @@ def _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names):
     wall (with the evidence) and the ones behind a nearer hotspot."""
     candidates, left = [], []
     for j in [j for j in np.flatnonzero(walked) if j != k]:
-        visible, evidence = tour.mutual(seen[k][j], seen[j][k])
+        visible, evidence, beyond = tour.mutual(seen[k][j], seen[j][k])
         if visible is None and links[k, j] > 0:
             visible, evidence = True, "no geometry along the way; a verified pair"
         if not visible:
@@ -428,7 +428,9 @@ def _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names):
         rel = R[k] @ (spot - centers[k])
         candidates.append({"name": names[j], "bearing": rel / np.linalg.norm(rel),
                            "distance": float(np.linalg.norm(rel)), "evidence": evidence,
-                           "walk_distance": float(np.linalg.norm(centers[j] - centers[k]))})
+                           "walk_distance": float(np.linalg.norm(centers[j] - centers[k])),
+                           "walk_bearing": (R[k] @ (centers[j] - centers[k]) / np.linalg.norm(centers[j] - centers[k]))
+                           .tolist(), "beyond": beyond})
     r = radius if radius else 0.1 * min([c["walk_distance"] for c in candidates] or [1.0])
     placed, behind = tour.place_hotspots(candidates, r)
     for b in behind:

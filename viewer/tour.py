@@ -64,10 +64,11 @@ def points_cone_extent(points: np.ndarray, center: np.ndarray, axis_world: np.nd
 
 def visibility(center: np.ndarray, R: np.ndarray, targets: np.ndarray, depth: dict | None,
                clouds: list[tuple[str, np.ndarray]], own: np.ndarray, tolerance: float
-               ) -> list[tuple[bool | None, str, float]]:
+               ) -> list[tuple[bool | None, str, float, float | None]]:
     """Whether each target (world points) is seen from a camera: (True, evidence, window) when the geometry along
     its direction lies beyond it (within `tolerance`, relative), (False, evidence, window) when it stops nearer,
-    (None, "", inf) when nothing says; `window` is the angular radius of the evidence (radians). The evidence
+    (None, "", inf, None) when nothing says; `window` is the angular radius of the evidence (radians), the last the
+    range the geometry was found at along the direction (None when it came from points beyond). The evidence
     nearest in angle decides: for each window of WINDOW_STEPS pixels (of the depth map's width) around the
     direction, the depth map (the median of its valid ranges there); then points: any cloud's
     point nearer than the target in that cone blocks it (a surface is there), and the camera's `own` points (sparse
@@ -91,10 +92,10 @@ def visibility(center: np.ndarray, R: np.ndarray, targets: np.ndarray, depth: di
 
     blockers = [(kind, *rays(points)) for kind, points in clouds if len(points)]
     own_cos, own_r = rays(own)
-    out: list[tuple[bool | None, str, float]] = []
+    out: list[tuple[bool | None, str, float, float | None]] = []
     for t, (x, y) in enumerate(px):
         answer: tuple[bool | None, str] = (None, "")
-        window_rad = np.inf
+        window_rad, found = np.inf, None
         for step in WINDOW_STEPS:
             if depth is not None:
                 H, W = depth["range"].shape
@@ -102,7 +103,7 @@ def visibility(center: np.ndarray, R: np.ndarray, targets: np.ndarray, depth: di
                 xs = np.arange(x - step, x + step + 1) % W
                 window, ok = depth["range"][np.ix_(ys, xs)], depth["valid"][np.ix_(ys, xs)]
                 if ok.any():
-                    seen = float(np.median(window[ok]))  # the depth map decides where it has depth
+                    seen = found = float(np.median(window[ok]))  # the depth map decides where it has depth
                     answer = (bool(seen >= dist[t] * (1 - tolerance)),
                               f"depth ({2 * step + 1} px window): {seen:.3g} along the way to {dist[t]:.3g}")
             cos = np.cos((step + 0.5) * 2 * np.pi / width)
@@ -121,18 +122,19 @@ def visibility(center: np.ndarray, R: np.ndarray, targets: np.ndarray, depth: di
                 break
         if answer[0] is not None:
             window_rad = (step + 0.5) * 2 * np.pi / width
-        out.append((*answer, float(window_rad)))
+        out.append((*answer, float(window_rad), found))
     return out
 
 
-def mutual(ab: tuple, ba: tuple) -> tuple[bool | None, str]:
+def mutual(ab: tuple, ba: tuple) -> tuple[bool | None, str, float | None]:
     """The segment between two cameras seen from both ends (`visibility` answers of a towards b and b towards a):
     the evidence of the narrower window decides (a doorway's frame fills a wide window around a free line of
-    sight); a tie with a disagreement is not seen."""
-    (va, ea, wa), (vb, eb, wb) = ab, ba
+    sight); a tie with a disagreement is not seen. Also the range of the geometry beyond b seen from a (None when
+    the other end decided or no depth gave it)."""
+    (va, ea, wa, ra), (vb, eb, wb, _) = ab, ba
     if vb is None or (va is not None and (wa < wb or (wa == wb and not va))):
-        return va, ea
-    return vb, f"from the other end: {eb}"
+        return va, ea, ra
+    return vb, f"from the other end: {eb}", None
 
 
 def place_hotspots(candidates: list[dict], radius_world: float) -> tuple[list[dict], list[dict]]:

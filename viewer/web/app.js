@@ -203,7 +203,9 @@ function frameModel() {
 function boxCorners(box) {
   const out = [];
   for (const x of [box.min.x, box.max.x]) {
-    for (const y of [box.min.y, box.max.y]) for (const z of [box.min.z, box.max.z]) out.push(new THREE.Vector3(x, y, z));
+    for (const y of [box.min.y, box.max.y]) {
+      for (const z of [box.min.z, box.max.z]) out.push(new THREE.Vector3(x, y, z));
+    }
   }
   return out;
 }
@@ -428,7 +430,7 @@ function hotspotScale(radius) {
 const walkedCameras = () => [...cams.values()].filter((c) => c.walked);
 
 let opening = 0;  // the latest openTour: an older one still loading gives way to it
-async function openTour(name, position = null, transition = false) {
+async function openTour(name, position = null, transition = false, zoom = null) {
   const ticket = ++opening;
   hooks.tour = { name, ready: false };
   selectTab('tour');
@@ -441,7 +443,7 @@ async function openTour(name, position = null, transition = false) {
   const label = cam ? cam.label || name : name;
   const caption = label === name ? name : `${label} · ${name}`;
   await tour.setPanorama(withToken(`/pano/${encodeURIComponent(name)}?width=${TOUR_WIDTH}`),
-    { position: position || facing, caption: escapeHtml(caption), showLoader: false,
+    { position: position || facing, caption: escapeHtml(caption), showLoader: false, ...(zoom === null ? {} : { zoom }),
       transition: transition ? { speed: TRANSITION_MS, rotation: false, effect: 'fade' } : false });
   if (ticket !== opening) return;
   tourHint(null);
@@ -485,22 +487,39 @@ function prefetch(names) {
 }
 hooks.openTour = (name) => openTour(name);
 
-// Walk to a neighbour keeping the world direction of the view, crossfading (timed: hooks.transitions).
+// Walk to a neighbour keeping the world direction of the view: first the current panorama is magnified as a
+// step forward would magnify what lies ahead (a surface at range r, seen along the view, grows by r / (r − s) when
+// the camera moves s towards it: s the step's component along the view, r the depth found beyond the neighbour),
+// then the next panorama is crossfaded in while the zoom returns. Timed: hooks.transitions.
+const STEP_MS = 250;          // the magnification's duration (before the 600 ms fade)
+const MAX_STEP_ZOOM = 2.5;    // never magnified more than this
 async function moveTo(target) {
   const from = cams.get(hooks.tour.name), to = cams.get(target);
-  const world = mulT(from.R_cam_from_world, fromYawPitch(tour.getPosition()));
+  const view = fromYawPitch(tour.getPosition());
+  const world = mulT(from.R_cam_from_world, view);
+  const zoom = tour.getZoomLevel();
   const start = performance.now();
-  await openTour(target, yawPitch(mul(to.R_cam_from_world, world)), true);
-  const end = performance.now();  // ms: click to done (loading the next panorama, then the fade); fade_ms: the fade
+  const spot = (hooks.tour.hotspots || []).find((h) => h.name === target);
+  if (spot && spot.beyond) {
+    const s = spot.walk_distance * Math.max(0, dot(view, spot.walk_bearing));
+    const m = Math.min(MAX_STEP_ZOOM, spot.beyond / Math.max(spot.beyond - s, spot.beyond / MAX_STEP_ZOOM));
+    if (m > 1.05) {
+      const fov = tour.dataHelper.zoomLevelToFov(zoom) * Math.PI / 180;
+      const narrower = 2 * Math.atan(Math.tan(fov / 2) / m) * 180 / Math.PI;
+      await tour.animate({ zoom: tour.dataHelper.fovToZoomLevel(narrower), speed: STEP_MS });
+    }
+  }
+  await openTour(target, yawPitch(mul(to.R_cam_from_world, world)), true, zoom);
+  const end = performance.now();  // ms: click to done (step, loading the next panorama, fade); fade_ms: the fade
   (hooks.transitions = hooks.transitions || []).push({ from: from.name, to: target, ms: end - start,
     fade_ms: end - Math.max(start, hooks.loadedAt || start) });
 }
+hooks.moveTo = moveTo;
 // Boxes of the hotspots on screen (tests check that none overlap).
 hooks.hotspotBoxes = () => [...document.querySelectorAll('.psv-marker--visible .hotspot')].map((el) => {
   const r = el.getBoundingClientRect();
   return { target: el.dataset.target, left: r.left, top: r.top, right: r.right, bottom: r.bottom };
 });
-hooks.moveTo = moveTo;
 hooks.registeredNames = () => [...cams.values()].filter((c) => c.registered).map((c) => c.name);
 hooks.tourPosition = () => tour.getPosition();
 hooks.tourLookAt = (position) => tour.rotate(position);
