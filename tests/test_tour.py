@@ -190,7 +190,7 @@ def test_hotspots_link_every_neighbour_in_sight_and_none_behind_a_wall(home, sta
             assert b not in spots, (a, b, "a hotspot through a wall")
         elif sight == "free":
             judged["free"] += 1
-            assert b in spots or behind.get(b, "").startswith("behind the hotspot of"), (a, b, behind.get(b))
+            assert b in spots or behind.get(b, "").startswith("behind the hotspot"), (a, b, behind.get(b))
     assert judged["free"] >= 6 and judged["blocked"] >= 6, judged  # the home has both kinds
 
 

@@ -88,6 +88,9 @@ class SceneData:
             cam.update(extra, label=labels.get(cam["name"], cam["name"]),
                        hotspots=[{**h, "label": labels.get(h["name"], h["name"])} for h in extra["hotspots"]],
                        left_out=[{**h, "label": labels.get(h["name"], h["name"])} for h in extra["left_out"]])
+            for h in cam["left_out"]:  # the page names the nearer hotspot as it is drawn
+                if "behind" in h:
+                    h["reason"] = f"behind the hotspot {labels.get(h['behind'], h['behind'])} ({h['behind']})"
         return {"poses_from": source, "cameras": cams, "tour": {**geometry["model"], "names_problem": problem},
                 "unregistered": [n for n, ok in zip(names, registered) if not ok],
                 "unregistered_reasons": ((self.ws.read_manifest("registration") or {}).get("summary") or {})
@@ -434,7 +437,7 @@ def _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names):
     r = radius if radius else 0.1 * min([c["walk_distance"] for c in candidates] or [1.0])
     placed, behind = tour.place_hotspots(candidates, r)
     for b in behind:
-        left.append({"name": b["name"], "reason": f"behind the hotspot of {b['behind']}"})
+        left.append({"name": b["name"], "behind": b["behind"], "reason": f"behind the hotspot of {b['behind']}"})
     return [{key: v for key, v in p.items() if key != "bearing"} for p in placed], left
 
 
