@@ -293,20 +293,24 @@ def test_cameras_placed_approximately_are_left_out_of_the_walk(home, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------ in the browser
+def _no_overlap_anywhere(page, cameras):
+    for cam in [c for c in cameras if c["walked"]]:
+        _show(page, cam["name"])
+        seen = set()
+        for k, pitch in itertools.product(range(HEADINGS), PITCHES_DEG):
+            _look(page, 2 * np.pi * k / HEADINGS, np.radians(pitch))
+            boxes = page.evaluate("window.fullview.hotspotBoxes()")
+            seen |= {b["target"] for b in boxes}
+            for a, b in itertools.combinations(boxes, 2):
+                assert not _overlap(a, b), (cam["name"], k, pitch, a, b)
+        assert seen == {h["name"] for h in cam["hotspots"]}  # each one is drawn somewhere
+    assert not page.problems, page.problems
+
+
 def test_no_two_hotspots_overlap_at_any_heading(browser, server, state):
     page = _open(browser, server)
     try:
-        for cam in [c for c in state["model"]["cameras"] if c["walked"]]:
-            _show(page, cam["name"])
-            seen = set()
-            for k, pitch in itertools.product(range(HEADINGS), PITCHES_DEG):
-                _look(page, 2 * np.pi * k / HEADINGS, np.radians(pitch))
-                boxes = page.evaluate("window.fullview.hotspotBoxes()")
-                seen |= {b["target"] for b in boxes}
-                for a, b in itertools.combinations(boxes, 2):
-                    assert not _overlap(a, b), (cam["name"], k, pitch, a, b)
-            assert seen == {h["name"] for h in cam["hotspots"]}  # each one is drawn somewhere
-        assert not page.problems, page.problems
+        _no_overlap_anywhere(page, state["model"]["cameras"])
     finally:
         page.close()
 
@@ -381,16 +385,33 @@ def test_clicking_a_hotspot_walks_there_through_a_crossfade(browser, server, sta
 
 
 # ------------------------------------------------------------------------------------------------ 360_Flat
-@pytest.mark.skipif(not FLAT.is_dir(), reason=f"real data not found at {FLAT} (../shared)")
-def test_walking_the_flat_corridor_by_the_nearest_hotspot_ahead_visits_every_camera_in_order(browser, tmp_path):
+@pytest.fixture(scope="module")
+def flat_server(tmp_path_factory):
+    if not FLAT.is_dir():
+        pytest.skip(f"real data not found at {FLAT} (../shared)")
     dataset = Dataset(FLAT)
     config = load_config(None, [])
-    ws_root = FLAT_WORKSPACE if (FLAT_WORKSPACE / dataset.name / "densify").is_dir() else tmp_path / "ws"
+    cached = (FLAT_WORKSPACE / dataset.name / "densify").is_dir()
+    ws_root = FLAT_WORKSPACE if cached else tmp_path_factory.mktemp("flat")
     pipeline = Pipeline(dataset, Workspace(ws_root, dataset.name), config)
     if ws_root != FLAT_WORKSPACE:
         pipeline.run()
     httpd = _serve(pipeline, config)
-    page = _open(browser, page_url(httpd))
+    yield page_url(httpd)
+    httpd.shutdown()
+    httpd.server_close()
+
+
+def test_no_two_hotspots_overlap_at_any_heading_on_360_flat(browser, flat_server):
+    page = _open(browser, flat_server)
+    try:
+        _no_overlap_anywhere(page, page.evaluate("window.fullview.state().model.cameras"))
+    finally:
+        page.close()
+
+
+def test_walking_the_flat_corridor_by_the_nearest_hotspot_ahead_visits_every_camera_in_order(browser, flat_server):
+    page = _open(browser, flat_server)
     try:
         cams = {c["name"]: c for c in page.evaluate("window.fullview.state().model.cameras")}
         corridor = sorted(n for n, c in cams.items() if c["walked"])
@@ -414,5 +435,3 @@ def test_walking_the_flat_corridor_by_the_nearest_hotspot_ahead_visits_every_cam
         assert visited == corridor
     finally:
         page.close()
-        httpd.shutdown()
-        httpd.server_close()

@@ -419,11 +419,11 @@ function tourHint(text) {
 }
 
 // Scale of a hotspot's box for the current zoom: its half-side is f·radius/√2 pixels.
-function hotspotScale(radius) {
+function hotspotScale(radius, el) {
   return (zoomLevel) => {
     const vfov = THREE.MathUtils.degToRad(tour.dataHelper.zoomLevelToFov(zoomLevel));
     const f = tour.state.size.height / 2 / Math.tan(vfov / 2);
-    return (2 * f * radius / Math.SQRT2) / HOTSPOT_BASE;
+    return (2 * f * radius / Math.SQRT2) / (el.offsetWidth || HOTSPOT_BASE);  // its laid-out size, border included
   };
 }
 
@@ -467,7 +467,7 @@ async function openTour(name, position = null, transition = false, zoom = null) 
       file.textContent = h.name;
       el.append(text, file);
       markers.addMarker({ id: `to-${h.name}`, position: { yaw: h.yaw, pitch: h.pitch }, anchor: 'center center',
-        element: el, data: { target: h.name }, scale: hotspotScale(h.radius), hoverScale: null,
+        element: el, data: { target: h.name }, scale: hotspotScale(h.radius, el), hoverScale: null,
         tooltip: escapeHtml(h.label === h.name ? h.name : `${h.label} · ${h.name}`) });  // PSV tooltips are HTML
     }
   }
