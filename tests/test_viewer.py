@@ -160,7 +160,9 @@ def test_hotspot_moves_to_that_neighbour_keeping_the_world_direction(page, recon
     page.mouse.click(x, y)
     page.wait_for_function("() => window.fullview.tour && window.fullview.tour.ready", timeout=15000)
     target = names[2]
-    hotspot = page.locator(".hotspot", has_text=target)
+    spot = next(h for h in page.evaluate("window.fullview.tour.hotspots") if h["name"] == target)
+    page.evaluate(f"window.fullview.tourLookAt({{yaw: {spot['yaw']}, pitch: {min(0.0, spot['pitch'] + 0.4)}}})")
+    hotspot = page.locator(f".hotspot[data-target={json.dumps(target)}]")  # labels are room names or numbers
     before = page.evaluate("window.fullview.tourPosition()")
     hotspot.click()
     page.wait_for_function(f"() => window.fullview.tour.ready && window.fullview.tour.name === {json.dumps(target)}",

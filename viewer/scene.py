@@ -18,15 +18,19 @@ import numpy as np
 from fullview.io.artifacts import ArtifactError
 from fullview.io.errors import FullviewError
 from fullview.io.workspace import image_stem
+from fullview.io.yamlio import YamlError, load_yaml
 from fullview.sfm import two_view
 from fullview.sfm.camera import bearings_to_lonlat, camera_up, pixels_to_bearings
 from fullview.stages import PIPELINE
 from fullview.stages.runner import Pipeline
+from fullview.viewer import tour
 
 log = logging.getLogger(__name__)
 
 NEIGHBOURS = 4  # hotspots per panorama: its nearest registered panoramas among those it shares verified pairs with
-POINT_SEED = 0  # clouds are shuffled once, so any prefix is a uniform subsample (the page's point budget)
+POINT_SEED = 0  # clouds are ordered once, so any prefix is a spatially uniform subsample (the page's point budget)
+TOUR_FILE = "tour.yaml"  # in the dataset folder: {names: {image: room name}}; unnamed panoramas are numbered
+WALKED = ("verified",)  # placement verdicts (registration.json placements) whose cameras are in the walk
 
 
 class RequestError(FullviewError):
@@ -77,14 +81,32 @@ class SceneData:
                          "center": centers[k].tolist() if registered[k] else None,
                          "neighbours": _neighbours(k, R, centers, registered, links, names)})
         reg = registered.nonzero()[0]
-        return {"poses_from": source, "cameras": cams,
+        R_display = display_rotation(R[reg], centers[reg])
+        geometry = _tour_geometry(self.ws.root, self.generation(), self, R_display.tobytes())
+        labels, problem = self.tour_names()  # read on every request: tour.yaml is the user's, edited any time
+        for cam, extra in zip(cams, geometry["cameras"]):
+            cam.update(extra, label=labels.get(cam["name"], cam["name"]),
+                       hotspots=[{**h, "label": labels.get(h["name"], h["name"])} for h in extra["hotspots"]],
+                       left_out=[{**h, "label": labels.get(h["name"], h["name"])} for h in extra["left_out"]])
+            for h in cam["left_out"]:  # the page names the nearer hotspot as it is drawn
+                if "behind" in h:
+                    h["reason"] = f"behind the hotspot {labels.get(h['behind'], h['behind'])} ({h['behind']})"
+        return {"poses_from": source, "cameras": cams, "tour": {**geometry["model"], "names_problem": problem},
                 "unregistered": [n for n, ok in zip(names, registered) if not ok],
                 "unregistered_reasons": ((self.ws.read_manifest("registration") or {}).get("summary") or {})
                 .get("unregistered_reasons", {}),
-                "R_display_from_world": display_rotation(R[reg], centers[reg]).tolist(),
-                "has_sparse": source == "triangulation", "has_dense": stages["densify"]["state"] == "fresh",
-                "has_mesh": stages["densify"]["state"] == "fresh" and self.ws.path("dense_mesh").exists(),
+                "R_display_from_world": R_display.tolist(),
+                "has_sparse": source == "triangulation",
+                "has_dense": self.dense_matches_poses() and self.ws.path("dense_cloud").exists(),
+                "has_mesh": self.dense_matches_poses() and self.ws.path("dense_mesh").exists(),
                 "pairs": self._pairs(names)}
+
+    def dense_matches_poses(self) -> bool:
+        """Whether densify's output was made from the poses on disk (its upstream triangulation is the one there):
+        then it is shown even when stale for another reason (a code or setting change; the page says results may
+        be outdated), never when it belongs to other poses."""
+        dense, tri = self.ws.read_manifest("densify"), self.ws.read_manifest("triangulation")
+        return bool(dense and tri and dense.get("upstream", {}).get("triangulation") == tri.get("fingerprint"))
 
     def _links(self, n: int) -> np.ndarray:
         """(N, N) verified inliers between images (0 = no verified pair)."""
@@ -105,6 +127,73 @@ class SceneData:
             return []
         return [{"a": names[i], "b": names[j], "inliers": int(len(m))}
                 for (i, j), m in zip(verified.pairs, verified.matches) if len(m)]
+
+    # ---------------------------------------------------------------------------------------------- tour
+    def tour_names(self) -> tuple[dict[str, str], str | None]:
+        """Each image's name in the tour: the dataset's tour.yaml `names` (image -> text) where given, else its
+        number in capture order ("1", "2", ...); and a one-line problem with tour.yaml (then numbers only)."""
+        names = {n: str(k + 1) for k, n in enumerate(self.dataset.image_names)}
+        path = self.dataset.root / TOUR_FILE
+        if not path.is_file():
+            return names, None
+        try:
+            doc = load_yaml(path, str(path))
+        except YamlError as e:
+            return names, str(e)
+        given = doc.get("names", {}) if isinstance(doc, dict) else None
+        if not isinstance(given, dict):
+            return names, f"{path}: expected `names:` mapping image file names to room names"
+        for image, label in given.items():
+            if image not in names:
+                return names, f"{path}: names: unknown image {str(image)[:80]!r}"
+            if not isinstance(label, (str, int)) or isinstance(label, bool) or not str(label).strip():
+                return names, f"{path}: names: {str(image)[:80]!r}: expected a non-empty text, got {label!r:.40}"
+            names[image] = str(label).strip()[:80]
+        return names, None
+
+    def verdicts(self, names: list[str]) -> dict[str, str]:
+        """Each image's placement verdict (registration.json `placements`; "verified" when a workspace predates
+        them)."""
+        report = self.ws.load_json("registration_report") or {}
+        placements = report.get("placements") if isinstance(report.get("placements"), dict) else {}
+        return {n: str((placements.get(n) or {}).get("verdict", "verified")) for n in names}
+
+    def measure(self, name: str, a: tuple[float, float], b: tuple[float, float]) -> dict:
+        """Distance between two pixels (full size) of a panorama, from its depth map, with its standard error; in
+        model units (no metric scale is known to the viewer). A RequestError names why it cannot be measured."""
+        name = self.image(name)
+        W, H = self.dataset.image_sizes[name]
+        for label, (x, y) in (("A", a), ("B", b)):
+            if not (0 <= x <= W and 0 <= y <= H):
+                raise RequestError(f"point {label} ({x:g}, {y:g}) is outside the {W}x{H} panorama")
+        with self.ws.reading():
+            poses, _ = self.ws.load_poses()
+            names = [str(n) for n in poses["image_names"]]
+            k = names.index(name) if name in names else -1
+            if k < 0 or not poses["registered"][k]:
+                raise RequestError(f"cannot measure in {name}: it is not placed in the model", 409)
+            depth = self.ws.load_depth(name) if self.dense_matches_poses() else None
+        if depth is None:
+            raise RequestError(f"cannot measure in {name}: it has no depth map made from these poses (run densify)",
+                               409)
+        R, c = poses["R_cam_from_world"][k], poses["centers"][k]
+        rel = self.pipeline.config["densify"].consistency_tolerance
+        points, rays, sigmas = [], [], []
+        for label, px in (("A", a), ("B", b)):
+            bearing = pixels_to_bearings(np.array([px], float), W, H)[0]
+            found = tour.range_at(depth, bearing, rel)
+            if found is None:
+                raise RequestError(f"cannot measure: no depth at point {label} ({px[0]:.0f}, {px[1]:.0f}) of {name} "
+                                   f"(the depth map has none within {tour.MEASURE_WINDOW_PX} pixels: plain or far)",
+                                   409)
+            ray = R.T @ bearing
+            points.append(c + found[0] * ray)
+            rays.append(ray)
+            sigmas.append(found[1])
+        d, sigma = tour.distance_between(np.array(points), np.array(rays), np.array(sigmas))
+        return {"image": name, "distance": d, "sigma": sigma, "units": "model units",
+                "points": np.array(points).tolist(), "ranges": [float(np.linalg.norm(p - c)) for p in points],
+                "range_sigmas": sigmas}
 
     # ---------------------------------------------------------------------------------------------- points
     def points(self, kind: str) -> bytes:
@@ -211,9 +300,145 @@ class SceneData:
 @lru_cache(maxsize=4)
 def _cloud_bytes(root, kind: str, generation: str, scene: SceneData) -> bytes:
     points, colors = scene.load_cloud(kind)
-    order = np.random.default_rng(POINT_SEED).permutation(len(points))
+    order = _cloud_order(root, kind, generation, scene)[0]
     head = np.array([len(points)], "<u4").tobytes()
     return head + points[order].astype("<f4").tobytes() + colors[order].astype(np.uint8).tobytes()
+
+
+@lru_cache(maxsize=4)
+def _cloud_order(root, kind: str, generation: str, scene: SceneData) -> tuple[np.ndarray, int]:
+    return tour.spatial_order(scene.load_cloud(kind)[0], POINT_SEED)
+
+
+@lru_cache(maxsize=2)
+def _tour_geometry(root, generation: str, scene: SceneData, R_display_bytes: bytes) -> dict:
+    """Per camera (in pose order): its verdict, whether it is walked, its floor and ceiling (distance
+    below / above the centre, with what gave them) and its hotspots (see `_hotspots`); for the model: the robust
+    bounds of the cloud in the display frame, the floor and ceiling heights there and the readable point budget."""
+    ws = scene.ws
+    R_display = np.frombuffer(R_display_bytes).reshape(3, 3)
+    with ws.reading():
+        poses, _ = ws.load_poses()
+        names = [str(n) for n in poses["image_names"]]
+        registered = poses["registered"].astype(bool)
+        R, centers = poses["R_cam_from_world"], poses["centers"]
+        verdicts = scene.verdicts(names)
+        dense_ok = scene.dense_matches_poses()  # depth and dense cloud of other poses are not used
+        depths = {n: ws.load_depth(n) for n, ok in zip(names, registered) if ok and dense_ok}
+    clouds = []
+    for k in ("dense", "sparse") if dense_ok else ("sparse",):
+        try:
+            points = scene.load_cloud(k)[0].astype(np.float32)
+        except ArtifactError:
+            continue
+        if len(points):
+            clouds.append((k, points))
+    kind = clouds[0][0] if clouds else "sparse"
+    observed = _observed_points(ws, len(names))
+    up = camera_up(R[registered]) if registered.any() else np.array([0.0, -1.0, 0.0])
+    floor, ceiling = _vertical(names, R, centers, registered, depths, clouds, up)
+    walked = registered & np.array([verdicts[n] in WALKED for n in names])
+    tolerance = scene.pipeline.config["densify"].mesh_support_tolerance
+    drops = [d for d, _ in floor if d is not None]
+    radius = tour.HOTSPOT_RADIUS * float(np.median(drops)) if drops else None
+    links = scene._links(len(names))
+    seen = {}  # k -> j -> visibility of j from k
+    for k in np.flatnonzero(walked):
+        others = [j for j in np.flatnonzero(walked) if j != k]
+        seen[k] = dict(zip(others, tour.visibility(centers[k], R[k], centers[others], depths.get(names[k]), clouds,
+                                                   observed[k], tolerance)))
+    cameras = []
+    for k, name in enumerate(names):
+        cam = {"verdict": verdicts[name] if registered[k] else None,
+               "walked": bool(walked[k]), "floor_drop": floor[k][0], "floor_from": floor[k][1],
+               "ceiling_rise": ceiling[k][0], "ceiling_from": ceiling[k][1], "hotspots": [], "left_out": []}
+        if walked[k]:
+            cam["hotspots"], cam["left_out"] = _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names)
+        cameras.append(cam)
+    points = dict(clouds).get(kind, np.zeros((0, 3)))
+    bounds = tour.robust_bounds(points @ R_display.T) if len(points) else None
+    if bounds is None and registered.sum() > 1:
+        bounds = (centers[registered] @ R_display.T).min(0), (centers[registered] @ R_display.T).max(0)
+    heights = centers @ (R_display @ up)
+    floors = [heights[k] - d for k, (d, _) in enumerate(floor) if d is not None and registered[k]]
+    ceilings = [heights[k] + d for k, (d, _) in enumerate(ceiling) if d is not None and registered[k]]
+    model = {"bounds": None if bounds is None else [bounds[0].tolist(), bounds[1].tolist()],
+             "floor": float(np.median(floors)) if floors else None,
+             "ceiling": float(np.median(ceilings)) if ceilings else None,
+             "readable_points": _cloud_order(root, kind, generation, scene)[1] if len(points) else 0,
+             "cloud": kind,
+             "left_apart": [n for n, ok, w in zip(names, registered, walked) if ok and not w]}
+    return {"cameras": cameras, "model": model}
+
+
+def _vertical(names, R, centers, registered, depths, clouds, up) -> tuple[list, list]:
+    """Each camera's floor (distance below its centre along -up) and ceiling (above, along up) with their source:
+    its depth map's nadir (zenith) cone, else the points there (dense, then sparse); the floor of a camera with
+    neither is the median of the others' (a tripod keeps its height: the camera-height prior), its ceiling too."""
+    floor, ceiling = [], []
+    for k in range(len(centers)):
+        out = []
+        for sign in (-1.0, 1.0):
+            value, source = None, None
+            if registered[k]:
+                d = depths.get(names[k])
+                if d is not None:
+                    value = tour.cone_extent(d["range"], d["valid"], R[k] @ (sign * up))
+                    source = "depth" if value is not None else None
+                for kind, points in clouds:
+                    if value is None:
+                        value = tour.points_cone_extent(points, centers[k], sign * up)
+                        source = kind if value is not None else None
+            out.append((value, source))
+        floor.append(out[0])
+        ceiling.append(out[1])
+    for side in (floor, ceiling):
+        known = [v for (v, _), ok in zip(side, registered) if v is not None and ok]
+        for k, (v, _) in enumerate(side):
+            if v is None and registered[k] and known:
+                side[k] = (float(np.median(known)), "prior")
+    return floor, ceiling
+
+
+def _observed_points(ws, n: int) -> list[np.ndarray]:
+    """Per image, the sparse points (world) it observed (empty without a triangulation)."""
+    try:
+        with ws.reading():
+            sparse = ws.load_sparse_model(0)
+    except ArtifactError:
+        return [np.zeros((0, 3))] * n
+    points, tracks, images = sparse["points"], sparse["track_ids"], sparse["image_ids"]
+    return [points[np.unique(tracks[images == k])] for k in range(n)]
+
+
+def _hotspots(k, R, centers, walked, floor, up, seen, radius, links, names):
+    """Camera k's hotspots: every walked camera the geometry shows visible (`tour.visibility` of the segment
+    between the centres from both ends, `tour.mutual`; where nothing says, a verified pair between them counts),
+    placed on the floor below it
+    (at its floor drop; at its centre without one), laid out by `tour.place_hotspots`. Left out: the ones behind a
+    wall (with the evidence) and the ones behind a nearer hotspot."""
+    candidates, left = [], []
+    for j in [j for j in np.flatnonzero(walked) if j != k]:
+        visible, evidence, beyond = tour.mutual(seen[k][j], seen[j][k])
+        if visible is None and links[k, j] > 0:
+            visible, evidence = True, "no geometry along the way; a verified pair"
+        if not visible:
+            left.append({"name": names[j],
+                         "reason": f"not seen: {evidence}" if visible is False else
+                         "not seen: no depth, point or verified pair says it is"})
+            continue
+        spot = centers[j] - (floor[j][0] or 0.0) * up
+        rel = R[k] @ (spot - centers[k])
+        candidates.append({"name": names[j], "bearing": rel / np.linalg.norm(rel),
+                           "distance": float(np.linalg.norm(rel)), "evidence": evidence,
+                           "walk_distance": float(np.linalg.norm(centers[j] - centers[k])),
+                           "walk_bearing": (R[k] @ (centers[j] - centers[k]) / np.linalg.norm(centers[j] - centers[k]))
+                           .tolist(), "beyond": beyond})
+    r = radius if radius else 0.1 * min([c["walk_distance"] for c in candidates] or [1.0])
+    placed, behind = tour.place_hotspots(candidates, r)
+    for b in behind:
+        left.append({"name": b["name"], "behind": b["behind"], "reason": f"behind the hotspot of {b['behind']}"})
+    return [{key: v for key, v in p.items() if key != "bearing"} for p in placed], left
 
 
 @lru_cache(maxsize=2)

@@ -12,6 +12,7 @@ import hashlib
 import hmac
 import json
 import logging
+import math
 import mimetypes
 import re
 import secrets
@@ -215,6 +216,8 @@ class _Handler(BaseHTTPRequestHandler):
             return self._send(scene.mesh(), "application/octet-stream")
         if path == "/api/matches":
             return self._json(scene.matches(_param(query, "a"), _param(query, "b")))
+        if path == "/api/measure":
+            return self._json(scene.measure(_param(query, "image"), _point(query, "a"), _point(query, "b")))
         if path == "/api/hand_points":
             tracks = self.app.pipeline.dataset.hand_tracks()
             return self._json([{"name": t.name, "observations": t.observations} for t in tracks])
@@ -300,6 +303,19 @@ def _param(query: dict, key: str, default: str | None = None) -> str:
     if key not in query and default is None:
         raise RequestError(f"missing query parameter {key!r}")
     return query.get(key, default)
+
+
+def _point(query: dict, key: str) -> tuple[float, float]:
+    """A pixel given as `key=x,y` (two finite numbers)."""
+    text = _param(query, key)
+    parts = text.split(",")
+    try:
+        x, y = (float(v) for v in parts) if len(parts) == 2 else (None, None)
+    except ValueError:
+        x = y = None
+    if x is None or not (math.isfinite(x) and math.isfinite(y)):
+        raise RequestError(f"{key} must be a pixel x,y (two finite numbers), got {text[:40]!r}")
+    return x, y
 
 
 def _no_constant(name: str):

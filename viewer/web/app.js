@@ -10,7 +10,7 @@ const TOUR_WIDTH = 4096;      // display width of tour panoramas (served downsca
 const CORR_WIDTH = 2048;      // display width of the correlated views
 const RAY_TOLERANCE = 0.01;   // rad: a point this close to a clicked ray counts as lying on it
 const TARGET_FPS = 30;        // the point budget is lowered until the 3-D scene renders this fast
-const MIN_BUDGET = 20000;     // ... but never below this many points
+const MIN_BUDGET = 20000;     // ... but never below this many points (nor the model's readable budget)
 const hooks = window.fullview = { ready: false, lastClick: null, tour: null, errors: [] };
 
 // ------------------------------------------------------------------------------------------------ server access
@@ -132,6 +132,8 @@ function initScene() {
   renderer.setAnimationLoop(() => { controls.update(); renderer.render(scene, camera); });
 }
 
+// The scene opens framed on the model's bounds (the 2nd-98th percentiles of its points per axis, from the server),
+// seen from outside and above like a dollhouse; the cameras are spheres to click into the tour.
 function buildScene(model) {
   const { group } = scene3d;
   group.clear();
@@ -140,15 +142,22 @@ function buildScene(model) {
     R[2][0], R[2][1], R[2][2], 0, 0, 0, 0, 1);
   group.matrixAutoUpdate = false;
   group.matrix.copy(m);
-  const centres = model.cameras.filter((c) => c.registered).map((c) => c.center);
-  const mean = centres.reduce((s, c) => [s[0] + c[0], s[1] + c[1], s[2] + c[2]], [0, 0, 0])
-    .map((v) => v / Math.max(centres.length, 1));
-  const extent = Math.max(1e-6, ...centres.map((c) => norm(sub(c, mean))));
-  const radius = 0.04 * extent;
+  const registered = model.cameras.filter((c) => c.registered);
+  const centres = registered.map((c) => c.center);
+  const display = centres.map((c) => new THREE.Vector3(...c).applyMatrix4(m));
+  const box = model.tour.bounds ? new THREE.Box3(new THREE.Vector3(...model.tour.bounds[0]),
+    new THREE.Vector3(...model.tour.bounds[1])) : new THREE.Box3().setFromPoints(display);
+  if (box.isEmpty()) box.expandByScalar(1);
+  scene3d.bounds = box;
+  const size = box.getSize(new THREE.Vector3());
+  const extent = Math.max(1e-6, size.length());
+  const spacing = display.map((p, i) => Math.min(...display.filter((_, j) => j !== i).map((q) => p.distanceTo(q))))
+    .sort((a, b) => a - b)[Math.floor(display.length / 2)];  // median distance to the nearest other camera
+  const radius = Math.min(0.012 * extent, 0.25 * (spacing || extent));
   scene3d.cameraMeshes = [];
-  for (const cam of model.cameras.filter((c) => c.registered)) {
+  for (const cam of registered) {
     const sphere = new THREE.Mesh(new THREE.SphereGeometry(radius, 16, 12),
-      new THREE.MeshBasicMaterial({ color: 0xffcc33 }));
+      new THREE.MeshBasicMaterial({ color: cam.walked ? 0xffcc33 : 0x888888 }));
     sphere.position.set(...cam.center);
     sphere.userData.name = cam.name;
     group.add(sphere);
@@ -158,15 +167,76 @@ function buildScene(model) {
     group.add(line([cam.center, tip], 0xff6633));
   }
   group.add(line(centres, 0x66aaff));  // the capture's track, in image order
-  const world = new THREE.Vector3(...mean).applyMatrix4(m);
-  const up = new THREE.Vector3(0, 1, 0);
-  scene3d.controls.target.copy(world);
-  scene3d.camera.position.copy(world).add(new THREE.Vector3(extent * 1.5, extent * 1.2, extent * 1.5));
-  scene3d.camera.near = extent * 1e-3;
-  scene3d.camera.far = extent * 1e3;
-  scene3d.camera.up.copy(up);
-  scene3d.camera.updateProjectionMatrix();
   scene3d.extent = extent;
+  setupCut(model.tour, box);
+  frameModel();
+}
+
+// Place the 3-D camera outside the bounds, above them, so that the whole box is in view.
+function frameModel() {
+  const { camera, controls, bounds } = scene3d;
+  const centre = bounds.getCenter(new THREE.Vector3());
+  const corners = boxCorners(bounds);
+  const dir = new THREE.Vector3(0.55, 0.75, 0.9).normalize();  // from the side and above (45° or so)
+  camera.up.set(0, 1, 0);
+  const rect = scene3d.renderer.domElement.getBoundingClientRect();
+  camera.aspect = rect.width && rect.height ? rect.width / rect.height : camera.aspect;
+  // The nearest distance along `dir` at which every corner projects inside the view (with a 10% margin).
+  let lo = 0, hi = 1e3 * scene3d.extent;
+  for (let it = 0; it < 60; it++) {
+    const d = (lo + hi) / 2;
+    camera.position.copy(centre).addScaledVector(dir, d);
+    camera.lookAt(centre);
+    camera.near = d * 1e-3; camera.far = d * 1e2;
+    camera.updateProjectionMatrix(); camera.updateMatrixWorld();
+    const inside = corners.every((c) => { const p = c.clone().project(camera);
+      return p.z < 1 && Math.abs(p.x) <= 0.9 && Math.abs(p.y) <= 0.9; });
+    if (inside) hi = d; else lo = d;
+  }
+  camera.position.copy(centre).addScaledVector(dir, hi);
+  camera.near = hi * 1e-3; camera.far = hi * 1e2;
+  camera.updateProjectionMatrix();
+  controls.target.copy(centre);
+  controls.update();
+}
+
+function boxCorners(box) {
+  const out = [];
+  for (const x of [box.min.x, box.max.x]) {
+    for (const y of [box.min.y, box.max.y]) {
+      for (const z of [box.min.z, box.max.z]) out.push(new THREE.Vector3(x, y, z));
+    }
+  }
+  return out;
+}
+// Where the bounds' corners project in the 3-D view (NDC; tests check they are all in view).
+hooks.sceneCamera = () => scene3d.camera.position.toArray();
+hooks.state = () => state;
+hooks.sceneFraming = () => boxCorners(scene3d.bounds).map((c) => c.clone().project(scene3d.camera))
+  .map((p) => [p.x, p.y, p.z]);
+
+// The dollhouse's cut: everything above a height (display y) is clipped away, the mesh's ceiling first; the
+// default is just below the ceiling the server estimated from the depth above the cameras.
+const CUT_BELOW_CEILING = 0.1;  // default cut: this share of the floor-to-ceiling height below the ceiling
+function setupCut(t, box) {
+  const slider = document.getElementById('cut');
+  const low = t.floor ?? box.min.y, high = Math.max(t.ceiling ?? box.max.y, box.max.y);
+  slider.min = low; slider.max = high + 0.02 * (high - low); slider.step = (high - low) / 500 || 0.001;
+  const ceiling = t.ceiling ?? box.max.y;
+  slider.value = ceiling - CUT_BELOW_CEILING * (ceiling - (t.floor ?? box.min.y));
+  slider.disabled = false;
+  scene3d.cut = new THREE.Plane(new THREE.Vector3(0, -1, 0), Number(slider.value));
+  scene3d.renderer.localClippingEnabled = true;
+  const update = () => {
+    scene3d.cut.constant = Number(slider.value);
+    const above = Number(slider.value) - (t.floor ?? box.min.y);
+    document.getElementById('cut-label').textContent = Number(slider.value) >= Number(slider.max) - 1e-9 ? 'none'
+      : `${above.toFixed(2)} above the floor`;
+    hooks.cut = Number(slider.value);
+  };
+  slider.addEventListener('input', update);
+  update();
+  document.getElementById('frame').onclick = frameModel;
 }
 
 function line(points, color) {
@@ -185,8 +255,8 @@ async function showCloud(kind) {
   const geometry = new THREE.BufferGeometry();
   geometry.setAttribute('position', new THREE.BufferAttribute(cloud.positions, 3));
   geometry.setAttribute('color', new THREE.BufferAttribute(cloud.colors, 3, true));
-  const material = new THREE.PointsMaterial({ size: kind === 'sparse' ? 3 : 1.5, sizeAttenuation: false,
-    vertexColors: true });
+  const material = new THREE.PointsMaterial({ size: kind === 'sparse' ? 3 : 2, sizeAttenuation: false,
+    vertexColors: true, clippingPlanes: [scene3d.cut] });
   scene3d.points = new THREE.Points(geometry, material);
   scene3d.group.add(scene3d.points);
   const slider = document.getElementById('budget');
@@ -206,7 +276,8 @@ async function showMesh() {
   geometry.setAttribute('color', new THREE.BufferAttribute(mesh.colors, 3, true));
   geometry.setIndex(new THREE.BufferAttribute(mesh.index, 1));
   geometry.computeVertexNormals();
-  const material = new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide });
+  const material = new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide,
+    clippingPlanes: [scene3d.cut] });
   scene3d.points = new THREE.Mesh(geometry, material);
   scene3d.group.add(scene3d.points);
   document.getElementById('budget').disabled = true;
@@ -214,14 +285,17 @@ async function showMesh() {
   hooks.shown = { kind: 'mesh', triangles: mesh.triangles, vertices: mesh.vertices };
 }
 
-// Halve the point budget until the scene renders at 30 fps or more (the slider can raise it again).
+// Halve the point budget until the scene renders at 30 fps or more (the slider can raise it again), never below
+// the readable budget: the server orders the cloud coarse to fine (viewer/tour.py spatial_order), and that many
+// points give every occupied cell of 1/128 of the model's extent a point.
 async function fitBudgetToFrameRate() {
   const slider = document.getElementById('budget');
-  for (let round = 0; round < 6 && Number(slider.value) > MIN_BUDGET; round++) {
+  const floor = Math.max(MIN_BUDGET, state.model.tour.readable_points || 0);
+  for (let round = 0; round < 6 && Number(slider.value) > floor; round++) {
     const fps = await measureFps();
     hooks.fps = fps;
     if (fps >= TARGET_FPS) break;
-    slider.value = Math.max(MIN_BUDGET, Math.floor(Math.min(Number(slider.value), Number(slider.max)) / 2));
+    slider.value = Math.max(floor, Math.floor(Math.min(Number(slider.value), Number(slider.max)) / 2));
     applyBudget();
   }
 }
@@ -242,7 +316,7 @@ function applyBudget() {
   const slider = document.getElementById('budget');
   const n = Math.min(Number(slider.value), Number(slider.max));
   if (!scene3d.points || scene3d.points.isMesh) return;
-  scene3d.points.geometry.setDrawRange(0, n);  // clouds come shuffled: a prefix is a subsample
+  scene3d.points.geometry.setDrawRange(0, n);  // clouds come coarse to fine: a prefix is spread over the model
   document.getElementById('budget-label').textContent = `${n.toLocaleString()} points`;
 }
 
@@ -260,7 +334,7 @@ function highlightPoint(p) {
   if (scene3d.highlight) scene3d.group.remove(scene3d.highlight);
   scene3d.highlight = null;
   if (!p) return;
-  const mesh = new THREE.Mesh(new THREE.SphereGeometry(0.015 * scene3d.extent, 12, 8),
+  const mesh = new THREE.Mesh(new THREE.SphereGeometry(0.006 * scene3d.extent, 12, 8),
     new THREE.MeshBasicMaterial({ color: 0xff2222 }));
   mesh.position.set(...p);
   scene3d.group.add(mesh);
@@ -278,47 +352,174 @@ hooks.cameraScreenPosition = (name) => {
 };
 
 // ------------------------------------------------------------------------------------------------ tour
+// Hotspots come from the server (viewer/tour.py): one per visible walked neighbour, on the floor below it, as a disc
+// of angular radius `radius` that clears every other one. A hotspot is drawn as a square inscribed in the disc's
+// image (half-side f·radius/√2, f the view's focal length in pixels), so no two overlap at any heading or zoom.
+const HOTSPOT_BASE = 100;     // CSS px of a hotspot's box before scaling (its text is sized for this box)
+const TRANSITION_MS = 600;    // crossfade between panoramas (PSV's fade), under a second
+const FACE_BELOW_DEG = 25;    // opening a panorama looks this far above its nearest hotspot (on the floor)
 let tour = null, markers = null;
 
 function initTour() {
   tour = new Viewer({ container: 'tour', navbar: ['zoom', 'move', 'caption', 'fullscreen'], loadingTxt: 'loading',
-    plugins: [[MarkersPlugin, {}]], defaultZoomLvl: 0 });
+    plugins: [[MarkersPlugin, { defaultHoverScale: null }]], defaultZoomLvl: 0 });
   markers = tour.getPlugin(MarkersPlugin);
   markers.addEventListener('select-marker', ({ marker }) => moveTo(marker.data.target));
+  tour.addEventListener('panorama-loaded', () => { hooks.loadedAt = performance.now(); });
+  tour.addEventListener('click', ({ data }) => { if (measuring.on && !data.marker) measureClick(data); });
+  document.getElementById('measure').addEventListener('click', () => {
+    measuring.on = !measuring.on;
+    measuring.points = [];
+    document.getElementById('measure').classList.toggle('active', measuring.on);
+    clearMeasureMarks();
+    document.getElementById('measure-result').textContent = measuring.on ? 'click two points in the panorama' : '';
+  });
 }
 
-async function openTour(name, position = null) {
+// ------------------------------------------------------------------------------------------------ measuring
+// Two clicks in a panorama: the server reads both ranges from its depth map and gives the distance with its
+// standard error (model units: no metric scale is known), or says why it cannot.
+const measuring = { on: false, points: [] };
+function clearMeasureMarks() {
+  for (const id of ['measure-A', 'measure-B']) {
+    if (markers.getMarkers().some((m) => m.id === id)) markers.removeMarker(id);
+  }
+}
+async function measureClick(data) {
+  const name = hooks.tour && hooks.tour.name;
+  const size = imageSize.get(name);
+  if (!size) return;
+  if (measuring.points.length === 2) { measuring.points = []; clearMeasureMarks(); }
+  const px = [(data.yaw / (2 * Math.PI) + 0.5) * size[0], (0.5 - data.pitch / Math.PI) * size[1]];
+  const id = measuring.points.length ? 'measure-B' : 'measure-A';
+  const dotEl = document.createElement('div');
+  dotEl.className = 'measure-dot';
+  markers.addMarker({ id, position: { yaw: data.yaw, pitch: data.pitch }, anchor: 'center center', element: dotEl });
+  measuring.points.push(px);
+  const out = document.getElementById('measure-result');
+  if (measuring.points.length < 2) { out.textContent = 'click the second point'; return; }
+  const [a, b] = measuring.points;
+  const r = await api(`/api/measure?image=${encodeURIComponent(name)}&a=${a[0]},${a[1]}&b=${b[0]},${b[1]}`);
+  const body = await r.json();
+  hooks.measured = body;
+  out.textContent = r.ok ? `${body.distance.toFixed(3)} ± ${body.sigma.toFixed(3)} ${body.units} ` +
+    `(ranges ${body.ranges.map((v, i) => `${v.toFixed(2)} ± ${body.range_sigmas[i].toFixed(2)}`).join(', ')})`
+    : `not measured: ${body.error}`;
+}
+hooks.measurePixels = async (a, b) => {  // tests: the same request as two clicks
+  const name = hooks.tour.name;
+  const r = await api(`/api/measure?image=${encodeURIComponent(name)}&a=${a[0]},${a[1]}&b=${b[0]},${b[1]}`);
+  return { ok: r.ok, ...(await r.json()) };
+};
+
+function tourHint(text) {
+  const el = document.getElementById('tour-hint');
+  el.hidden = !text;
+  el.textContent = text || '';
+}
+
+// Scale of a hotspot's box for the current zoom: its half-side is f·radius/√2 pixels.
+function hotspotScale(radius, el) {
+  return (zoomLevel) => {
+    const vfov = THREE.MathUtils.degToRad(tour.dataHelper.zoomLevelToFov(zoomLevel));
+    const f = tour.state.size.height / 2 / Math.tan(vfov / 2);
+    return (2 * f * radius / Math.SQRT2) / (el.offsetWidth || HOTSPOT_BASE);  // its laid-out size, border included
+  };
+}
+
+const walkedCameras = () => [...cams.values()].filter((c) => c.walked);
+
+let opening = 0;  // the latest openTour: an older one still loading gives way to it
+async function openTour(name, position = null, transition = false, zoom = null) {
+  const ticket = ++opening;
+  hooks.tour = { name, ready: false };
   selectTab('tour');
   const cam = cams.get(name);
-  hooks.tour = { name, ready: false };
-  // Opened from the scene or a list: face the nearest neighbour, so the first hotspot is in view.
-  const facing = cam && cam.neighbours.length ? { yaw: cam.neighbours[0].yaw, pitch: 0 } : { yaw: 0, pitch: 0 };
-  await tour.setPanorama(withToken(`/pano/${encodeURIComponent(name)}?width=${TOUR_WIDTH}`),
-    { position: position || facing, caption: escapeHtml(name), transition: false, showLoader: false });
   markers.clearMarkers();
+  const spots = cam && cam.walked ? cam.hotspots : [];
+  // Opened from the scene or a list: face the nearest hotspot, looking a little above it, so it is in view.
+  const facing = spots.length
+    ? { yaw: spots[0].yaw, pitch: Math.min(0, spots[0].pitch + FACE_BELOW_DEG * Math.PI / 180) } : { yaw: 0, pitch: 0 };
+  const label = cam ? cam.label || name : name;
+  const caption = label === name ? name : `${label} · ${name}`;
+  await tour.setPanorama(withToken(`/pano/${encodeURIComponent(name)}?width=${TOUR_WIDTH}`),
+    { position: position || facing, caption: escapeHtml(caption), showLoader: false, ...(zoom === null ? {} : { zoom }),
+      transition: transition ? { speed: TRANSITION_MS, rotation: false, effect: 'fade' } : false });
+  if (ticket !== opening) return;
+  tourHint(null);
   const info = document.getElementById('tour-info');
   if (!cam || !cam.registered) {
     info.textContent = `${name} is not registered: no neighbours to walk to`;
+  } else if (!cam.walked) {
+    info.textContent = `${name}: placed ${cam.verdict}, so not in the walk (its position is not confirmed)`;
   } else {
-    info.textContent = `${name}: ${cam.neighbours.length} neighbour(s); click a label to walk there`;
-    for (const nb of cam.neighbours) {
-      const label = document.createElement('div');
-      label.className = 'hotspot';
-      label.textContent = `→ ${nb.name}`;
-      markers.addMarker({ id: `to-${nb.name}`, position: { yaw: nb.yaw, pitch: nb.pitch }, anchor: 'center center',
-        element: label, data: { target: nb.name }, tooltip: escapeHtml(nb.name) });
+    info.textContent = `${caption}: ${spots.length} hotspot(s) on the floor below the panoramas seen from here; ` +
+      `click one to walk there` + (cam.left_out.length ? ` · not linked: ${cam.left_out.map((l) =>
+        `${l.label} (${l.reason})`).join('; ')}` : '');
+    for (const h of spots) {
+      const el = document.createElement('div');
+      el.className = 'hotspot';
+      el.dataset.target = h.name;
+      const text = document.createElement('span');
+      text.textContent = h.label;
+      const file = document.createElement('span');  // the file name, for screen readers and searches; not drawn
+      file.className = 'file';
+      file.textContent = h.name;
+      el.append(text, file);
+      markers.addMarker({ id: `to-${h.name}`, position: { yaw: h.yaw, pitch: h.pitch }, anchor: 'center center',
+        element: el, data: { target: h.name }, scale: hotspotScale(h.radius, el), hoverScale: null,
+        tooltip: escapeHtml(h.label === h.name ? h.name : `${h.label} · ${h.name}`) });  // PSV tooltips are HTML
     }
   }
-  hooks.tour = { name, ready: true, neighbours: cam ? cam.neighbours : [] };
+  hooks.tour = { name, ready: true, hotspots: spots, neighbours: cam ? cam.neighbours : [] };
+  prefetch(spots.map((h) => h.name));
 }
 
-// Walk to a neighbour keeping the world direction of the view.
+// The panoramas one click away, fetched ahead (the server lets the browser cache them): a walk then waits for the
+// fade only, not for the server to encode and send the next panorama.
+const prefetched = new Set();
+function prefetch(names) {
+  for (const name of names) {
+    if (prefetched.has(name)) continue;
+    prefetched.add(name);
+    fetch(withToken(`/pano/${encodeURIComponent(name)}?width=${TOUR_WIDTH}`)).catch(() => prefetched.delete(name));
+  }
+}
+hooks.openTour = (name) => openTour(name);
+
+// Walk to a neighbour keeping the world direction of the view: first the current panorama is magnified as a
+// step forward would magnify what lies ahead (a surface at range r, seen along the view, grows by r / (r − s) when
+// the camera moves s towards it: s the step's component along the view, r the depth found beyond the neighbour),
+// then the next panorama is crossfaded in while the zoom returns. Timed: hooks.transitions.
+const STEP_MS = 250;          // the magnification's duration (before the 600 ms fade)
+const MAX_STEP_ZOOM = 2.5;    // never magnified more than this
 async function moveTo(target) {
   const from = cams.get(hooks.tour.name), to = cams.get(target);
-  const world = mulT(from.R_cam_from_world, fromYawPitch(tour.getPosition()));
-  await openTour(target, yawPitch(mul(to.R_cam_from_world, world)));
+  const view = fromYawPitch(tour.getPosition());
+  const world = mulT(from.R_cam_from_world, view);
+  const zoom = tour.getZoomLevel();
+  const start = performance.now();
+  const spot = (hooks.tour.hotspots || []).find((h) => h.name === target);
+  if (spot && spot.beyond) {
+    const s = spot.walk_distance * Math.max(0, dot(view, spot.walk_bearing));
+    const m = Math.min(MAX_STEP_ZOOM, spot.beyond / Math.max(spot.beyond - s, spot.beyond / MAX_STEP_ZOOM));
+    if (m > 1.05) {
+      const fov = tour.dataHelper.zoomLevelToFov(zoom) * Math.PI / 180;
+      const narrower = 2 * Math.atan(Math.tan(fov / 2) / m) * 180 / Math.PI;
+      await tour.animate({ zoom: tour.dataHelper.fovToZoomLevel(narrower), speed: STEP_MS });
+    }
+  }
+  await openTour(target, yawPitch(mul(to.R_cam_from_world, world)), true, zoom);
+  const end = performance.now();  // ms: click to done (step, loading the next panorama, fade); fade_ms: the fade
+  (hooks.transitions = hooks.transitions || []).push({ from: from.name, to: target, ms: end - start,
+    fade_ms: end - Math.max(start, hooks.loadedAt || start) });
 }
 hooks.moveTo = moveTo;
+// Boxes of the hotspots on screen (tests check that none overlap).
+hooks.hotspotBoxes = () => [...document.querySelectorAll('.psv-marker--visible .hotspot')].map((el) => {
+  const r = el.getBoundingClientRect();
+  return { target: el.dataset.target, left: r.left, top: r.top, right: r.right, bottom: r.bottom };
+});
 hooks.registeredNames = () => [...cams.values()].filter((c) => c.registered).map((c) => c.name);
 hooks.tourPosition = () => tour.getPosition();
 hooks.tourLookAt = (position) => tour.rotate(position);
@@ -627,10 +828,31 @@ function groupByReason(names, why) {
   return [...groups].map(([reason, members]) => `${members.join(', ')}: ${reason}`).join('; ');
 }
 
+const TABS = ['scene', 'tour', 'corr'];
+
+// A tab shown (by a click or the address' #hash, kept in the address): the tour shows a panorama as soon as the
+// reconstruction is known (the first walked camera unless one is open), and a hint until then — never a blank page.
 function selectTab(name) {
+  if (!TABS.includes(name)) name = 'scene';
   document.querySelectorAll('.tab').forEach((b) => b.classList.toggle('active', b.dataset.tab === name));
   document.querySelectorAll('.tabpage').forEach((p) => p.classList.toggle('active', p.id === `tab-${name}`));
-  if (name === 'tour' && tour) tour.autoSize();
+  if (location.hash !== `#${name}`) history.replaceState(null, '', `${location.pathname}${location.search}#${name}`);
+  if (name === 'tour' && tour) {
+    tour.autoSize();
+    if (!hooks.tour) openFirstPanorama();
+  }
+}
+
+function openFirstPanorama() {
+  if (!state) return tourHint('loading the reconstruction…');
+  const first = walkedCameras()[0] || [...cams.values()].find((c) => c.registered);
+  if (first) return openTour(first.name);
+  if (state.images.length) {
+    tourHint(state.model ? 'no panorama is placed in the model: showing the first one, without hotspots'
+      : 'this dataset has not been reconstructed yet: showing the first panorama, without hotspots');
+    return openTour(state.images[0].name);
+  }
+  tourHint('this dataset has no panoramas');
 }
 
 async function poll() {
@@ -644,6 +866,9 @@ async function poll() {
 }
 
 async function main() {
+  document.querySelectorAll('.tab').forEach((b) => b.addEventListener('click', () => selectTab(b.dataset.tab)));
+  initTour();
+  selectTab(location.hash.slice(1) || 'scene');
   if (!TOKEN) throw new Error('this address has no token: open the URL `fullview view` printed');
   state = await getJSON('/api/state');
   document.getElementById('title').textContent = `fullview · ${state.dataset}`;
@@ -651,7 +876,6 @@ async function main() {
     .map(([s, st]) => `${s}: ${st.state}`).join(' · ');
   state.images.forEach((i) => imageSize.set(i.name, i.size));
   const messages = [state.message];
-  document.querySelectorAll('.tab').forEach((b) => b.addEventListener('click', () => selectTab(b.dataset.tab)));
   document.getElementById('reload').addEventListener('click', () => location.reload());
   if (state.model) {
     state.model.cameras.forEach((c) => cams.set(c.name, c));
@@ -659,16 +883,22 @@ async function main() {
       messages.push('not in this model: ' + groupByReason(state.model.unregistered,
                                                           state.model.unregistered_reasons || {}));
     }
+    const t = state.model.tour;
+    if (t.names_problem) messages.push(`room names: ${t.names_problem} (numbers used)`);
+    if (t.left_apart.length) messages.push(`not in the walk (placement not confirmed): ${t.left_apart.join(', ')}`);
+  }
+  showMessage(messages.filter(Boolean).join(' — '));
+  if (document.getElementById('tab-tour').classList.contains('active') && !hooks.tour) openFirstPanorama();
+  if (state.model) {
     initScene();
     buildScene(state.model);
     document.querySelector('#cloud option[value=mesh]').disabled = !state.model.has_mesh;
-    document.getElementById('cloud').value = state.model.has_dense ? 'dense' : 'sparse';
+    document.getElementById('cloud').value = state.model.has_mesh ? 'mesh' : state.model.has_dense ? 'dense'
+      : 'sparse';
     await showCloud(document.getElementById('cloud').value);
     document.getElementById('cloud').addEventListener('change', (e) => showCloud(e.target.value));
     document.getElementById('budget').addEventListener('input', applyBudget);
   }
-  showMessage(messages.filter(Boolean).join(' — '));
-  initTour();
   initCorr();
   await loadTracks();
   setInterval(poll, 3000);
