@@ -435,3 +435,24 @@ def test_walking_the_flat_corridor_by_the_nearest_hotspot_ahead_visits_every_cam
         assert visited == corridor
     finally:
         page.close()
+
+
+def test_a_stated_scale_makes_the_measurement_metric_with_its_uncertainty(home, monkeypatch):
+    """With a metric scale stated (export --camera-height), the same two clicks read in metres: the distance times
+    the scale, its error widened by the scale's own."""
+    from fullview.sfm.scale import Scale
+    from fullview.viewer.scene import SceneData
+    pipeline = home[0]
+    scene = SceneData(pipeline)
+    name = str(pipeline.ws.load_poses()[0]["image_names"][0])
+    valid = pipeline.ws.load_depth(name)["valid"]
+    ys, xs = np.nonzero(valid[5:-5, 5:-5])
+    a, b = (xs[0] + 5.5, ys[0] + 5.5), (xs[-1] + 5.5, ys[-1] + 5.5)
+    plain = scene.measure(name, a, b)
+    scale = Scale(metres_per_unit=2.0, rel_std=0.05, method="camera height", stated="camera height 1.6 m",
+                  measurements=6, spread=0.05)
+    monkeypatch.setattr(SceneData, "metric_scale", lambda self, model: scale)
+    metric = scene.measure(name, a, b)
+    assert plain["units"] == "model units" and metric["units"] == "m"
+    assert metric["distance"] == pytest.approx(2.0 * plain["distance"])
+    assert metric["sigma"] == pytest.approx(np.hypot(2 * plain["sigma"], 0.05 * metric["distance"]))

@@ -160,7 +160,8 @@ class SceneData:
 
     def measure(self, name: str, a: tuple[float, float], b: tuple[float, float]) -> dict:
         """Distance between two pixels (full size) of a panorama, from its depth map, with its standard error; in
-        model units (no metric scale is known to the viewer). A RequestError names why it cannot be measured."""
+        metres when a scale is stated (its uncertainty included), else in model units. A RequestError names why it
+        cannot be measured."""
         name = self.image(name)
         W, H = self.dataset.image_sizes[name]
         for label, (x, y) in (("A", a), ("B", b)):
@@ -191,9 +192,23 @@ class SceneData:
             rays.append(ray)
             sigmas.append(found[1])
         d, sigma = tour.distance_between(np.array(points), np.array(rays), np.array(sigmas))
-        return {"image": name, "distance": d, "sigma": sigma, "units": "model units",
-                "points": np.array(points).tolist(), "ranges": [float(np.linalg.norm(p - c)) for p in points],
-                "range_sigmas": sigmas}
+        ranges = [float(np.linalg.norm(p - c)) for p in points]
+        model = int(poses["model_id"][k]) if "model_id" in poses else 0
+        scale = self.metric_scale(model)
+        if scale is None:
+            return {"image": name, "distance": d, "sigma": sigma, "units": "model units",
+                    "points": np.array(points).tolist(), "ranges": ranges, "range_sigmas": sigmas}
+        f, rel = scale.metres_per_unit, (scale.rel_std if np.isfinite(scale.rel_std) else 0.0)
+        # the depth's error and the scale's (stated camera height or distance) are independent: add in quadrature
+        return {"image": name, "distance": d * f, "sigma": float(np.hypot(sigma * f, d * f * rel)), "units": "m",
+                "scale": scale.describe(), "points": np.array(points).tolist(), "ranges": [r * f for r in ranges],
+                "range_sigmas": [float(np.hypot(s_ * f, r * f * rel)) for r, s_ in zip(ranges, sigmas)]}
+
+    def metric_scale(self, model: int):
+        """The metric scale of `model` the user stated (`fullview export --camera-height` / `--known-distance`),
+        or None: lengths are then in model units."""
+        from fullview.commands.export import metric_scale
+        return metric_scale(self.pipeline, model)
 
     # ---------------------------------------------------------------------------------------------- points
     def points(self, kind: str) -> bytes:

@@ -378,7 +378,7 @@ function initTour() {
 
 // ------------------------------------------------------------------------------------------------ measuring
 // Two clicks in a panorama: the server reads both ranges from its depth map and gives the distance with its
-// standard error (model units: no metric scale is known), or says why it cannot.
+// standard error (metres when a scale is stated, else model units), or says why it cannot.
 const measuring = { on: false, points: [] };
 function clearMeasureMarks() {
   for (const id of ['measure-A', 'measure-B']) {
