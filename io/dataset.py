@@ -107,9 +107,9 @@ class Dataset:
         self._sizes: dict[str, tuple[int, int]] | None = None
         self._sizes_lock = threading.Lock()  # the features stage asks for sizes from several threads at once
         if not self.root.is_dir():
-            raise DatasetError(f"dataset folder not found: {self.root}")
+            raise DatasetError(_not_a_folder(self.root))
         if not self.images_dir.is_dir():
-            raise DatasetError(f"{self.root}: no images/ folder")
+            raise DatasetError(_no_images_folder(self.root))
         if len(self.image_names) < 2:
             raise DatasetError(f"{self.images_dir}: need at least two images, found {len(self.image_names)}")
         stems: dict[str, str] = {}
@@ -918,3 +918,23 @@ def _png_chunks(data: bytes, kind: bytes) -> Iterator[memoryview]:
         if chunk_kind == b"IEND":
             return
         pos += 12 + length
+
+
+def _not_a_folder(root: Path) -> str:
+    """What to do when DATASET is not a folder: an image given instead of its dataset, or a wrong path."""
+    if root.is_file() and root.suffix.lower() in IMAGE_SUFFIXES:
+        hint = root.parent.parent if root.parent.name == "images" else root.parent
+        return (f"{root}: is an image, not a dataset; give the dataset folder (the one holding images/), "
+                f"e.g. {hint}")
+    return f"dataset folder not found: {root}"
+
+
+def _no_images_folder(root: Path) -> str:
+    """What to do when DATASET has no images/: it is images/ itself, or it holds loose panoramas."""
+    if root.name == "images" and (root.parent / "images").is_dir():
+        return f"{root}: no images/ folder inside; did you mean the dataset folder {root.parent}?"
+    loose = [p for p in root.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+    if loose:
+        return (f"{root}: no images/ folder, but {len(loose)} image(s) lie here; move them into {root / 'images'}/ "
+                "(a dataset is a folder with images/ inside)")
+    return f"{root}: no images/ folder (a dataset is a folder with the panoramas in images/)"

@@ -458,3 +458,25 @@ def test_set_values_either_hold_or_name_the_key(key, text):
         assert meta["le"] is None or value <= meta["le"]
         assert meta["gt"] is None or value > meta["gt"]
         assert meta["lt"] is None or value < meta["lt"]
+
+
+def test_errors_that_guide_to_the_dataset_layout(tmp_path, capsys):
+    """A folder of loose panoramas, `images/` itself and an image path each get one line saying what to do."""
+    import cv2
+    import numpy as np
+    from fullview.cli import main
+    loose = tmp_path / "loose"
+    loose.mkdir()
+    for k in range(2):
+        cv2.imwrite(str(loose / f"p{k}.png"), np.zeros((8, 16, 3), np.uint8))
+    cases = {loose: "move them into", tmp_path / "ds" / "images": "did you mean the dataset folder",
+             tmp_path / "ds" / "images" / "p0.png": "is an image, not a dataset"}
+    (tmp_path / "ds").mkdir()
+    loose.rename(tmp_path / "ds" / "images")
+    loose.mkdir()
+    for k in range(2):
+        cv2.imwrite(str(loose / f"p{k}.png"), np.zeros((8, 16, 3), np.uint8))
+    for path, advice in cases.items():
+        assert main(["status", str(path), "-w", str(tmp_path / "ws")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and advice in err[0] and err[0].startswith("fullview: error:"), err
