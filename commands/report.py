@@ -221,7 +221,7 @@ def _dense(pipeline: Pipeline, out: StageWriter) -> str:
     parts = []
     scene = summary.get("scene") or {}
     if scene.get("kind"):
-        parts.append(f"<p>Scene: {html.escape(str(scene['kind']))} — {html.escape(str(scene.get('reason', '')))}</p>")
+        parts.append(f"<p>Scene: {html.escape(str(scene.get('reason') or scene['kind']))}</p>")  # the reason names it
     for artifact, caption in (("dense_preview", f"dense cloud, {summary.get('points', 0):,} points"),
                               ("dense_mesh_preview", "mesh")):
         path = ws.path(artifact)

@@ -41,13 +41,14 @@ its cameras that do the same under its rotation and place b consistently. The gu
 (`accept`, `placement_check`), which every join found here passes before it is taken.
 
 A guess (`guess`, only with `registration.unconfirmed_joins: approximate`, the very last): a doorway pair that the
-rematch confirms by homejoin's margins, with no companion and none of either model's points among its matches (1024 home seed 92: 016-002,
-51 rematched, 1 point of each model), fixes b's rotation and the direction from l to k, not the length nor b's
-scale: k is put on the ray at model a's median baseline, b's scale is the median baselines' ratio, and the
-triangulation stage's height prior and bridge floor measure both. Where no upright fit of the doorway exists (seed
-96: 018-019, 5 true of 25 raw), every rotation the walls allow is tried on every cross pair, rematched once, and the
-most rematched are confirmed (among the first three there, the only one confirmed). A chance pair the rematch
-confirms (the closed door of seed 48: 023-005, 70 rematched) put at a guessed place is refused by the join check.
+rematch confirms by homejoin's margins, with no companion and none of either model's points among its matches, fixes
+b's rotation and the direction from l to k, but neither the length nor b's scale: one pair's epipolar geometry
+carries no distance. So k is put on the ray at model a's median baseline, b's scale is the median baselines' ratio,
+and every camera it carries is marked approximate (docs/trust.md); the triangulation stage's height prior and bridge
+floor measure both. Where no upright fit of the doorway exists, every rotation the walls allow is tried on every
+cross pair, rematched once, and the most rematched are confirmed. A chance pair the rematch confirms, put at a
+guessed place, is refused by the join check (free space: its points may not lie in front of what the other model's
+cameras saw).
 Pure geometry: no file access.
 """
 
